@@ -1,0 +1,57 @@
+"""`aefabmap eval`: loop-closure metrics of a bundle on an image sequence with ground truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from aefabmap.runtime.pipeline import SCORERS, DetectorConfig
+
+
+def register(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a bundle on an image sequence (evaluation.md protocol)")
+    p.add_argument("--model", required=True, type=Path, metavar="BUNDLE")
+    p.add_argument("--images", required=True, type=Path, metavar="DIR", help="frames, sorted by name = temporal order")
+    p.add_argument("--gt", required=True, type=Path, metavar="GT.npy", help="bool N x N ground truth")
+    p.add_argument("--exclude", type=int, default=50, help="exclusion window / insertion delay in frames (default 50)")
+    p.add_argument("--tolerance", type=int, default=10, help="frames of tolerance for the tolerant metrics (default 10)")
+    p.add_argument("--scorer", choices=SCORERS + ("both",), default="fabmap", help="fabmap, bow (tf-idf cosine) or both")
+    p.add_argument("--variant", choices=("fp32", "int8"), default="fp32", help="quantiser variant (autoencoder bundles)")
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+    p.add_argument("--motion-model", action="store_true", help="FAB-MAP motion prior")
+    p.add_argument("--naive-bayes", action="store_true", help="FAB-MAP without the Chow-Liu tree")
+    p.add_argument("--json", type=Path, metavar="OUT.json")
+    p.add_argument("--plot", type=Path, metavar="PR.png", help="PR curves (needs matplotlib)")
+    p.add_argument("--score-matrix", type=Path, metavar="M.png", help="score matrix as an image")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from aefabmap.runtime.reporting import format_table, save_pr_plot, save_score_matrix
+    from aefabmap.runtime.sequence_eval import evaluate_bundle, public
+
+    scorers = SCORERS if args.scorer == "both" else (args.scorer,)
+    rows, runs = {}, {}
+    for scorer in scorers:
+        config = DetectorConfig(
+            scorer=scorer,
+            exclude=args.exclude,
+            quantizer_variant=args.variant,
+            threads=args.threads,
+            motion_model=args.motion_model,
+            naive_bayes=args.naive_bayes,
+        )
+        rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance, not args.no_progress)
+    print(format_table(rows))
+    main = rows[scorers[0]]
+    if args.json:
+        doc = public(main)
+        doc["methods"] = {k: public(v) for k, v in rows.items()}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=2) + "\n")
+    if args.plot:
+        save_pr_plot(rows, args.plot)
+    if args.score_matrix:
+        save_score_matrix(runs[scorers[0]].score_matrix, args.score_matrix)
+    return 0

@@ -1,0 +1,43 @@
+"""`aefabmap` command line: one subcommand per module; only this layer prints and exits."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from aefabmap import __version__
+from aefabmap.errors import AefabmapError
+
+# Each module exposes register(subparsers) and sets `func` (args -> exit code) on its parser.
+SUBCOMMAND_MODULES = ("train", "eval", "bench", "run", "publish", "replay")
+
+log = logging.getLogger("aefabmap")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="aefabmap", description="Appearance-based loop-closure detection (FAB-MAP 2.0).")
+    parser.add_argument("--version", action="version", version=f"aefabmap {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in SUBCOMMAND_MODULES:
+        importlib.import_module(f"aefabmap.cli.{name}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except AefabmapError as exc:
+        log.error("%s: %s", type(exc).__name__, exc)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,48 @@
+"""`aefabmap train`: learn a vocabulary and Chow-Liu tree from training images, write a bundle."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from aefabmap.runtime.features import FEATURE_KINDS, FeatureConfig
+
+
+def register(sub) -> None:
+    p = sub.add_parser("train", help="train a model bundle from image directories")
+    p.add_argument("--images", nargs="+", required=True, type=Path, metavar="DIR", help="training image directories (recursive)")
+    p.add_argument("--features", choices=FEATURE_KINDS, default="orb")
+    p.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
+    p.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
+    p.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")
+    p.add_argument("--quantizer", choices=("kmeans", "ae"), default="kmeans")
+    p.add_argument("--words", type=int, default=2000, help="vocabulary size K")
+    p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from aefabmap.trainer.train import TrainConfig, train_bundle
+
+    features = FeatureConfig(
+        kind=args.features,
+        max_features=args.max_features,
+        long_side=args.long_side or None,
+        rootsift=args.rootsift,
+    )
+    config = TrainConfig(
+        images=tuple(args.images),
+        out=args.out,
+        features=features,
+        quantizer=args.quantizer,
+        words=args.words,
+        seed=args.seed,
+        max_descriptors=args.max_descriptors,
+        show_progress=not args.no_progress,
+    )
+    result = train_bundle(config)
+    print(json.dumps({"bundle": str(result.path), "timings_s": result.timings_s, **result.summary}, indent=2))
+    return 0

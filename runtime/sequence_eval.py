@@ -1,0 +1,143 @@
+"""Evaluate a model bundle on an image sequence with ground truth (evaluation.md protocol).
+
+Adapter around LoopClosureDetector: reads image files in name order, runs every frame,
+collects predictions, timings and the score matrix, and computes the metrics.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from aefabmap.errors import DataNotFoundError, InputError
+from aefabmap.runtime.evaluation import evaluate_predictions
+from aefabmap.runtime.features import load_image
+from aefabmap.runtime.pipeline import DetectorConfig, FrameResult, LoopClosureDetector
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp")
+
+
+def list_images(directory: str | Path) -> list[Path]:
+    """Image files of a directory sorted by name (= temporal order); raises when there are none."""
+    d = Path(directory)
+    if not d.is_dir():
+        raise DataNotFoundError(f"image directory {d} does not exist")
+    files = sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise DataNotFoundError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {d}")
+    return files
+
+
+def load_ground_truth(path: str | Path, n_frames: int) -> np.ndarray:
+    """Load a bool (N, N) ground-truth matrix (.npy, no pickles) and check it fits the sequence."""
+    try:
+        gt = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read ground truth {path}: {exc}") from exc
+    if gt.ndim != 2 or gt.shape != (n_frames, n_frames):
+        raise InputError(f"ground truth {path} has shape {gt.shape}, but the sequence has {n_frames} frames")
+    return gt.astype(bool)
+
+
+@dataclass
+class SequenceRun:
+    """Per-frame results of one detector over a sequence, with timings and the score matrix."""
+
+    results: list[FrameResult]
+    stage_ms: dict[str, np.ndarray]
+    score_matrix: np.ndarray | None = None  # (N, N) float32: score of frame j for query i
+    peak_rss_mb: float = 0.0
+    wall_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def best_frames(self) -> np.ndarray:
+        return np.array([-1 if r.best_frame is None else r.best_frame for r in self.results], np.int64)
+
+    @property
+    def scores(self) -> np.ndarray:
+        return np.array([r.score for r in self.results], np.float64)
+
+
+def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix: bool = True, show_progress: bool = True) -> SequenceRun:
+    """Run every image through the detector; keep the full score rows when keep_matrix."""
+    n = len(images)
+    matrix = np.zeros((n, n), np.float32) if keep_matrix and n <= 20000 else None
+    results = []
+    stages: dict[str, list[float]] = {"decode": [], "features": [], "quantise": [], "inference": []}
+    t_start = time.perf_counter()
+    for i, path in enumerate(tqdm(images, desc="frames", disable=not show_progress, mininterval=1.0)):
+        t0 = time.perf_counter()
+        image = load_image(path)
+        decode_ms = (time.perf_counter() - t0) * 1e3
+        res = detector.process(image, stamp_ns=i)
+        stages["decode"].append(decode_ms)
+        for k, v in res.timings_ms.items():
+            stages.setdefault(k, []).append(v)
+        if matrix is not None:
+            row = detector.last_scores()
+            if row is not None and row.size:
+                frames = detector.place_frames()
+                matrix[i, frames] = row
+        results.append(res)
+    wall = time.perf_counter() - t_start
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return SequenceRun(results, {k: np.asarray(v) for k, v in stages.items()}, matrix, peak, wall)
+
+
+def summarise_timings(stage_ms: dict[str, np.ndarray]) -> dict:
+    """Median and p95 per stage and of the total, in ms."""
+    out = {}
+    total = None
+    for k, v in stage_ms.items():
+        if v.size == 0:
+            continue
+        out[k] = {"median": float(np.median(v)), "p95": float(np.percentile(v, 95))}
+        total = v if total is None else total + v
+    if total is not None:
+        out["total"] = {"median": float(np.median(total)), "p95": float(np.percentile(total, 95))}
+    return out
+
+
+def evaluate_run(run: SequenceRun, gt: np.ndarray, tolerance: int = 10) -> dict:
+    """Metrics (strict and tolerant), timings and memory of a run, as a JSON-able dict."""
+    metrics = evaluate_predictions(run.best_frames, run.scores, gt, tolerance)
+    metrics["ms_per_frame"] = summarise_timings(run.stage_ms)
+    metrics["peak_rss_mb"] = run.peak_rss_mb
+    metrics["wall_s"] = run.wall_s
+    return metrics
+
+
+def public(metrics: dict) -> dict:
+    """Drop in-memory-only entries (PR curves) from a metrics dict."""
+    return {k: v for k, v in metrics.items() if not k.startswith("_")}
+
+
+def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | None = None, tolerance: int = 10, show_progress: bool = True) -> tuple[dict, SequenceRun]:
+    """Run a bundle over an image directory and score it against gt_path."""
+    images = list_images(images_dir)
+    gt = load_ground_truth(gt_path, len(images))
+    detector = LoopClosureDetector.from_bundle(bundle_path, config)
+    run = run_sequence(detector, images, show_progress=show_progress)
+    metrics = evaluate_run(run, gt, tolerance)
+    metrics.update(
+        {
+            "model": str(bundle_path),
+            "images": str(images_dir),
+            "scorer": detector.config.scorer,
+            "exclude": detector.config.exclude,
+            "quantizer": detector.bundle.quantizer_type,
+            "quantizer_variant": detector.config.quantizer_variant,
+            "features": detector.bundle.features.to_dict(),
+            "vocabulary_size": detector.bundle.vocabulary_size,
+            "training": detector.bundle.manifest.get("training", {}),
+            "mean_keypoints": float(np.mean([r.n_keypoints for r in run.results])),
+            "mean_words": float(np.mean([r.n_words for r in run.results])),
+        }
+    )
+    return metrics, run

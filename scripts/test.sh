@@ -1,0 +1,7 @@
+#!/usr/bin/env bash
+# Set up the environment on a fresh machine and run the whole test suite (slow tests included).
+# Tests that need ../shared/data (or $AEFABMAP_DATA) skip when it is absent.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+venv="$(scripts/setup_env.sh full | tail -n 1)"
+exec "$venv/bin/python" -m pytest -ra "$@"

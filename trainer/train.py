@@ -1,0 +1,170 @@
+"""Training pipeline: images -> features -> vocabulary -> observations -> Chow-Liu -> bundle."""
+
+from __future__ import annotations
+
+import hashlib
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from aefabmap.errors import ConfigError, DataNotFoundError, InputError
+from aefabmap.export.bundle_writer import write_bundle
+from aefabmap.runtime.features import FeatureConfig, FeatureExtractor, descriptor_vectors
+from aefabmap.runtime.sequence_eval import IMAGE_SUFFIXES
+from aefabmap.trainer.chow_liu import fit_chow_liu
+from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
+
+QUANTIZERS = ("kmeans", "ae")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """What `aefabmap train` learns.
+
+    images: training image directories (searched recursively, sorted by path).
+    words: vocabulary size K. max_descriptors: descriptors sampled for clustering.
+    """
+
+    images: tuple[Path, ...]
+    out: Path
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    quantizer: str = "kmeans"
+    words: int = 2000
+    seed: int = 0
+    max_descriptors: int = 200_000
+    kmeans_iterations: int = 25
+    show_progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.quantizer not in QUANTIZERS:
+            raise ConfigError(f"quantizer must be one of {QUANTIZERS}, got {self.quantizer!r}")
+        if self.words < 2:
+            raise ConfigError(f"--words must be >= 2, got {self.words}")
+        if self.max_descriptors < self.words:
+            raise ConfigError(f"max_descriptors ({self.max_descriptors}) must be >= words ({self.words})")
+
+
+def find_training_images(dirs) -> list[Path]:
+    """All image files under the given directories, recursively, in sorted path order."""
+    files: list[Path] = []
+    for d in dirs:
+        d = Path(d)
+        if not d.is_dir():
+            raise DataNotFoundError(f"training image directory {d} does not exist")
+        found = sorted(p for p in d.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+        if not found:
+            raise DataNotFoundError(f"no training images under {d}")
+        files.extend(found)
+    return files
+
+
+def extract_training_vectors(files: list[Path], features: FeatureConfig, show_progress: bool = True) -> list[np.ndarray]:
+    """Descriptor vectors (n_i, D) float32 of every training image (unreadable images are an error)."""
+    extractor = FeatureExtractor(features)
+    out = []
+    for f in tqdm(files, desc="features", disable=not show_progress, mininterval=1.0):
+        feats = extractor.extract(f)
+        raw = feats.descriptors
+        # ORB stays packed (32 bytes) in memory; unpacked per use.
+        out.append(raw if features.kind == "orb" else descriptor_vectors(raw, "sift"))
+    return out
+
+
+def _vectors(raw: np.ndarray, kind: str) -> np.ndarray:
+    return descriptor_vectors(raw, kind) if kind == "orb" else raw
+
+
+def sample_vectors(per_image: list[np.ndarray], kind: str, n: int, seed: int) -> np.ndarray:
+    """Up to n descriptor vectors drawn uniformly (seeded) from all training images."""
+    counts = np.array([len(a) for a in per_image])
+    total = int(counts.sum())
+    if total == 0:
+        raise InputError("no descriptors were found in the training images")
+    rng = np.random.default_rng(seed)
+    pick = np.sort(rng.choice(total, size=min(n, total), replace=False))
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    img = np.searchsorted(offsets, pick, side="right") - 1
+    rows = [per_image[i][k - offsets[i]] for i, k in zip(img.tolist(), pick.tolist())]
+    return _vectors(np.stack(rows), kind)
+
+
+@dataclass
+class TrainResult:
+    path: Path
+    summary: dict
+    timings_s: dict
+
+
+def train_bundle(config: TrainConfig) -> TrainResult:
+    """Run the whole training pipeline and write the bundle."""
+    t_start = time.perf_counter()
+    timings = {}
+    files = find_training_images(config.images)
+    kind = config.features.kind
+    t0 = time.perf_counter()
+    per_image = extract_training_vectors(files, config.features, config.show_progress)
+    timings["features_s"] = time.perf_counter() - t0
+    sample = sample_vectors(per_image, kind, config.max_descriptors, config.seed)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as work:
+        if config.quantizer == "kmeans":
+            bar = tqdm(total=config.kmeans_iterations, desc="k-means", disable=not config.show_progress)
+
+            def tick(it, moved):
+                bar.update(1)
+                bar.set_postfix(moved=f"{moved:.4f}")
+
+            centroids = fit_kmeans(sample, config.words, KMeansConfig(config.kmeans_iterations, seed=config.seed), tick)
+            bar.close()
+            from aefabmap.runtime.quantizer import NearestCentroidQuantizer
+
+            quantizer = NearestCentroidQuantizer(centroids)
+            q_manifest = {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}, "descriptors_clustered": int(sample.shape[0])}
+            q_files: dict = {"vocabulary.npy": centroids}
+        else:
+            from aefabmap.runtime.onnx_quantizer import OnnxQuantizer
+            from aefabmap.trainer.ae_quantizer import build_ae_quantizer
+
+            q_manifest = build_ae_quantizer(sample, words=config.words, seed=config.seed, feature_kind=kind, out_dir=Path(work))
+            q_files = {name: Path(work) / name for name in q_manifest["files"].values()}
+            quantizer = OnnxQuantizer(
+                Path(work) / q_manifest["files"]["fp32"],
+                vocabulary_size=config.words,
+                descriptor_length=config.features.descriptor_length,
+                threads=2,
+            )
+        timings["vocabulary_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        observations = [
+            np.unique(quantizer.quantize(_vectors(raw, kind))) if len(raw) else np.zeros(0, np.int64)
+            for raw in tqdm(per_image, desc="quantise", disable=not config.show_progress, mininterval=1.0)
+        ]
+        timings["quantise_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        tree = fit_chow_liu(observations, config.words)
+        timings["chow_liu_s"] = time.perf_counter() - t0
+        summary = {
+            "image_dirs": [Path(d).name for d in config.images],
+            "images": len(files),
+            "image_names_sha256": hashlib.sha256("\n".join(f.name for f in files).encode()).hexdigest(),
+            "descriptors": int(sum(len(a) for a in per_image)),
+            "mean_words_per_image": float(np.mean([o.size for o in observations])),
+            "seed": config.seed,
+            "quantizer": config.quantizer,
+            "words": config.words,
+        }
+        out = write_bundle(
+            config.out,
+            features=config.features,
+            tree=tree,
+            training_observations=observations,
+            quantizer=q_manifest,
+            quantizer_files=q_files,
+            training_summary=summary,
+        )
+    timings["total_s"] = time.perf_counter() - t_start
+    return TrainResult(out, summary, timings)
