@@ -1,0 +1,409 @@
+"""Zenoh adapters: session config, the frame subscriber and the result publisher.
+
+Key layout (decided here, used by ``aefabmap run`` and ``aefabmap publish``):
+
+- frames on the image key given by the user, e.g. ``robot/camera/image``;
+- per-frame results (JSON, ``application/json``) on the *sibling* key ``lcd``, i.e. the last
+  chunk of the image key replaced: ``robot/camera/image`` -> ``robot/camera/lcd``
+  (a one-chunk key ``camera`` -> ``lcd``);
+- periodic stats (JSON) on ``<results key>/stats``: ``robot/camera/lcd/stats``.
+
+The results key must be concrete: an image key whose parent chunks contain wildcards
+(``robot/*/image``) needs an explicit results key. The image key itself may end in a
+wildcard (``robot/camera/*``); the subscriber then ignores samples on the results and
+stats keys so the node never eats its own output.
+
+Sequence numbers: ``publish`` attaches a small JSON attachment to every frame,
+``{"seq": <int, from 0>, "stamp_ns": <capture time, ns since the Unix epoch>, "src": <id>}``.
+``RingChannel(n)`` drops old frames silently; the subscriber counts gaps in ``seq`` per
+``src`` to report how many frames were dropped (in the ring, in the network, or by a
+publisher restart, which resets ``seq`` and is not counted as a drop).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from aefabmap.errors import ConfigError, TransportError
+
+RESULT_CHUNK = "lcd"
+STATS_SUFFIX = "stats"
+_ENDPOINT_RE = re.compile(r"^[a-z0-9\-]+/.+$")
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """How to open a Zenoh session.
+
+    connect / listen: endpoints such as ``tcp/127.0.0.1:7447``.
+    config_file: a zenoh JSON5 config file loaded first; the fields below override it.
+    mode: ``peer`` (default, no router needed), ``client`` or ``router``.
+    multicast_scouting: None = off when any endpoint is given, zenoh's default otherwise.
+    """
+
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    mode: str = "peer"
+    multicast_scouting: bool | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "connect", _split_endpoints(self.connect, "connect"))
+        object.__setattr__(self, "listen", _split_endpoints(self.listen, "listen"))
+        if self.mode not in ("peer", "client", "router"):
+            raise ConfigError(f"zenoh mode must be peer, client or router, got {self.mode!r}")
+
+    def to_dict(self) -> dict:
+        return {
+            "connect": list(self.connect),
+            "listen": list(self.listen),
+            "config_file": self.config_file,
+            "mode": self.mode,
+            "multicast_scouting": self.multicast_scouting,
+        }
+
+
+def _split_endpoints(values, what: str) -> tuple[str, ...]:
+    if values is None:
+        return ()
+    if isinstance(values, str):
+        values = [values]
+    out: list[str] = []
+    for v in values:
+        for ep in str(v).split(","):
+            ep = ep.strip()
+            if not ep:
+                continue
+            if not _ENDPOINT_RE.match(ep):
+                raise ConfigError(f"--{what} endpoint must look like tcp/127.0.0.1:7447, got {ep!r}")
+            proto, _, rest = ep.partition("/")
+            if proto in ("tcp", "udp", "tls", "quic", "ws"):
+                port = rest.split("?")[0].split("#")[0].rpartition(":")[2]
+                if not port.isdigit() or int(port) > 65535:
+                    raise ConfigError(f"--{what} endpoint {ep!r} needs a port number 0..65535 after ':'")
+            out.append(ep)
+    return tuple(out)
+
+
+def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
+    """Build a zenoh.Config from a SessionConfig; raises ConfigError on bad values."""
+    try:
+        if sc.config_file:
+            path = Path(sc.config_file)
+            if not path.is_file():
+                raise ConfigError(f"zenoh config file {path} does not exist")
+            conf = zenoh.Config.from_file(str(path))
+        else:
+            conf = zenoh.Config()
+    except zenoh.ZError as exc:
+        raise ConfigError(f"cannot load zenoh config {sc.config_file}: {_short(exc)}") from exc
+    try:
+        conf.insert_json5("mode", json.dumps(sc.mode))
+        if sc.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(sc.connect)))
+        if sc.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(sc.listen)))
+        scouting = sc.multicast_scouting
+        if scouting is None and (sc.connect or sc.listen):
+            scouting = False
+        if scouting is not None:
+            conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
+    except zenoh.ZError as exc:
+        raise ConfigError(f"invalid zenoh configuration: {_short(exc)}") from exc
+    return conf
+
+
+def open_session(sc: SessionConfig) -> zenoh.Session:
+    """Open a Zenoh session; ConfigError for bad values, TransportError when it fails to open."""
+    conf = build_zenoh_config(sc)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        eps = ", ".join([*(f"listen {e}" for e in sc.listen), *(f"connect {e}" for e in sc.connect)]) or "defaults"
+        raise TransportError(f"cannot open zenoh session ({eps}): {_short(exc)}") from exc
+
+
+def _short(exc: BaseException) -> str:
+    text = str(exc)
+    return text.split(" at /")[0][:300]
+
+
+def result_key_for(image_key: str) -> str:
+    """Results key of an image key: its sibling ``lcd`` (see module docstring)."""
+    key = image_key.strip().strip("/")
+    if not key:
+        raise ConfigError("image key must not be empty")
+    parent, _, last = key.rpartition("/")
+    if last == RESULT_CHUNK:
+        raise ConfigError(f"image key {image_key!r} ends in '{RESULT_CHUNK}', which is the results key")
+    if "*" in parent or "$" in parent:
+        raise ConfigError(f"image key {image_key!r} has wildcards before its last chunk: give a results key")
+    return f"{parent}/{RESULT_CHUNK}" if parent else RESULT_CHUNK
+
+
+def stats_key_for(result_key: str) -> str:
+    """Stats key of a results key: ``<result_key>/stats``."""
+    return f"{result_key}/{STATS_SUFFIX}"
+
+
+# --------------------------------------------------------------------------- frame meta
+
+
+@dataclass(frozen=True)
+class FrameMeta:
+    """What the publisher attached: sequence number, capture stamp (ns, Unix epoch), source id."""
+
+    seq: int | None = None
+    stamp_ns: int | None = None
+    src: str = ""
+
+    def to_attachment(self) -> bytes:
+        return json.dumps({"seq": self.seq, "stamp_ns": self.stamp_ns, "src": self.src}).encode()
+
+    @classmethod
+    def from_attachment(cls, data: bytes | None) -> "FrameMeta":
+        """Parse an attachment; anything unparsable yields an empty FrameMeta (never raises)."""
+        if not data:
+            return cls()
+        try:
+            obj = json.loads(data)
+            seq = obj.get("seq")
+            stamp = obj.get("stamp_ns")
+            return cls(
+                seq=int(seq) if isinstance(seq, int) else None,
+                stamp_ns=int(stamp) if isinstance(stamp, int) else None,
+                src=str(obj.get("src", "")),
+            )
+        except (ValueError, AttributeError, TypeError):
+            return cls()
+
+
+@dataclass
+class ReceivedFrame:
+    """One sample from the image key.
+
+    payload: the raw bytes; encoding: the zenoh encoding string; key: the sample key;
+    meta: the publisher's attachment; recv_ns: time.time_ns() when taken from the ring;
+    recv_mono_ns: time.monotonic_ns() at the same moment (for latency).
+    """
+
+    payload: bytes
+    encoding: str
+    key: str
+    meta: FrameMeta
+    recv_ns: int
+    recv_mono_ns: int
+
+    @property
+    def stamp_ns(self) -> int:
+        """Capture stamp: the publisher's, else the receive time (ns, Unix epoch)."""
+        return self.meta.stamp_ns if self.meta.stamp_ns is not None else self.recv_ns
+
+
+@dataclass
+class DropCounter:
+    """Counts sequence gaps per source.
+
+    dropped: frames skipped (gaps in seq, counted from the first frame received from a
+    source: frames published before the subscriber saw that source are not drops); restarts: seq went backwards (publisher restart);
+    unsequenced: frames without a seq (their drops cannot be counted).
+    """
+
+    dropped: int = 0
+    restarts: int = 0
+    unsequenced: int = 0
+    _last: dict[str, int] = field(default_factory=dict)
+
+    def update(self, meta: FrameMeta) -> int:
+        """Account one received frame; returns the number of frames dropped just before it."""
+        if meta.seq is None:
+            self.unsequenced += 1
+            return 0
+        last = self._last.get(meta.src)
+        self._last[meta.src] = meta.seq
+        if last is None:
+            return 0
+        if meta.seq <= last:
+            self.restarts += 1
+            return 0
+        gap = meta.seq - last - 1
+        self.dropped += gap
+        return gap
+
+
+class FrameSubscriber:
+    """Subscriber on the image key with a ``RingChannel(queue_size)``: newest frames win.
+
+    ``receive(timeout_s)`` polls the ring (zenoh's ``recv`` has no timeout) with a short
+    back-off of ``poll_s`` (seconds) at most, so it adds at most ~poll_s of latency.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        *,
+        queue_size: int = 2,
+        ignore_keys: tuple[str, ...] = (),
+        poll_s: float = 0.002,
+    ) -> None:
+        if not isinstance(queue_size, int) or queue_size < 1:
+            raise ConfigError(f"queue size must be a positive integer, got {queue_size!r}")
+        self.key = key
+        self.queue_size = queue_size
+        self.poll_s = poll_s
+        self._ignore = set(ignore_keys)
+        self.drops = DropCounter()
+        self.received = 0
+        self.ignored = 0
+        self._wake = threading.Event()
+        try:
+            self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(queue_size))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot subscribe to {key!r}: {_short(exc)}") from exc
+
+    def receive(self, timeout_s: float, stop_event: threading.Event | None = None) -> ReceivedFrame | None:
+        """Return the oldest frame still in the ring, or None after timeout_s (or stop)."""
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        wait = 0.0002
+        waiter = stop_event if stop_event is not None else self._wake
+        while True:
+            try:
+                sample = self._sub.try_recv()
+            except zenoh.ZError as exc:
+                raise TransportError(f"subscriber on {self.key!r} failed: {_short(exc)}") from exc
+            if sample is not None:
+                key = str(sample.key_expr)
+                if key in self._ignore:
+                    self.ignored += 1
+                    continue
+                return self._to_frame(sample, key)
+            now = time.monotonic()
+            if now >= deadline or (stop_event is not None and stop_event.is_set()):
+                return None
+            waiter.wait(min(wait, deadline - now))
+            wait = min(wait * 2, self.poll_s)
+
+    def _to_frame(self, sample: zenoh.Sample, key: str) -> ReceivedFrame:
+        att = sample.attachment
+        meta = FrameMeta.from_attachment(att.to_bytes() if att is not None else None)
+        self.drops.update(meta)
+        self.received += 1
+        return ReceivedFrame(
+            payload=sample.payload.to_bytes(),
+            encoding=str(sample.encoding),
+            key=key,
+            meta=meta,
+            recv_ns=time.time_ns(),
+            recv_mono_ns=time.monotonic_ns(),
+        )
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass
+
+
+class JsonPublisher:
+    """Publishes JSON documents (``application/json``) on one key, dropping under congestion."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self.key = key
+        try:
+            self._pub = session.declare_publisher(
+                key, encoding=zenoh.Encoding.APPLICATION_JSON, congestion_control=zenoh.CongestionControl.DROP
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare publisher on {key!r}: {_short(exc)}") from exc
+
+    def put(self, doc: dict) -> None:
+        try:
+            self._pub.put(json.dumps(doc, separators=(",", ":")))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {self.key!r}: {_short(exc)}") from exc
+
+    def close(self) -> None:
+        try:
+            self._pub.undeclare()
+        except zenoh.ZError:
+            pass
+
+
+class ResultPublisher:
+    """Publishes per-frame results on the results key and stats on ``<results key>/stats``."""
+
+    def __init__(self, session: zenoh.Session, result_key: str) -> None:
+        self.result_key = result_key
+        self.stats_key = stats_key_for(result_key)
+        self._results = JsonPublisher(session, result_key)
+        self._stats = JsonPublisher(session, self.stats_key)
+
+    def publish_result(self, result: dict) -> None:
+        self._results.put(result)
+
+    def publish_stats(self, stats: dict) -> None:
+        self._stats.put(stats)
+
+    def close(self) -> None:
+        self._results.close()
+        self._stats.close()
+
+
+class FramePublisher:
+    """Publishes frames on the image key with a FrameMeta attachment (seq from 0, stamp, src).
+
+    congestion: ``drop`` (default: a live camera should never block) or ``block``.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, *, congestion: str = "drop", src: str | None = None) -> None:
+        if congestion not in ("drop", "block"):
+            raise ConfigError(f"congestion must be 'drop' or 'block', got {congestion!r}")
+        self.key = key
+        self.src = src or uuid.uuid4().hex[:12]
+        self.seq = 0
+        cc = zenoh.CongestionControl.DROP if congestion == "drop" else zenoh.CongestionControl.BLOCK
+        self._matched = threading.Event()
+        try:
+            self._pub = session.declare_publisher(key, congestion_control=cc)
+            self._listener = self._pub.declare_matching_listener(self._on_matching)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare publisher on {key!r}: {_short(exc)}") from exc
+        if self._pub.matching_status.matching:
+            self._matched.set()
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        if status.matching:
+            self._matched.set()
+        else:
+            self._matched.clear()
+
+    def wait_for_subscriber(self, timeout_s: float) -> bool:
+        """Block until a subscriber matches the key (True) or timeout_s elapses (False)."""
+        return self._matched.wait(timeout_s)
+
+    def put(self, payload: bytes, encoding: str, stamp_ns: int | None = None) -> int:
+        """Publish one frame; returns its sequence number."""
+        seq = self.seq
+        meta = FrameMeta(seq=seq, stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns(), src=self.src)
+        try:
+            self._pub.put(payload, encoding=zenoh.Encoding(encoding), attachment=meta.to_attachment())
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish frame on {self.key!r}: {_short(exc)}") from exc
+        self.seq += 1
+        return seq
+
+    def close(self) -> None:
+        try:
+            self._listener.undeclare()
+            self._pub.undeclare()
+        except zenoh.ZError:
+            pass
