@@ -139,6 +139,8 @@ class InvertedIndex:
     """Word -> places postings in growable per-word numpy buffers.
 
     Cost of a query is proportional to the postings it touches, not to the number of places.
+    Ids of removed places are reused by later additions, so that memory stays bounded when
+    a capped map keeps evicting and adding.
     Postings are stored as intp (8 bytes): numpy scatters with native-width indices without a
     conversion pass, which halves query time at 100k places for twice the posting memory.
     Per-place word lists (uint16 when V <= 65536) make removal cost proportional to the place's words.
@@ -152,12 +154,14 @@ class InvertedIndex:
         self._default = np.zeros(0, np.float64)
         self._words: list[np.ndarray | None] = []  # each place's word ids, for removal
         self._word_dtype = np.uint16 if vocabulary_size <= 65536 else np.uint32
-        self.n_places = 0  # ids handed out so far (dead ones included)
+        self.n_places = 0  # size of the id range (dead ids included)
+        self._free: list[int] = []  # removed ids, reused first
         self.n_alive = 0
+        self._buffer_bytes = 0  # bytes of posting buffers and word lists, kept up to date
 
     def add(self, words: np.ndarray, default: float) -> int:
         """Append a place with sorted unique word ids and its default score; returns its id."""
-        pid = self.n_places
+        pid = self._free.pop() if self._free else self.n_places
         if pid >= np.iinfo(np.int32).max:
             raise InputError("inverted index is full (2^31 places)")
         if pid >= self._alive.size:
@@ -172,14 +176,21 @@ class InvertedIndex:
             n = lens[q]
             if b is None:
                 b = buf[q] = np.empty(4, np.intp)
+                self._buffer_bytes += b.nbytes
             elif n == b.size:
                 nb = np.empty(2 * n, np.intp)
                 nb[:n] = b
+                self._buffer_bytes += nb.nbytes - b.nbytes
                 b = buf[q] = nb
             b[n] = pid
             lens[q] = n + 1
-        self._words.append(words.astype(self._word_dtype))
-        self.n_places += 1
+        stored = words.astype(self._word_dtype)
+        self._buffer_bytes += stored.nbytes
+        if pid == self.n_places:
+            self._words.append(stored)
+            self.n_places += 1
+        else:
+            self._words[pid] = stored
         self.n_alive += 1
         return pid
 
@@ -195,11 +206,15 @@ class InvertedIndex:
             self._len[q] = keep.size
             if keep.size == 0:
                 self._buf[q] = None
+                self._buffer_bytes -= b.nbytes
             elif keep.size * 4 <= b.size and b.size > 8:
                 self._buf[q] = b[: max(4, 2 * keep.size)].copy()
+                self._buffer_bytes += self._buf[q].nbytes - b.nbytes
+        self._buffer_bytes -= self._words[pid].nbytes
         self._words[pid] = None
         self._alive[pid] = False
         self._default[pid] = 0.0
+        self._free.append(pid)
         self.n_alive -= 1
 
     def place_words(self, pid: int) -> np.ndarray:
@@ -228,10 +243,10 @@ class InvertedIndex:
         return acc
 
     def nbytes(self) -> int:
-        """Bytes held by postings buffers, per-place word lists and per-place arrays."""
-        posting = sum(b.nbytes for b in self._buf if b is not None)
-        words = sum(w.nbytes for w in self._words if w is not None)
-        return int(posting + words + self._alive.nbytes + self._default.nbytes + self._len.nbytes)
+        """Bytes held by posting buffers, per-place word lists and per-place arrays (O(1))."""
+        # 8 bytes per list slot of self._words, plus the fixed per-word arrays.
+        per_place = self._alive.nbytes + self._default.nbytes + 8 * len(self._words)
+        return int(self._buffer_bytes + per_place + self._len.nbytes)
 
 
 @dataclass
@@ -307,7 +322,7 @@ class FabMap2:
 
     @property
     def n_places(self) -> int:
-        """Number of place ids handed out (removed places keep their id)."""
+        """Size of the place-id range (loglik and p_places have this length)."""
         return self.places.n_places
 
     def add(self, obs) -> int:
@@ -316,7 +331,7 @@ class FabMap2:
         return self.places.add(w, float(self.tables.d1[w].sum()))
 
     def remove(self, place_id: int) -> None:
-        """Forget a place (bounded-memory policies); its id is not reused."""
+        """Forget a place (bounded-memory policies); its id is reused by a later add()."""
         self.places.remove(place_id)
 
     def loglik(self, obs) -> np.ndarray:

@@ -19,6 +19,7 @@ from aefabmap.runtime.fabmap import FabMap2
 from aefabmap.runtime.features import FeatureExtractor, Features, descriptor_vectors
 
 SCORERS = ("fabmap", "bow")
+FABMAP_SCORES = ("probability", "llr")
 
 
 @dataclass(frozen=True)
@@ -31,8 +32,14 @@ class DetectorConfig:
     loop_threshold: a loop is declared when the best place's score reaches this.
     quantizer_variant: "fp32" or "int8" (autoencoder bundles). threads: onnxruntime threads.
     motion_model, naive_bayes, smoothing: FAB-MAP options (fabmap2.md).
-    max_places: hard cap of the map (None: unbounded). When full, the place least recently
-        inserted or matched is evicted before a new one is added.
+    fabmap_score: what `score` holds with the fabmap scorer: "probability" (the normalised
+        posterior P of the best place, evaluation.md's FAB-MAP score) or "llr" (log-likelihood
+        ratio of the best place against the new-place model, in nats: it keeps ranking frames
+        where P has saturated at 0.99 + 0.01 / (n + 1)).
+    max_places: hard cap of the map in places (None: unbounded).
+    memory_mb: hard cap of the map's memory in MiB, as accounted by `map_bytes()` (None: unbounded).
+        When either cap is reached the place least recently inserted or matched as a loop
+        is evicted before a new one is added.
     """
 
     scorer: str = "fabmap"
@@ -43,7 +50,9 @@ class DetectorConfig:
     motion_model: bool = False
     naive_bayes: bool = False
     smoothing: float = 0.99
+    fabmap_score: str = "probability"
     max_places: int | None = None
+    memory_mb: float | None = None
 
     def __post_init__(self) -> None:
         if self.scorer not in SCORERS:
@@ -52,6 +61,12 @@ class DetectorConfig:
             raise ConfigError(f"exclude must be >= 0 frames, got {self.exclude}")
         if self.max_places is not None and self.max_places < 1:
             raise ConfigError(f"max_places must be >= 1, got {self.max_places}")
+        if self.memory_mb is not None and self.memory_mb <= 0:
+            raise ConfigError(f"memory_mb must be > 0, got {self.memory_mb}")
+        if self.fabmap_score not in FABMAP_SCORES:
+            raise ConfigError(f"fabmap_score must be one of {FABMAP_SCORES}, got {self.fabmap_score!r}")
+        if (self.max_places is not None or self.memory_mb is not None) and self.scorer != "fabmap":
+            raise ConfigError("max_places / memory_mb are supported with the fabmap scorer only")
         if self.threads < 1:
             raise ConfigError(f"threads must be >= 1, got {self.threads}")
 
@@ -62,8 +77,10 @@ class FrameResult:
 
     sequence: index of the frame in the stream (0-based); stamp_ns: its time stamp.
     best_place / best_frame: best candidate place and the sequence number of the frame that
-        created it (None when the map is empty); score: its probability (FAB-MAP) or cosine
-        similarity (BoW); p_new: FAB-MAP's new-place probability (None for BoW).
+        created it (None when the map is empty); score: see DetectorConfig.fabmap_score, or the
+        cosine similarity (BoW); probability: FAB-MAP's posterior of the best place; llr: its
+        log-likelihood ratio against the new place (nats); p_new: FAB-MAP's new-place
+        probability (None for BoW).
     loop: score >= loop_threshold. inserted_frame / inserted_place: the frame that entered the
         map during this step (delayed insertion) and its place id. timings_ms: per stage.
     """
@@ -77,6 +94,8 @@ class FrameResult:
     score: float
     p_new: float | None
     loop: bool
+    probability: float | None = None
+    llr: float | None = None
     inserted_frame: int | None = None
     inserted_place: int | None = None
     evicted_place: int | None = None
@@ -112,8 +131,9 @@ class LoopClosureDetector:
             self.fabmap = None
             self.bow = BowIndex(bundle.vocabulary_size, bundle.training_observations)
         self._pending: deque[tuple[int, np.ndarray]] = deque()
-        self._place_frame: list[int] = []  # place id -> sequence of the frame that made it
-        self._last_used = np.zeros(0, np.int64)  # place id -> last sequence inserted/matched
+        # place id -> sequence of the frame that made it / last sequence inserted or matched.
+        self._place_frame = np.zeros(0, np.int64)
+        self._last_used = np.zeros(0, np.int64)
         self._sequence = 0
         self._last_scores: np.ndarray | None = None
 
@@ -137,7 +157,7 @@ class LoopClosureDetector:
 
     def place_frames(self) -> np.ndarray:
         """(n_places,) sequence number of the frame that created each place id."""
-        return np.asarray(self._place_frame, np.int64)
+        return self._place_frame[: self._id_range()]
 
     def words_of(self, features: Features) -> np.ndarray:
         """Word id of every keypoint (N,) int32 (repeats kept)."""
@@ -169,12 +189,17 @@ class LoopClosureDetector:
         inserted_frame = inserted_place = evicted = None
         while self._pending and self._pending[0][0] <= seq - self.config.exclude:
             inserted_frame, pending_words = self._pending.popleft()
-            evicted = self._evict_if_full(seq)
+            evicted = self._make_room()
             inserted_place = self._insert(pending_words, inserted_frame)
         uniq = np.unique(words)
+        probability = llr = None
         if self.fabmap is not None:
             loc = self.fabmap.localize(uniq, add=False)
-            best, score, p_new = loc.best_place, loc.best_probability, loc.p_new
+            best, p_new = loc.best_place, loc.p_new
+            if best is not None:
+                probability = loc.best_probability
+                llr = float(loc.loglik[best] - loc.loglik_new)
+            score = (llr if self.config.fabmap_score == "llr" else probability) if best is not None else 0.0
             self._last_scores = loc.p_places
         else:
             sims = self.bow.similarity(words)
@@ -191,32 +216,56 @@ class LoopClosureDetector:
             n_keypoints=int(words.size),
             n_words=int(uniq.size),
             best_place=best,
-            best_frame=self._place_frame[best] if best is not None else None,
+            best_frame=int(self._place_frame[best]) if best is not None else None,
             score=float(score),
             p_new=p_new,
             loop=bool(loop),
+            probability=probability,
+            llr=llr,
             inserted_frame=inserted_frame,
             inserted_place=inserted_place,
             evicted_place=evicted,
             n_places=self.n_places,
         )
 
+    def _id_range(self) -> int:
+        return self.fabmap.n_places if self.fabmap is not None else self.bow.n_places
+
     def _insert(self, words: np.ndarray, frame: int) -> int:
         pid = self.fabmap.add(words) if self.fabmap is not None else self.bow.add(words)
-        self._place_frame.append(frame)
         if pid >= self._last_used.size:
-            self._last_used = np.concatenate([self._last_used, np.full(max(64, self._last_used.size), -1, np.int64)])
+            grow = max(64, self._last_used.size)
+            self._last_used = np.concatenate([self._last_used, np.full(grow, -1, np.int64)])
+            self._place_frame = np.concatenate([self._place_frame, np.full(grow, -1, np.int64)])
         self._last_used[pid] = frame
+        self._place_frame[pid] = frame
         return pid
 
-    def _evict_if_full(self, seq: int) -> int | None:
-        cap = self.config.max_places
-        if cap is None or self.n_places < cap:
-            return None
-        if self.fabmap is None:
-            raise ConfigError("max_places is only supported with the fabmap scorer")
-        alive = self.fabmap.places.alive
-        used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
-        victim = int(np.argmin(used))
-        self.fabmap.remove(victim)
-        return victim
+    def map_bytes(self) -> int:
+        """Memory of the map (index postings, word lists, per-place arrays), in bytes.
+
+        The one place where per-place memory is accounted: whatever else is kept per place
+        (e.g. keypoints for verification) must be added here so that memory_mb holds.
+        """
+        index = self.fabmap.nbytes() if self.fabmap is not None else 0
+        return index + self._last_used.nbytes + self._place_frame.nbytes
+
+    def _over_budget(self, extra_places: int = 1) -> bool:
+        c = self.config
+        if c.max_places is not None and self.n_places + extra_places > c.max_places:
+            return True
+        if c.memory_mb is not None and self.n_places > 0:
+            # Leave room for one more place of the average size before inserting it.
+            per_place = self.map_bytes() / self.n_places
+            return self.map_bytes() + per_place > c.memory_mb * 2**20
+        return False
+
+    def _make_room(self) -> int | None:
+        """Evict least-recently-used places until one more fits; returns the last evicted id."""
+        evicted = None
+        while self.fabmap is not None and self.n_places > 0 and self._over_budget():
+            alive = self.fabmap.places.alive
+            used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
+            evicted = int(np.argmin(used))
+            self.fabmap.remove(evicted)
+        return evicted

@@ -131,9 +131,11 @@ def test_remove_masks_place_and_keeps_ids():
     assert np.isneginf(after[2])
     np.testing.assert_allclose(np.delete(after, 2), np.delete(before, 2), atol=1e-12)
     assert fm.localize(q, add=False).p_places[2] == 0.0
-    assert fm.add(obs[0]) == 6
     with pytest.raises(InputError):
         fm.remove(2)
+    assert fm.add(obs[0]) == 2  # the freed id is reused: memory stays bounded
+    assert fm.add(obs[1]) == 6
+    np.testing.assert_allclose(fm.loglik(q)[:2], before[:2], atol=1e-12)
 
 
 def test_motion_model_matches_formula():
