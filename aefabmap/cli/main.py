@@ -11,7 +11,7 @@ from aefabmap import __version__
 from aefabmap.errors import AefabmapError
 
 # Each module exposes register(subparsers) and sets `func` (args -> exit code) on its parser.
-SUBCOMMAND_MODULES = ("train", "eval", "bench", "run", "publish", "replay")
+SUBCOMMAND_MODULES = ("train", "eval", "bench", "run", "publish", "replay", "demo")
 
 log = logging.getLogger("aefabmap")
 

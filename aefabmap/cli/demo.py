@@ -1,0 +1,184 @@
+"""`aefabmap demo`: the main job end to end on loopback, with nothing but the project.
+
+Two processes over Zenoh: this one publishes camera frames and listens to results; a child
+`aefabmap run` process detects loop closures and writes the MCAP log. Then the log is
+replayed offline with `--check` semantics. Default data: the synthetic loop sequence and the
+bundle shipped in the package (trained on other synthetic worlds, see aefabmap/data/README.md).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import time
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from aefabmap.errors import AefabmapError, DataNotFoundError, TransportError
+
+log = logging.getLogger("aefabmap.demo")
+DEMO_KEY = "aefabmap/demo/camera/image"
+
+
+def default_bundle() -> Path:
+    """The model bundle shipped in the package (ORB, 500 words, trained on synthetic worlds)."""
+    return Path(str(resources.files("aefabmap") / "data" / "default_bundle"))
+
+
+def register(sub) -> None:
+    p = sub.add_parser("demo", help="end-to-end demo on loopback: publish -> run -> loop closures -> MCAP -> replay check")
+    p.add_argument("--out", type=Path, default=Path("aefabmap-demo"), help="output directory (default ./aefabmap-demo)")
+    p.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    p.add_argument("--images", type=Path, default=None, metavar="DIR", help="stream these images instead of the synthetic sequence")
+    p.add_argument("--gt", type=Path, default=None, metavar="GT.npy", help="ground truth of --images, to score the loops")
+    p.add_argument("--frames", type=int, default=240, help="synthetic frames (two laps of one route)")
+    p.add_argument("--rate", type=float, default=8.0, help="publish rate in Hz (default 8)")
+    p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the runtime at start and for results")
+    p.set_defaults(func=run)
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def run(args) -> int:
+    from aefabmap.runtime.node import images_dir_source, publish_frames
+    from aefabmap.runtime.zenoh_io import SessionConfig, open_session, result_key_for
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    model = args.model or default_bundle()
+    images_dir, gt_path = _prepare_images(args, out)
+    n_frames = len([p for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")])
+    mcap_path = out / "demo.mcap"
+    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    cmd = [sys.executable, "-m", "aefabmap.cli.main", "run", "--model", str(model), "--key", DEMO_KEY,
+           "--listen", endpoint, "--mcap", str(mcap_path), "--queue", "4"]
+    print(f"runtime:   {' '.join(cmd[2:])}", flush=True)
+    node = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=None, text=True)
+    results: queue.Queue = queue.Queue()
+    session = None
+    try:
+        session = _connect_with_retry(SessionConfig(connect=(endpoint,)), node, args.timeout)
+        sub = session.declare_subscriber(result_key_for(DEMO_KEY), lambda s: results.put(json.loads(s.payload.to_bytes())))
+        print(f"publisher: {n_frames} frames from {images_dir} at {args.rate} Hz on {DEMO_KEY} via {endpoint}", flush=True)
+        pub = publish_frames(SessionConfig(connect=(endpoint,)), DEMO_KEY, images_dir_source(images_dir),
+                             rate_hz=args.rate, wait_for_subscriber_s=args.timeout)
+        if not pub.matched:
+            raise TransportError(f"the runtime did not subscribe to {DEMO_KEY} within {args.timeout} s")
+        _collect(results, pub.published, first_timeout=args.timeout, idle_timeout=10.0)
+        sub.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        summary = _stop(node)
+    print(f"runtime summary: {json.dumps(summary)}" if summary else "runtime gave no summary")
+    _report(_logged_results(mcap_path), gt_path)
+    return _replay_check(model, mcap_path)
+
+
+def _prepare_images(args, out: Path) -> tuple[Path, Path | None]:
+    if args.images is not None:
+        if not args.images.is_dir():
+            raise DataNotFoundError(f"image directory {args.images} does not exist")
+        return args.images, args.gt
+    from aefabmap.runtime.synthetic import make_demo_sequence
+
+    seq = out / "sequence"
+    if not (seq / "gt.npy").is_file() or len(list(seq.glob("frame_*.jpg"))) != args.frames:
+        print(f"generating {args.frames} synthetic frames in {seq} ...", flush=True)
+        make_demo_sequence(seq, n_frames=args.frames, seed=0)
+    return seq, seq / "gt.npy"
+
+
+def _connect_with_retry(sc, node: subprocess.Popen, timeout: float):
+    """Open a session to the runtime's endpoint once it listens (it starts in parallel)."""
+    from aefabmap.runtime.zenoh_io import open_session
+
+    deadline = time.monotonic() + timeout
+    while True:
+        if node.poll() is not None:
+            raise TransportError(f"the runtime exited early with code {node.returncode}")
+        try:
+            return open_session(sc)
+        except TransportError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)  # polling a process that is starting: there is no event to wait on
+
+
+def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_timeout: float) -> list[dict]:
+    """Print results as they arrive, until `expected` came or none came for idle_timeout s."""
+    got = []
+    while len(got) < expected:
+        try:
+            r = results.get(timeout=idle_timeout if got else first_timeout)
+        except queue.Empty:
+            break
+        got.append(r)
+        if r.get("loop"):
+            print(f"  LOOP  frame {r['sequence']:4d} -> frame {r['best_frame']:4d} (place {r['best_place']}), "
+                  f"score {r['score']:.4f}", flush=True)
+    return got
+
+
+def _stop(node: subprocess.Popen) -> dict | None:
+    if node.poll() is None:
+        node.send_signal(signal.SIGTERM)
+    try:
+        stdout, _ = node.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        node.kill()
+        stdout, _ = node.communicate()
+    for line in reversed((stdout or "").splitlines()):
+        try:
+            return json.loads(line)
+        except ValueError:
+            continue
+    return None
+
+
+def _logged_results(mcap_path: Path) -> list[dict]:
+    """Results as the runtime logged them (complete even if live messages were missed)."""
+    from aefabmap.runtime.mcap_log import McapLogReader
+
+    reader = McapLogReader(mcap_path)
+    for _ in reader.frames():
+        pass  # one pass reads images, results, stats and metadata
+    return reader.results
+
+
+def _report(received: list[dict], gt_path: Path | None) -> None:
+    loops = [r for r in received if r.get("loop")]
+    print(f"frames processed: {len(received)}, loop closures: {len(loops)}")
+    if gt_path is None or not gt_path.is_file() or not received:
+        return
+    gt = np.load(gt_path, allow_pickle=False)
+    ok = sum(bool(gt[r["sequence"], max(0, r["best_frame"] - 10): r["best_frame"] + 11].any()) for r in loops)
+    revisits = int(np.tril(gt, -1).any(axis=1).sum())
+    print(f"against ground truth: {ok}/{len(loops)} loop closures correct (10-frame tolerance); "
+          f"{revisits} frames revisit a place")
+
+
+def _replay_check(model: Path, mcap_path: Path) -> int:
+    from aefabmap.runtime.node import load_detector
+    from aefabmap.runtime.replay import replay
+
+    try:
+        summary = replay(load_detector(model), mcap_path, check=True)
+    except AefabmapError as exc:
+        print(f"replay failed: {exc}")
+        return exc.exit_code
+    report = summary.check
+    print(f"MCAP log: {mcap_path} (open it in Foxglove)")
+    print(f"replay --check: {report.describe()}")
+    return 0 if report.ok else 1
