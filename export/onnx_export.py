@@ -1,0 +1,126 @@
+"""Export encoder + latent codebook arg-min as ONE ONNX graph (trainer side: needs torch and onnx).
+
+Graph contract (checked by runtime/onnx_quantizer.py):
+    input   descriptors  float32 (batch, D)        raw descriptor vectors, dynamic batch
+    output  words        int32   (batch,)          nearest codebook entry in latent space
+    output  codes        float32 (batch, latent)   encoder output
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from aefabmap.errors import BundleError, InputError
+from aefabmap.trainer.autoencoder import Encoder
+
+INPUT_NAME = "descriptors"
+OUTPUT_NAMES = ("words", "codes")
+OPSET = 18
+# Fixed producer metadata: the exported bytes depend only on weights and codebook.
+PRODUCER = "aefabmap"
+
+
+class QuantizerGraph(nn.Module):
+    """descriptors (B, D) -> (words (B,) int32, codes (B, latent) float32)."""
+
+    def __init__(self, encoder: Encoder, codebook: np.ndarray) -> None:
+        super().__init__()
+        codebook = np.ascontiguousarray(codebook, dtype=np.float32)
+        if codebook.ndim != 2 or codebook.shape[1] != encoder.latent_dim or codebook.shape[0] < 1:
+            raise InputError(f"codebook must have shape (K, {encoder.latent_dim}), got {codebook.shape}")
+        self.encoder = copy.deepcopy(encoder).eval()
+        # argmin |z - c|^2 == argmax (z.c - |c|^2 / 2): one MatMul, no (B, K, latent) tensor.
+        self.register_buffer("codebook_t", torch.from_numpy(codebook.T.copy()))
+        self.register_buffer("half_sq_norms", torch.from_numpy(0.5 * np.einsum("kd,kd->k", codebook, codebook)))
+
+    def forward(self, descriptors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        codes = self.encoder(descriptors)
+        scores = torch.matmul(codes, self.codebook_t) - self.half_sq_norms
+        words = torch.argmax(scores, dim=1).to(torch.int32)
+        return words, codes
+
+
+def export_quantizer_onnx(encoder: Encoder, codebook: np.ndarray, path: str | Path) -> Path:
+    """Write the fp32 quantiser graph to `path` (single file, weights inside) and check it.
+
+    Returns the path. Raises BundleError when the exported model fails onnx.checker.
+    """
+    import onnx
+
+    path = Path(path)
+    graph = QuantizerGraph(encoder, codebook).eval()
+    example = torch.zeros(4, encoder.descriptor_length, dtype=torch.float32)
+    example[:, ::3] = 1.0  # non-constant rows: keep min-max scaling away from its 0/0 guard
+    # The exporter logs registry notes (e.g. "torchvision is not installed") and deprecation
+    # warnings that are no concern of the caller: silence them for the call only.
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            program = _export(graph, example)
+        finally:
+            logger.setLevel(level)
+    model = program.model_proto
+    _normalise(model)
+    set_metadata(model, vocabulary_size=int(np.asarray(codebook).shape[0]),
+                 descriptor_length=encoder.descriptor_length, latent_dim=encoder.latent_dim)
+    try:
+        onnx.checker.check_model(model, full_check=True)
+    except Exception as exc:  # onnx raises several checker/inference error types
+        raise BundleError(f"exported quantiser graph fails the ONNX checker: {exc}") from exc
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(model.SerializeToString(deterministic=True))
+    return path
+
+
+def _export(graph: nn.Module, example: torch.Tensor):
+    return torch.onnx.export(
+        graph,
+        (example,),
+        None,
+        input_names=[INPUT_NAME],
+        output_names=list(OUTPUT_NAMES),
+        opset_version=OPSET,
+        dynamo=True,
+        external_data=False,
+        dynamic_shapes={"descriptors": {0: torch.export.Dim("batch")}},
+        optimize=True,
+        verbose=False,
+    )
+
+
+def set_metadata(model, **values) -> None:
+    """Replace the model's metadata_props with `values` (sorted keys; read by the runtime)."""
+    del model.metadata_props[:]
+    for key in sorted(values):
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, str(values[key])
+
+
+def _normalise(model) -> None:
+    """Strip exporter-version metadata and name the batch axis, so bytes depend on weights only."""
+    model.producer_name = PRODUCER
+    model.producer_version = ""
+    model.doc_string = ""
+    del model.metadata_props[:]
+    model.graph.doc_string = ""
+    for node in model.graph.node:
+        node.doc_string = ""
+        del node.metadata_props[:]
+    g = model.graph
+    for vi in list(g.input) + list(g.output) + list(g.value_info) + list(g.initializer):
+        vi.doc_string = ""
+        del vi.metadata_props[:]
+    for vi in list(g.input) + list(g.output):
+        dims = vi.type.tensor_type.shape.dim
+        if len(dims) and not dims[0].HasField("dim_value"):
+            dims[0].dim_param = "batch"

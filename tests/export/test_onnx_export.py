@@ -1,0 +1,141 @@
+"""ONNX export of the AE-VQ quantiser: fp32 parity with torch, int8 agreement, determinism."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+
+from aefabmap.export.onnx_export import QuantizerGraph, export_quantizer_onnx  # noqa: E402
+from aefabmap.export.quantize_int8 import quantize_int8  # noqa: E402
+from aefabmap.runtime.onnx_quantizer import OnnxQuantizer  # noqa: E402
+from aefabmap.trainer.ae_quantizer import build_ae_quantizer, descriptor_sample  # noqa: E402
+from aefabmap.trainer.autoencoder import AeConfig, train_autoencoder  # noqa: E402
+from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+WORDS = 64
+# Three short epochs: a barely trained encoder gives codes with small Voronoi margins, where
+# 8-bit activations flip ~10% of words; a trained one (as shipped) agrees on > 99%.
+TINY = AeConfig(max_epochs=3, max_descriptors=3000, batch_size=64, threads=1, progress=False)
+
+
+def _train_dir() -> Path:
+    root = Path(os.environ.get("AEFABMAP_DATA", REPO.parent / "shared" / "data"))
+    d = root / "train"
+    if not d.is_dir():
+        pytest.skip(f"training images not found under {root} (set AEFABMAP_DATA)")
+    return d
+
+
+class Exported:
+    """A tiny trained quantiser of one feature kind, its files and held-out test vectors."""
+
+    def __init__(self, kind: str, out: Path) -> None:
+        d = _train_dir()
+        train_paths = sorted((d / "camvid").glob("*.jpg"))[:15]
+        # Held-out images from another dataset: parity must not depend on training data.
+        test_paths = sorted((d / "scene15" / "street").glob("*.jpg"))[:12]
+        self.kind = kind
+        self.train = descriptor_sample(train_paths, kind, limit=3000)
+        self.test = descriptor_sample(test_paths, kind, limit=2000)
+        res = train_autoencoder(self.train, feature_kind=kind, seed=0, config=TINY)
+        self.encoder = res.model.encoder
+        self.codebook = fit_latent_vocabulary(self.encoder, self.train, WORDS, seed=0, max_iterations=10).codebook
+        self.fp32 = export_quantizer_onnx(self.encoder, self.codebook, out / f"{kind}_fp32.onnx")
+        self.int8 = quantize_int8(self.fp32, out / f"{kind}_int8.onnx", self.train)
+        self.d = self.train.shape[1]
+
+    def runtime(self, which: str = "fp32") -> OnnxQuantizer:
+        return OnnxQuantizer(getattr(self, which), vocabulary_size=WORDS, descriptor_length=self.d)
+
+    def eager(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Torch words, codes and latent scores (N, K) for x."""
+        g = QuantizerGraph(self.encoder, self.codebook).eval()
+        with torch.no_grad():
+            words, codes = g(torch.from_numpy(x))
+            scores = codes @ g.codebook_t - g.half_sq_norms
+        return words.numpy(), codes.numpy(), scores.numpy()
+
+
+@pytest.fixture(scope="module", params=["orb", "sift"])
+def exported(request, tmp_path_factory) -> Exported:
+    return Exported(request.param, tmp_path_factory.mktemp(f"ae_{request.param}"))
+
+
+pytestmark = pytest.mark.slow  # ~10-20 s per feature kind for the shared fixture
+
+
+def test_graph_contract_and_checker(exported):
+    model = onnx.load(str(exported.fp32))
+    onnx.checker.check_model(model, full_check=True)
+    assert [i.name for i in model.graph.input] == ["descriptors"]
+    assert [o.name for o in model.graph.output] == ["words", "codes"]
+    dims = model.graph.input[0].type.tensor_type.shape.dim
+    assert dims[0].dim_param and dims[1].dim_value == exported.d
+    assert model.graph.output[0].type.tensor_type.elem_type == onnx.TensorProto.INT32
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert meta["vocabulary_size"] == str(WORDS)
+    onnx.checker.check_model(onnx.load(str(exported.int8)))
+    int8_ops = {n.op_type for n in onnx.load(str(exported.int8)).graph.node}
+    assert "QuantizeLinear" in int8_ops and "DequantizeLinear" in int8_ops
+    assert "ConvInteger" not in int8_ops  # static QDQ, not dynamic
+
+
+def test_fp32_onnx_matches_torch_eager(exported):
+    x = exported.test
+    words_t, codes_t, scores = exported.eager(x)
+    words_o, codes_o = exported.runtime().quantize_and_encode(x)
+    np.testing.assert_allclose(codes_o, codes_t, rtol=1e-4, atol=1e-4)
+    differ = np.flatnonzero(words_o != words_t)
+    # Two float32 GEMM implementations can only disagree on a genuine tie: the two words'
+    # latent scores must then be equal to float precision.
+    rows = np.arange(differ.size)
+    gap = np.abs(scores[differ][rows, words_o[differ]] - scores[differ][rows, words_t[differ]])
+    scale = np.abs(scores[differ]).max(axis=1) + 1.0
+    assert np.all(gap <= 1e-4 * scale), f"{differ.size} non-tie disagreements"
+    assert differ.size <= max(1, x.shape[0] // 1000)
+
+
+def test_int8_agrees_with_fp32(exported):
+    w32 = exported.runtime("fp32").quantize(exported.test)
+    w8 = exported.runtime("int8").quantize(exported.test)
+    agreement = float(np.mean(w32 == w8))
+    assert agreement >= 0.99, f"int8 agrees on {agreement:.4f} of descriptors"
+
+
+@pytest.mark.parametrize("which", ["fp32", "int8"])
+def test_batched_equals_one_by_one(exported, which):
+    q = exported.runtime(which)
+    x = exported.test[:300]
+    batched = q.quantize(x)
+    single = np.concatenate([q.quantize(x[i : i + 1]) for i in range(x.shape[0])])
+    assert np.array_equal(batched, single)
+    codes = q.encode(x)
+    codes1 = np.concatenate([q.encode(x[i : i + 1]) for i in range(x.shape[0])])
+    np.testing.assert_allclose(codes, codes1, rtol=1e-5, atol=1e-5)
+
+
+def test_build_ae_quantizer_is_deterministic(tmp_path):
+    d = _train_dir()
+    vectors = descriptor_sample(sorted((d / "camvid").glob("*.jpg"))[:6], "orb", limit=2000)
+    cfg = AeConfig(max_epochs=1, max_descriptors=1500, batch_size=128, threads=1, progress=False)
+    manifests = []
+    for name in ("a", "b"):
+        manifests.append(
+            build_ae_quantizer(vectors, words=16, seed=5, feature_kind="orb", out_dir=tmp_path / name, config=cfg)
+        )
+    m = manifests[0]
+    assert m["type"] == "ae" and m["files"] == {"fp32": "quantizer_fp32.onnx", "int8": "quantizer_int8.onnx"}
+    assert m["latent_dim"] == 128 and 0.0 <= m["int8_agreement"] <= 1.0
+    assert m["train"]["n_descriptors"] == 1500
+    for f in m["files"].values():
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+    import json
+
+    json.dumps(m)  # JSON-able

@@ -1,0 +1,136 @@
+"""Trainer entry for the AE-VQ quantiser (`aefabmap train --quantizer ae`).
+
+train autoencoder -> k-means on latent codes -> ONE fp32 ONNX graph -> static QDQ int8 copy,
+and a JSON-able manifest entry describing both files.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from aefabmap.errors import ConfigError, InputError
+
+if TYPE_CHECKING:  # torch stays a lazy import: the runtime never loads this module
+    from aefabmap.trainer.autoencoder import AeConfig
+
+FP32_NAME = "quantizer_fp32.onnx"
+INT8_NAME = "quantizer_int8.onnx"
+# Held-out vectors on which the int8 graph is compared with the fp32 graph.
+AGREEMENT_SAMPLE = 20_000
+
+
+def build_ae_quantizer(
+    vectors: np.ndarray,
+    *,
+    words: int,
+    seed: int,
+    feature_kind: str,
+    out_dir: Path,
+    calibration_vectors: np.ndarray | None = None,
+    config: AeConfig | None = None,
+    kmeans_iterations: int = 25,
+    progress=None,
+) -> dict:
+    """Train the AE-VQ quantiser on training descriptor vectors and write its ONNX files.
+
+    vectors: (N, D) float32 training descriptor vectors (ORB bits D=256 or SIFT D=128).
+    words: vocabulary size K. seed: fixes subsampling, weights, k-means and calibration.
+    out_dir: receives quantizer_fp32.onnx and quantizer_int8.onnx.
+    calibration_vectors: (M, D) float32 for int8 calibration; default: `vectors`.
+    config: AeConfig (None -> defaults). progress: optional callable(stage: str) for the CLI.
+    Returns the manifest entry: {"type": "ae", "files": {...}, "latent_dim", "train", "int8_agreement", ...}.
+    Same inputs and seed -> byte-identical files.
+    """
+    from aefabmap.export.onnx_export import export_quantizer_onnx
+    from aefabmap.export.quantize_int8 import quantize_int8
+    from aefabmap.runtime.onnx_quantizer import OnnxQuantizer
+    from aefabmap.trainer.autoencoder import AeConfig, train_autoencoder
+    from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary
+
+    config = config or AeConfig()
+    if not isinstance(config, AeConfig):
+        raise ConfigError(f"config must be an AeConfig, got {type(config).__name__}")
+    if not isinstance(words, int) or words < 2:
+        raise ConfigError(f"words must be an integer >= 2, got {words!r}")
+    vectors = np.ascontiguousarray(vectors, dtype=np.float32)
+    if vectors.ndim != 2 or vectors.shape[0] < words:
+        raise InputError(f"need a (N, D) array with N >= words={words}, got shape {vectors.shape}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    def stage(name: str) -> None:
+        if progress is not None:
+            progress(name)
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    stage("autoencoder")
+    result = train_autoencoder(vectors, feature_kind=feature_kind, seed=seed, config=config)
+    timings["train_s"] = time.perf_counter() - t0
+    encoder = result.model.encoder
+
+    t0 = time.perf_counter()
+    stage("latent k-means")
+    vocab = fit_latent_vocabulary(
+        encoder, vectors, words, seed=seed, max_iterations=kmeans_iterations, threads=result.config.threads
+    )
+    timings["kmeans_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    stage("onnx export")
+    fp32_path = export_quantizer_onnx(encoder, vocab.codebook, out_dir / FP32_NAME)
+    calib = vectors if calibration_vectors is None else calibration_vectors
+    int8_path = quantize_int8(fp32_path, out_dir / INT8_NAME, calib, seed=seed)
+    timings["export_s"] = time.perf_counter() - t0
+
+    # Agreement of int8 with fp32 words on training vectors not used for calibration
+    # (calibration draws with `seed`, this sample with seed + 7).
+    d = vectors.shape[1]
+    rng = np.random.default_rng(seed + 7)
+    sample = vectors if vectors.shape[0] <= AGREEMENT_SAMPLE else vectors[
+        np.sort(rng.choice(vectors.shape[0], AGREEMENT_SAMPLE, replace=False))
+    ]
+    q32 = OnnxQuantizer(fp32_path, vocabulary_size=words, descriptor_length=d, threads=result.config.threads)
+    q8 = OnnxQuantizer(int8_path, vocabulary_size=words, descriptor_length=d, threads=result.config.threads)
+    w32 = q32.quantize(sample)
+    agreement = float(np.mean(w32 == q8.quantize(sample)))
+    used = np.bincount(w32, minlength=words)
+
+    return {
+        "type": "ae",
+        "files": {"fp32": FP32_NAME, "int8": INT8_NAME},
+        "latent_dim": int(encoder.latent_dim),
+        "descriptor_length": int(d),
+        "vocabulary_size": int(words),
+        "train": result.summary(),
+        "kmeans": {"iterations": kmeans_iterations, "n_clustered": vocab.n_clustered, "seed": seed},
+        "int8_agreement": round(agreement, 6),
+        "agreement_sample": int(sample.shape[0]),
+        "words_used_fraction": round(float(np.mean(used > 0)), 6),
+        "timings": {k: round(v, 2) for k, v in timings.items()},
+    }
+
+
+def descriptor_sample(image_paths, feature_kind: str, *, max_features: int = 500, limit: int | None = None) -> np.ndarray:
+    """Descriptor vectors (N, D) float32 of the images at `image_paths`, concatenated in order.
+
+    A small helper for tests and benchmarks; `limit` truncates the result to its first rows.
+    """
+    from aefabmap.runtime.features import FeatureConfig, FeatureExtractor, descriptor_vectors
+
+    fx = FeatureExtractor(FeatureConfig(kind=feature_kind, max_features=max_features))
+    d = fx.config.descriptor_length
+    parts = []
+    total = 0
+    for p in image_paths:
+        v = descriptor_vectors(fx.extract(p).descriptors, feature_kind)
+        parts.append(v)
+        total += v.shape[0]
+        if limit is not None and total >= limit:
+            break
+    out = np.concatenate(parts) if parts else np.zeros((0, d), np.float32)
+    return out if limit is None else out[:limit]
