@@ -27,6 +27,9 @@ class TrainConfig:
 
     images: training image directories (searched recursively, sorted by path).
     words: vocabulary size K. max_descriptors: descriptors sampled for clustering.
+    cache_dir: where extracted training features are kept between runs (None: no cache);
+        entries are keyed by the feature settings and the image list, so a stale entry is
+        never reused.
     """
 
     images: tuple[Path, ...]
@@ -37,6 +40,7 @@ class TrainConfig:
     seed: int = 0
     max_descriptors: int = 200_000
     kmeans_iterations: int = 25
+    cache_dir: Path | None = None
     show_progress: bool = True
 
     def __post_init__(self) -> None:
@@ -74,6 +78,32 @@ def extract_training_vectors(files: list[Path], features: FeatureConfig, show_pr
     return out
 
 
+def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_dir: Path | None, show_progress: bool) -> list[np.ndarray]:
+    """extract_training_vectors, reusing a cache entry for the same settings and images."""
+    if cache_dir is None:
+        return extract_training_vectors(files, features, show_progress)
+    key = hashlib.sha256(
+        (repr(sorted(features.to_dict().items())) + "\n" + "\n".join(f"{f}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files)).encode()
+    ).hexdigest()[:20]
+    entry = Path(cache_dir) / f"features-{features.kind}-{key}.npz"
+    if entry.is_file():
+        try:
+            with np.load(entry, allow_pickle=False) as z:
+                flat, counts = z["descriptors"], z["counts"]
+            if counts.size == len(files) and counts.sum() == flat.shape[0]:
+                return np.split(flat, np.cumsum(counts)[:-1])
+        except (OSError, ValueError, KeyError):
+            pass  # unreadable cache entry: extract again and overwrite it
+    per_image = extract_training_vectors(files, features, show_progress)
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    tmp = entry.with_suffix(".tmp.npz")
+    width = 32 if features.kind == "orb" else 128
+    flat = np.concatenate(per_image) if per_image else np.zeros((0, width))
+    np.savez(tmp, descriptors=flat, counts=np.array([len(a) for a in per_image]))
+    tmp.replace(entry)
+    return per_image
+
+
 def _vectors(raw: np.ndarray, kind: str) -> np.ndarray:
     return descriptor_vectors(raw, kind) if kind == "orb" else raw
 
@@ -106,7 +136,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
     files = find_training_images(config.images)
     kind = config.features.kind
     t0 = time.perf_counter()
-    per_image = extract_training_vectors(files, config.features, config.show_progress)
+    per_image = cached_training_vectors(files, config.features, config.cache_dir, config.show_progress)
     timings["features_s"] = time.perf_counter() - t0
     sample = sample_vectors(per_image, kind, config.max_descriptors, config.seed)
     t0 = time.perf_counter()
@@ -128,8 +158,16 @@ def train_bundle(config: TrainConfig) -> TrainResult:
         else:
             from aefabmap.runtime.onnx_quantizer import OnnxQuantizer
             from aefabmap.trainer.ae_quantizer import build_ae_quantizer
+            from aefabmap.trainer.autoencoder import AeConfig
 
-            q_manifest = build_ae_quantizer(sample, words=config.words, seed=config.seed, feature_kind=kind, out_dir=Path(work))
+            q_manifest = build_ae_quantizer(
+                sample,
+                words=config.words,
+                seed=config.seed,
+                feature_kind=kind,
+                out_dir=Path(work),
+                config=AeConfig(progress=config.show_progress),
+            )
             q_files = {name: Path(work) / name for name in q_manifest["files"].values()}
             quantizer = OnnxQuantizer(
                 Path(work) / q_manifest["files"]["fp32"],

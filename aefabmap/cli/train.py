@@ -20,6 +20,7 @@ def register(sub) -> None:
     p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
+    p.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -41,6 +42,7 @@ def run(args) -> int:
         words=args.words,
         seed=args.seed,
         max_descriptors=args.max_descriptors,
+        cache_dir=args.cache,
         show_progress=not args.no_progress,
     )
     result = train_bundle(config)
