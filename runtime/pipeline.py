@@ -12,11 +12,14 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from aefabmap.errors import ConfigError
+from aefabmap.errors import ConfigError, InputError
 from aefabmap.runtime.bow import BowIndex
 from aefabmap.runtime.bundle import ModelBundle, load_bundle
 from aefabmap.runtime.fabmap import FabMap2
 from aefabmap.runtime.features import FeatureExtractor, Features, descriptor_vectors
+from aefabmap.runtime.keypoint_store import KeypointStore, PlaceKeypoints
+from aefabmap.runtime.temporal import TemporalFilter
+from aefabmap.runtime.verification import GeometryResult, VerificationConfig, verify_pair
 
 SCORERS = ("fabmap", "bow")
 FABMAP_SCORES = ("probability", "llr")
@@ -40,6 +43,14 @@ class DetectorConfig:
     memory_mb: hard cap of the map's memory in MiB, as accounted by `map_bytes()` (None: unbounded).
         When either cap is reached the place least recently inserted or matched as a loop
         is evicted before a new one is added.
+    verification: geometric verification of the best candidates (runtime/verification.py);
+        on by default. When enabled, `loop` means "verified" and loop_threshold is not used:
+        the top_k places by FAB-MAP log-likelihood (or BoW similarity) are checked whatever
+        their score, because the posterior saturates and ranks better than it thresholds.
+        Each place then keeps its keypoints (runtime/keypoint_store.py) inside memory_mb.
+    temporal_frames: temporal consistency (runtime/temporal.py): a verified match counts only
+        when the `temporal_frames` preceding frames were verified to frames within
+        `temporal_tolerance` frames of it. 0 (default) switches the check off.
     """
 
     scorer: str = "fabmap"
@@ -53,6 +64,9 @@ class DetectorConfig:
     fabmap_score: str = "probability"
     max_places: int | None = None
     memory_mb: float | None = None
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
+    temporal_frames: int = 0
+    temporal_tolerance: int = 10
 
     def __post_init__(self) -> None:
         if self.scorer not in SCORERS:
@@ -69,6 +83,12 @@ class DetectorConfig:
             raise ConfigError("max_places / memory_mb are supported with the fabmap scorer only")
         if self.threads < 1:
             raise ConfigError(f"threads must be >= 1, got {self.threads}")
+        if not isinstance(self.verification, VerificationConfig):
+            raise ConfigError(f"verification must be a VerificationConfig, got {type(self.verification).__name__}")
+        if self.temporal_frames < 0 or self.temporal_tolerance < 0:
+            raise ConfigError("temporal_frames and temporal_tolerance must be >= 0")
+        if self.temporal_frames and not self.verification.enabled:
+            raise ConfigError("temporal consistency works on verified matches: enable verification")
 
 
 @dataclass
@@ -81,8 +101,18 @@ class FrameResult:
         cosine similarity (BoW); probability: FAB-MAP's posterior of the best place; llr: its
         log-likelihood ratio against the new place (nats); p_new: FAB-MAP's new-place
         probability (None for BoW).
-    loop: score >= loop_threshold. inserted_frame / inserted_place: the frame that entered the
-        map during this step (delayed insertion) and its place id. timings_ms: per stage.
+    loop: score >= loop_threshold, or, with verification enabled, `verified`.
+    inserted_frame / inserted_place: the frame that entered the map during this step (delayed
+        insertion) and its place id. timings_ms: per stage (ms).
+    verified: a candidate passed geometric verification (and the temporal check when enabled).
+    verified_place / verified_frame: that candidate (None when none passed).
+    inliers / matches: inliers of the accepted geometry and putative matches; when nothing
+        passed, those of the best attempt (diagnostics). geometry_model: "F" (fundamental
+        matrix) or "H" (homography); geometry: its 3x3 matrix as nested lists, row-major,
+        mapping the place's image to the query's, in original pixels (x_q^T F x_p = 0 or
+        x_q ~ H x_p); None unless verified. candidates_tried: places verified this frame.
+    geometry_ok: the geometric check passed (before the temporal check); temporal_ok: the
+        temporal check passed (None when it is off).
     """
 
     sequence: int
@@ -101,6 +131,16 @@ class FrameResult:
     evicted_place: int | None = None
     n_places: int = 0
     timings_ms: dict = field(default_factory=dict)
+    verified: bool = False
+    verified_place: int | None = None
+    verified_frame: int | None = None
+    inliers: int = 0
+    matches: int = 0
+    geometry_model: str | None = None
+    geometry: list | None = None
+    candidates_tried: int = 0
+    geometry_ok: bool = False
+    temporal_ok: bool | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -130,7 +170,13 @@ class LoopClosureDetector:
         else:
             self.fabmap = None
             self.bow = BowIndex(bundle.vocabulary_size, bundle.training_observations)
-        self._pending: deque[tuple[int, np.ndarray]] = deque()
+        self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
+        v = c.verification
+        self.store: KeypointStore | None = None
+        if v.enabled:
+            desc_bytes = 32 if bundle.features.kind == "orb" else 128
+            self.store = KeypointStore(desc_bytes, bundle.vocabulary_size, v.max_keypoints)
+        self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)
         self._last_used = np.zeros(0, np.int64)
@@ -172,25 +218,38 @@ class LoopClosureDetector:
         t1 = time.perf_counter()
         words = self.words_of(feats)
         t2 = time.perf_counter()
-        res = self.process_words(words, stamp_ns)
+        res = self.process_words(words, stamp_ns, feats)
         t3 = time.perf_counter()
         res.n_keypoints = len(feats)
+        verify_ms = res.timings_ms.get("verification")
         res.timings_ms = {
             "features": (t1 - t0) * 1e3,
             "quantise": (t2 - t1) * 1e3,
-            "inference": (t3 - t2) * 1e3,
+            "inference": (t3 - t2) * 1e3 - (verify_ms or 0.0),
         }
+        if verify_ms is not None:
+            res.timings_ms["verification"] = verify_ms
         return res
 
-    def process_words(self, words: np.ndarray, stamp_ns: int = 0) -> FrameResult:
-        """Score one frame given its keypoints' word ids, then queue it for delayed insertion."""
+    def process_words(self, words: np.ndarray, stamp_ns: int = 0, features: Features | None = None) -> FrameResult:
+        """Score one frame given its keypoints' word ids, then queue it for delayed insertion.
+
+        words: (N,) word id of every keypoint; features: the frame's keypoints (same order and
+        count as words) for geometric verification. Without features the frame is neither
+        verified nor stored for verifying later frames (verified is then always False).
+        """
         seq = self._sequence
         self._sequence += 1
         inserted_frame = inserted_place = evicted = None
         while self._pending and self._pending[0][0] <= seq - self.config.exclude:
-            inserted_frame, pending_words = self._pending.popleft()
+            inserted_frame, pending_words, pending_kps = self._pending.popleft()
             evicted = self._make_room()
             inserted_place = self._insert(pending_words, inserted_frame)
+            if self.store is not None:
+                # A reused id must not keep the keypoints of the place it belonged to before.
+                self.store.remove(inserted_place)
+                if pending_kps is not None:
+                    self.store.put(inserted_place, pending_kps)
         uniq = np.unique(words)
         probability = llr = None
         if self.fabmap is not None:
@@ -201,16 +260,29 @@ class LoopClosureDetector:
                 llr = float(loc.loglik[best] - loc.loglik_new)
             score = (llr if self.config.fabmap_score == "llr" else probability) if best is not None else 0.0
             self._last_scores = loc.p_places
+            ranking = loc.loglik
         else:
             sims = self.bow.similarity(words)
             best = int(np.argmax(sims)) if sims.size else None
             score, p_new = (float(sims[best]) if best is not None else 0.0), None
             self._last_scores = sims
+            ranking = sims
         loop = best is not None and score >= self.config.loop_threshold
+        check = None
+        query_kps = None
+        if self.store is not None:
+            if features is not None:
+                if len(features) != words.size:
+                    raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
+                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape)
+            t0 = time.perf_counter()
+            check = self._verify(features, words, ranking, seq)
+            check.timing_ms = (time.perf_counter() - t0) * 1e3
+            loop = check.verified
         if loop:
-            self._last_used[best] = seq
-        self._pending.append((seq, words if self.bow is not None else uniq))
-        return FrameResult(
+            self._last_used[check.place if check is not None else best] = seq
+        self._pending.append((seq, words if self.bow is not None else uniq, query_kps))
+        res = FrameResult(
             sequence=seq,
             stamp_ns=int(stamp_ns),
             n_keypoints=int(words.size),
@@ -227,6 +299,40 @@ class LoopClosureDetector:
             evicted_place=evicted,
             n_places=self.n_places,
         )
+        if check is not None:
+            check.fill(res, self._place_frame)
+        return res
+
+    def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, seq: int) -> "_Check":
+        """Geometric (+ temporal) verification of the top-k places of one query."""
+        v = self.config.verification
+        check = _Check()
+        if features is not None and len(features) and ranking.size:
+            k = min(v.top_k, ranking.size)
+            top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
+            top = top[np.argsort(-ranking[top], kind="stable")]
+            q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
+            for rank, pid in enumerate(top):
+                if not np.isfinite(ranking[pid]):
+                    break  # removed places (-inf) sort last
+                place = self.store.get(int(pid))
+                if place is None or len(place) == 0:
+                    continue
+                check.tried += 1
+                g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
+                                place.image_shape, v, bruteforce=rank < v.bruteforce_fallback)
+                if check.best is None or g.verified or g.inliers > check.best.inliers:
+                    check.best, check.best_place = g, int(pid)
+                if g.verified:
+                    break  # the first candidate that passes is taken: true loops cost one check
+        check.geometry_ok = check.best is not None and check.best.verified
+        check.verified = check.geometry_ok
+        if self.temporal is not None:
+            matched = int(self._place_frame[check.best_place]) if check.geometry_ok else None
+            check.temporal_ok = self.temporal.update(matched)
+            check.verified = check.geometry_ok and check.temporal_ok
+        check.place = check.best_place if check.verified else None
+        return check
 
     def _id_range(self) -> int:
         return self.fabmap.n_places if self.fabmap is not None else self.bow.n_places
@@ -248,7 +354,8 @@ class LoopClosureDetector:
         (e.g. keypoints for verification) must be added here so that memory_mb holds.
         """
         index = self.fabmap.nbytes() if self.fabmap is not None else 0
-        return index + self._last_used.nbytes + self._place_frame.nbytes
+        kps = self.store.nbytes() if self.store is not None else 0
+        return index + self._last_used.nbytes + self._place_frame.nbytes + kps
 
     def _over_budget(self, extra_places: int = 1) -> bool:
         c = self.config
@@ -268,4 +375,34 @@ class LoopClosureDetector:
             used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
             evicted = int(np.argmin(used))
             self.fabmap.remove(evicted)
+            if self.store is not None:
+                self.store.remove(evicted)
         return evicted
+
+
+@dataclass
+class _Check:
+    """Outcome of verifying one query (internal)."""
+
+    best: GeometryResult | None = None
+    best_place: int | None = None
+    place: int | None = None
+    tried: int = 0
+    geometry_ok: bool = False
+    temporal_ok: bool | None = None
+    verified: bool = False
+    timing_ms: float = 0.0
+
+    def fill(self, res: FrameResult, place_frame: np.ndarray) -> None:
+        res.verified = bool(self.verified)
+        res.geometry_ok = bool(self.geometry_ok)
+        res.temporal_ok = self.temporal_ok
+        res.candidates_tried = self.tried
+        res.timings_ms["verification"] = self.timing_ms
+        if self.best is not None:
+            res.inliers, res.matches = int(self.best.inliers), int(self.best.matches)
+            res.geometry_model = self.best.model
+        if self.verified and self.place is not None:
+            res.verified_place = int(self.place)
+            res.verified_frame = int(place_frame[self.place])
+            res.geometry = [[float(x) for x in row] for row in self.best.matrix]

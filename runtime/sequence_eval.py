@@ -6,6 +6,7 @@ collects predictions, timings and the score matrix, and computes the metrics.
 
 from __future__ import annotations
 
+import dataclasses
 import resource
 import time
 from dataclasses import dataclass, field
@@ -63,6 +64,16 @@ class SequenceRun:
     def scores(self) -> np.ndarray:
         return np.array([r.score for r in self.results], np.float64)
 
+    @property
+    def verified_frames(self) -> np.ndarray:
+        """(N,) matched frame of the verified output, -1 where no candidate was verified."""
+        return np.array([-1 if not r.verified or r.verified_frame is None else r.verified_frame for r in self.results], np.int64)
+
+    @property
+    def verified_scores(self) -> np.ndarray:
+        """(N,) score of the verified output: the inlier count (0 where nothing was verified)."""
+        return np.array([r.inliers if r.verified else 0 for r in self.results], np.float64)
+
 
 def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix: bool = True, show_progress: bool = True) -> SequenceRun:
     """Run every image through the detector; keep the full score rows when keep_matrix."""
@@ -70,6 +81,8 @@ def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix:
     matrix = np.zeros((n, n), np.float32) if keep_matrix and n <= 20000 else None
     results = []
     stages: dict[str, list[float]] = {"decode": [], "features": [], "quantise": [], "inference": []}
+    if detector.store is not None:
+        stages["verification"] = []
     t_start = time.perf_counter()
     for i, path in enumerate(tqdm(images, desc="frames", disable=not show_progress, mininterval=1.0)):
         t0 = time.perf_counter()
@@ -105,17 +118,33 @@ def summarise_timings(stage_ms: dict[str, np.ndarray]) -> dict:
 
 
 def evaluate_run(run: SequenceRun, gt: np.ndarray, tolerance: int = 10) -> dict:
-    """Metrics (strict and tolerant), timings and memory of a run, as a JSON-able dict."""
+    """Metrics (strict and tolerant), timings and memory of a run, as a JSON-able dict.
+
+    When the detector verified its candidates, metrics["verified"] holds the same metric keys
+    for the verified output: prediction = the verified frame, score = its inlier count,
+    unverified frames make no prediction.
+    """
     metrics = evaluate_predictions(run.best_frames, run.scores, gt, tolerance)
     metrics["ms_per_frame"] = summarise_timings(run.stage_ms)
     metrics["peak_rss_mb"] = run.peak_rss_mb
     metrics["wall_s"] = run.wall_s
+    if "verification" in run.stage_ms:
+        verified = evaluate_predictions(run.verified_frames, run.verified_scores, gt, tolerance)
+        verified["ms_per_frame"] = metrics["ms_per_frame"]
+        verified["verification_ms"] = metrics["ms_per_frame"].get("verification", {})
+        tried = np.array([r.candidates_tried for r in run.results], np.float64)
+        verified["mean_candidates_tried"] = float(tried.mean()) if tried.size else 0.0
+        verified["geometry_models"] = {
+            m: int(sum(1 for r in run.results if r.verified and r.geometry_model == m)) for m in ("F", "H")
+        }
+        verified.update(run.extra.get("verified", {}))
+        metrics["verified"] = verified
     return metrics
 
 
 def public(metrics: dict) -> dict:
-    """Drop in-memory-only entries (PR curves) from a metrics dict."""
-    return {k: v for k, v in metrics.items() if not k.startswith("_")}
+    """Drop in-memory-only entries (PR curves) from a metrics dict, also in nested dicts."""
+    return {k: public(v) if isinstance(v, dict) else v for k, v in metrics.items() if not k.startswith("_")}
 
 
 def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | None = None, tolerance: int = 10, show_progress: bool = True) -> tuple[dict, SequenceRun]:
@@ -124,6 +153,17 @@ def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | N
     gt = load_ground_truth(gt_path, len(images))
     detector = LoopClosureDetector.from_bundle(bundle_path, config)
     run = run_sequence(detector, images, show_progress=show_progress)
+    if detector.store is not None:
+        store = detector.store
+        run.extra["verified"] = {
+            "config": dataclasses.asdict(detector.config.verification),
+            "temporal_frames": detector.config.temporal_frames,
+            "temporal_tolerance": detector.config.temporal_tolerance,
+            "store_places": len(store),
+            "store_bytes": store.nbytes(),
+            "store_bytes_per_place": store.nbytes() / max(len(store), 1),
+            "store_bytes_per_keypoint": store.bytes_per_keypoint,
+        }
     metrics = evaluate_run(run, gt, tolerance)
     metrics.update(
         {
@@ -138,6 +178,7 @@ def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | N
             "training": detector.bundle.manifest.get("training", {}),
             "mean_keypoints": float(np.mean([r.n_keypoints for r in run.results])),
             "mean_words": float(np.mean([r.n_words for r in run.results])),
+            "map_bytes": detector.map_bytes(),
         }
     )
     return metrics, run

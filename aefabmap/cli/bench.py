@@ -23,6 +23,42 @@ def register(sub) -> None:
     cl.add_argument("--words-per-image", type=int, default=300)
     cl.add_argument("--json", type=Path, metavar="OUT")
     cl.set_defaults(func=run_chowliu)
+    pl = bsub.add_parser("pipeline", help="per-stage ms per 640x480 ORB frame on one core with a pre-filled map")
+    pl.add_argument("--places", type=int, default=10_000, metavar="N", help="places in the map before timing (default 10000)")
+    pl.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    pl.add_argument("--frames", type=int, default=150, help="timed frames (default 150)")
+    pl.add_argument("--warmup", type=int, default=10, help="untimed frames first (default 10)")
+    pl.add_argument("--prefill", choices=("train", "synthetic"), default="train",
+                    help="word sets of the pre-filled places: the bundle's training observations (default) "
+                    "or synthetic observations of the same mean size")
+    pl.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
+    pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
+    pl.add_argument("--json", type=Path, metavar="OUT")
+    pl.set_defaults(func=run_pipeline)
+    st = bsub.add_parser("stream", help="two processes over loopback Zenoh: frames/s, latency, 200 Hz flood, RSS at the cap")
+    st.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    st.add_argument("--rate", type=float, default=30.0, metavar="HZ", help="rate of the latency phase (default 30)")
+    st.add_argument("--seconds", type=float, default=15.0, metavar="S", help="length of the latency phase (default 15)")
+    st.add_argument("--throughput-seconds", type=float, default=15.0, metavar="S",
+                    help="length of the closed-loop throughput phase (default 15)")
+    st.add_argument("--window", type=int, default=2, help="frames in flight in the throughput phase (default 2)")
+    st.add_argument("--flood-rate", type=float, default=200.0, metavar="HZ", help="flood rate (default 200)")
+    st.add_argument("--flood-seconds", type=float, default=10.0, metavar="S", help="flood length (default 10)")
+    st.add_argument("--soak-seconds", type=float, default=60.0, metavar="S",
+                    help="length of the RSS run at the cap (default 60; 0 skips it)")
+    st.add_argument("--soak-rate", type=float, default=30.0, metavar="HZ", help="rate of the RSS run (default 30)")
+    st.add_argument("--max-places", type=int, default=100, metavar="N", help="the node's --max-places (default 100)")
+    st.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="the node's --memory-mb")
+    st.add_argument("--queue", type=int, default=2, help="the node's --queue (default 2)")
+    st.add_argument("--image-every", type=int, default=1, metavar="N", help="the node's --image-every (default 1)")
+    st.add_argument("--frames", type=int, default=160, help="distinct synthetic frames, cycled (default 160)")
+    st.add_argument("--node-threads", type=int, default=1, metavar="N",
+                    help="OMP_NUM_THREADS/OPENBLAS_NUM_THREADS of the node (default 1, as deploy/aefabmap.service; "
+                    "0: inherit this environment)")
+    st.add_argument("--workdir", type=Path, default=None, metavar="DIR",
+                    help="keep the node's MCAP log and stderr here (default: a temporary directory)")
+    st.add_argument("--json", type=Path, metavar="OUT")
+    st.set_defaults(func=run_stream)
 
 
 def _emit(doc, path: Path | None) -> None:
@@ -45,4 +81,61 @@ def run_chowliu(args) -> int:
     from aefabmap.trainer.benchmark import bench_chow_liu
 
     _emit(asdict(bench_chow_liu(args.images, args.words, args.words_per_image)), args.json)
+    return 0
+
+
+def _model(args) -> Path:
+    from aefabmap.cli.demo import default_bundle
+
+    return args.model or default_bundle()
+
+
+def run_pipeline(args) -> int:
+    from aefabmap.runtime.stream_bench import PipelineBenchConfig, bench_pipeline
+
+    cfg = PipelineBenchConfig(
+        bundle=str(_model(args)), places=args.places, frames=args.frames, warmup=args.warmup,
+        prefill=args.prefill, verification=not args.no_verification, single_core=not args.all_cores,
+    )
+    doc = bench_pipeline(cfg)
+    _emit(doc, args.json)
+    s = doc["stages_ms"]
+    print(f"\n{doc['bundle']}: {doc['vocabulary_size']} words, {doc['places_in_map']['max']} places, "
+          f"{'one core' if doc['single_core'] else 'all cores'}, load {doc['machine']['load_average']}")
+    c = doc["stages_cpu_ms"]
+    print(f"{'stage':<24}{'wall median':>12}{'wall p95':>10}{'CPU median':>12}{'CPU p95':>10}  (ms)")
+    for name in ("decode", "features", "quantise", "inference", "verification"):
+        print(f"{name:<24}{s[name]['median']:>12.2f}{s[name]['p95']:>10.2f}{c[name]['median']:>12.2f}{c[name]['p95']:>10.2f}")
+    w, u = doc["total_ms"], doc["total_cpu_ms"]
+    print(f"{'total':<24}{w['median']:>12.2f}{w['p95']:>10.2f}{u['median']:>12.2f}{u['p95']:>10.2f}")
+    v = doc["total_without_verification_ms"]
+    print(f"{'total w/o verification':<24}{v['median']:>12.2f}{v['p95']:>10.2f}")
+    t = doc["target"]
+    print(f"target median <= 10 ms: wall {'MET' if t['met_wall'] else 'MISSED'}, CPU {'MET' if t['met_cpu'] else 'MISSED'}")
+    return 0
+
+
+def run_stream(args) -> int:
+    from aefabmap.runtime.stream_bench import StreamBenchConfig, bench_stream
+
+    cfg = StreamBenchConfig(
+        bundle=str(_model(args)), rate_hz=args.rate, seconds=args.seconds,
+        throughput_seconds=args.throughput_seconds, window=args.window, flood_hz=args.flood_rate,
+        flood_seconds=args.flood_seconds, soak_seconds=args.soak_seconds, soak_rate_hz=args.soak_rate,
+        max_places=args.max_places, memory_mb=args.memory_mb, queue=args.queue, image_every=args.image_every,
+        n_frames=args.frames, workdir=str(args.workdir) if args.workdir else None,
+        keep_log=args.workdir is not None, node_threads=args.node_threads or None,
+    )
+    doc = bench_stream(cfg)
+    _emit(doc, args.json)
+    print()
+    for name, ph in doc["phases"].items():
+        lat = ph["latency_ms"]
+        fps = ph.get("fps", ph.get("processed_fps"))
+        print(f"{name:<11} {ph['mode']:<30} published {ph['published']:>5}  processed {ph['processed']:>5}  "
+              f"{fps} fps  latency p50 {lat['median']} ms p95 {lat['p95']} ms max {lat['max']} ms")
+    r = doc["rss_mb"]
+    print(f"node RSS MB: first {r['first']}, last {r['last']}, max {r['max']} ({r['samples']} samples)")
+    for name, t in doc["targets"].items():
+        print(f"target {name}: {'MET' if t['met'] else 'MISSED'} {t}")
     return 0

@@ -11,11 +11,8 @@ from __future__ import annotations
 import json
 import logging
 import queue
-import signal
-import socket
 import subprocess
 import sys
-import time
 from importlib import resources
 from pathlib import Path
 
@@ -44,15 +41,10 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def run(args) -> int:
     from aefabmap.runtime.node import images_dir_source, publish_frames
-    from aefabmap.runtime.zenoh_io import SessionConfig, open_session, result_key_for
+    from aefabmap.runtime.node_process import connect_when_listening, free_tcp_port, stop_node
+    from aefabmap.runtime.zenoh_io import SessionConfig, result_key_for
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -60,7 +52,7 @@ def run(args) -> int:
     images_dir, gt_path = _prepare_images(args, out)
     n_frames = len([p for p in images_dir.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")])
     mcap_path = out / "demo.mcap"
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     cmd = [sys.executable, "-m", "aefabmap.cli.main", "run", "--model", str(model), "--key", DEMO_KEY,
            "--listen", endpoint, "--mcap", str(mcap_path), "--queue", "4"]
     print(f"runtime:   {' '.join(cmd[2:])}", flush=True)
@@ -68,7 +60,7 @@ def run(args) -> int:
     results: queue.Queue = queue.Queue()
     session = None
     try:
-        session = _connect_with_retry(SessionConfig(connect=(endpoint,)), node, args.timeout)
+        session = connect_when_listening(endpoint, node, args.timeout)
         sub = session.declare_subscriber(result_key_for(DEMO_KEY), lambda s: results.put(json.loads(s.payload.to_bytes())))
         print(f"publisher: {n_frames} frames from {images_dir} at {args.rate} Hz on {DEMO_KEY} via {endpoint}", flush=True)
         pub = publish_frames(SessionConfig(connect=(endpoint,)), DEMO_KEY, images_dir_source(images_dir),
@@ -80,7 +72,7 @@ def run(args) -> int:
     finally:
         if session is not None:
             session.close()
-        summary = _stop(node)
+        summary = stop_node(node)
     print(f"runtime summary: {json.dumps(summary)}" if summary else "runtime gave no summary")
     _report(_logged_results(mcap_path), gt_path)
     return _replay_check(model, mcap_path)
@@ -100,22 +92,6 @@ def _prepare_images(args, out: Path) -> tuple[Path, Path | None]:
     return seq, seq / "gt.npy"
 
 
-def _connect_with_retry(sc, node: subprocess.Popen, timeout: float):
-    """Open a session to the runtime's endpoint once it listens (it starts in parallel)."""
-    from aefabmap.runtime.zenoh_io import open_session
-
-    deadline = time.monotonic() + timeout
-    while True:
-        if node.poll() is not None:
-            raise TransportError(f"the runtime exited early with code {node.returncode}")
-        try:
-            return open_session(sc)
-        except TransportError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)  # polling a process that is starting: there is no event to wait on
-
-
 def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_timeout: float) -> list[dict]:
     """Print results as they arrive, until `expected` came or none came for idle_timeout s."""
     got = []
@@ -129,22 +105,6 @@ def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_tim
             print(f"  LOOP  frame {r['sequence']:4d} -> frame {r['best_frame']:4d} (place {r['best_place']}), "
                   f"score {r['score']:.4f}", flush=True)
     return got
-
-
-def _stop(node: subprocess.Popen) -> dict | None:
-    if node.poll() is None:
-        node.send_signal(signal.SIGTERM)
-    try:
-        stdout, _ = node.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        node.kill()
-        stdout, _ = node.communicate()
-    for line in reversed((stdout or "").splitlines()):
-        try:
-            return json.loads(line)
-        except ValueError:
-            continue
-    return None
 
 
 def _logged_results(mcap_path: Path) -> list[dict]:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
-from aefabmap.runtime.pipeline import SCORERS, DetectorConfig
+from aefabmap.runtime.pipeline import FABMAP_SCORES, SCORERS, DetectorConfig
+from aefabmap.runtime.verification import VerificationConfig
 
 
 def register(sub) -> None:
@@ -20,6 +22,15 @@ def register(sub) -> None:
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
     p.add_argument("--motion-model", action="store_true", help="FAB-MAP motion prior")
     p.add_argument("--naive-bayes", action="store_true", help="FAB-MAP without the Chow-Liu tree")
+    p.add_argument("--fabmap-score", choices=FABMAP_SCORES, default="probability",
+                   help="raw FAB-MAP score: posterior probability (default) or llr (best place vs new place)")
+    p.add_argument("--no-verify", action="store_true", help="raw FAB-MAP/BoW only: no geometric verification")
+    p.add_argument("--verify-top-k", type=int, default=None, metavar="K",
+                   help=f"candidates verified per frame (default {VerificationConfig.top_k})")
+    p.add_argument("--temporal-frames", type=int, default=0, metavar="N",
+                   help="temporal consistency: N preceding frames must agree (default 0 = off)")
+    p.add_argument("--temporal-tolerance", type=int, default=10, metavar="F",
+                   help="frames by which agreeing matches may differ (default 10)")
     p.add_argument("--json", type=Path, metavar="OUT.json")
     p.add_argument("--plot", type=Path, metavar="PR.png", help="PR curves (needs matplotlib)")
     p.add_argument("--score-matrix", type=Path, metavar="M.png", help="score matrix as an image")
@@ -32,7 +43,10 @@ def run(args) -> int:
     from aefabmap.runtime.sequence_eval import evaluate_bundle, public
 
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
-    rows, runs = {}, {}
+    verification = VerificationConfig(enabled=not args.no_verify)
+    if args.verify_top_k is not None:
+        verification = dataclasses.replace(verification, top_k=args.verify_top_k)
+    rows, runs, table = {}, {}, {}
     for scorer in scorers:
         config = DetectorConfig(
             scorer=scorer,
@@ -41,9 +55,17 @@ def run(args) -> int:
             threads=args.threads,
             motion_model=args.motion_model,
             naive_bayes=args.naive_bayes,
+            fabmap_score=args.fabmap_score,
+            verification=verification,
+            temporal_frames=args.temporal_frames if not args.no_verify else 0,
+            temporal_tolerance=args.temporal_tolerance,
         )
         rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance, not args.no_progress)
-    print(format_table(rows))
+        # Raw and verified rows side by side.
+        table[scorer] = rows[scorer]
+        if "verified" in rows[scorer]:
+            table[f"{scorer}+verified"] = rows[scorer]["verified"]
+    print(format_table(table))
     main = rows[scorers[0]]
     if args.json:
         doc = public(main)
@@ -51,7 +73,7 @@ def run(args) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=2) + "\n")
     if args.plot:
-        save_pr_plot(rows, args.plot)
+        save_pr_plot(table, args.plot)
     if args.score_matrix:
         save_score_matrix(runs[scorers[0]].score_matrix, args.score_matrix)
     return 0
