@@ -30,8 +30,8 @@ def format_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def save_pr_plot(rows: dict[str, dict], path: Path) -> None:
-    """PR curves (tolerant solid, strict dashed) of each method into a PNG."""
+def require_plotting():
+    """matplotlib.pyplot with a headless backend; ConfigError when it is not installed."""
     try:
         import matplotlib
 
@@ -39,6 +39,12 @@ def save_pr_plot(rows: dict[str, dict], path: Path) -> None:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise ConfigError("--plot needs matplotlib (pip install 'aefabmap[plot]')") from exc
+    return plt
+
+
+def save_pr_plot(rows: dict[str, dict], path: Path) -> None:
+    """PR curves (tolerant solid, strict dashed) of each method into a PNG."""
+    plt = require_plotting()
     fig, ax = plt.subplots(figsize=(6, 5), dpi=110)
     for name, m in rows.items():
         for suffix, style in (("_tolerant", "-"), ("", "--")):

@@ -39,9 +39,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from aefabmap.runtime.reporting import format_table, save_pr_plot, save_score_matrix
+    from aefabmap.runtime.reporting import format_table, require_plotting, save_pr_plot, save_score_matrix
     from aefabmap.runtime.sequence_eval import evaluate_bundle, public
 
+    if args.plot:
+        require_plotting()  # fail before a long run, not after it
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
     verification = VerificationConfig(enabled=not args.no_verify)
     if args.verify_top_k is not None:
