@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.conftest import data_root
 
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
@@ -18,7 +19,6 @@ from aefabmap.trainer.ae_quantizer import build_ae_quantizer, descriptor_sample 
 from aefabmap.trainer.autoencoder import AeConfig, train_autoencoder  # noqa: E402
 from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[2]
 WORDS = 64
 # Three short epochs: a barely trained encoder gives codes with small Voronoi margins, where
 # 8-bit activations flip ~10% of words; a trained one (as shipped) agrees on > 99%.
@@ -26,7 +26,7 @@ TINY = AeConfig(max_epochs=3, max_descriptors=3000, batch_size=64, threads=1, pr
 
 
 def _train_dir() -> Path:
-    root = Path(os.environ.get("AEFABMAP_DATA", REPO.parent / "shared" / "data"))
+    root = data_root()
     d = root / "train"
     if not d.is_dir():
         pytest.skip(f"training images not found under {root} (set AEFABMAP_DATA)")

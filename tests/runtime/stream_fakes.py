@@ -7,52 +7,23 @@ The stand-in detector only mimics the interface of aefabmap.runtime.pipeline.Loo
 from __future__ import annotations
 
 import queue
-import socket
 import threading
 import time
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import zenoh
 
 from aefabmap.errors import InputError
+from aefabmap.runtime.node_process import free_tcp_port
+from aefabmap.runtime.pipeline import FrameResult
 from aefabmap.runtime.zenoh_io import SessionConfig
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def session_pair() -> tuple[SessionConfig, SessionConfig]:
     """(listener, connector) session configs on a fresh loopback port, scouting off."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     return SessionConfig(listen=(ep,)), SessionConfig(connect=(ep,))
-
-
-@dataclass
-class FakeResult:
-    """Same fields as aefabmap.runtime.pipeline.FrameResult."""
-
-    sequence: int
-    stamp_ns: int
-    n_keypoints: int
-    n_words: int
-    best_place: int | None
-    best_frame: int | None
-    score: float
-    p_new: float | None
-    loop: bool
-    inserted_frame: int | None = None
-    inserted_place: int | None = None
-    evicted_place: int | None = None
-    n_places: int = 0
-    timings_ms: dict | None = None
-
-    def to_dict(self) -> dict:
-        return dict(self.__dict__)
 
 
 class FakeDetector:
@@ -87,7 +58,7 @@ class FakeDetector:
             inserted = len(self.places)
             self.places.append(thumb)
             self.place_frames.append(self.sequence)
-        res = FakeResult(
+        res = FrameResult(
             sequence=self.sequence,
             stamp_ns=int(stamp_ns),
             n_keypoints=int(gray.mean()),

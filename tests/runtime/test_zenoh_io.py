@@ -21,13 +21,15 @@ from aefabmap.runtime.zenoh_io import (
     result_key_for,
     stats_key_for,
 )
-from .stream_fakes import free_port, sample_images, session_pair
+from aefabmap.runtime.node_process import free_tcp_port
+
+from .stream_fakes import sample_images, session_pair
 
 pytestmark = pytest.mark.timeout(60)
 
 
 def test_config_from_endpoints_turns_scouting_off():
-    ep = f"tcp/127.0.0.1:{free_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     conf = build_zenoh_config(SessionConfig(connect=(ep,), listen=("tcp/127.0.0.1:0",)))
     assert json.loads(conf.get_json("mode")) == "peer"
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.conftest import data_root
 
 torch = pytest.importorskip("torch")
 
@@ -21,11 +22,10 @@ from aefabmap.trainer.autoencoder import (  # noqa: E402
 )
 from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[2]
 
 
 def _train_dir() -> Path:
-    root = Path(os.environ.get("AEFABMAP_DATA", REPO.parent / "shared" / "data"))
+    root = data_root()
     d = root / "train"
     if not d.is_dir():
         pytest.skip(f"training images not found under {root} (set AEFABMAP_DATA)")
