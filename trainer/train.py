@@ -27,6 +27,7 @@ class TrainConfig:
 
     images: training image directories (searched recursively, sorted by path).
     words: vocabulary size K. max_descriptors: descriptors sampled for clustering.
+    ae_epochs / ae_descriptors: autoencoder training budget (quantizer "ae" only).
     cache_dir: where extracted training features are kept between runs (None: no cache);
         entries are keyed by the feature settings and the image list, so a stale entry is
         never reused.
@@ -40,6 +41,8 @@ class TrainConfig:
     seed: int = 0
     max_descriptors: int = 200_000
     kmeans_iterations: int = 25
+    ae_epochs: int = 3
+    ae_descriptors: int = 100_000
     cache_dir: Path | None = None
     show_progress: bool = True
 
@@ -166,7 +169,11 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                 seed=config.seed,
                 feature_kind=kind,
                 out_dir=Path(work),
-                config=AeConfig(progress=config.show_progress),
+                config=AeConfig(
+                    max_epochs=config.ae_epochs,
+                    max_descriptors=config.ae_descriptors,
+                    progress=config.show_progress,
+                ),
             )
             q_files = {name: Path(work) / name for name in q_manifest["files"].values()}
             quantizer = OnnxQuantizer(

@@ -20,6 +20,8 @@ def register(sub) -> None:
     p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
+    p.add_argument("--ae-epochs", type=int, default=3, help="autoencoder epochs (--quantizer ae)")
+    p.add_argument("--ae-descriptors", type=int, default=100_000, help="descriptors the autoencoder trains on")
     p.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
@@ -43,6 +45,8 @@ def run(args) -> int:
         seed=args.seed,
         max_descriptors=args.max_descriptors,
         cache_dir=args.cache,
+        ae_epochs=args.ae_epochs,
+        ae_descriptors=args.ae_descriptors,
         show_progress=not args.no_progress,
     )
     result = train_bundle(config)
