@@ -46,8 +46,10 @@ class DetectorConfig:
     verification: geometric verification of the best candidates (runtime/verification.py);
         on by default. When enabled, `loop` means "verified" and loop_threshold is not used:
         the top_k places by FAB-MAP log-likelihood (or BoW similarity) are checked whatever
-        their score, because the posterior saturates and ranks better than it thresholds.
-        Each place then keeps its keypoints (runtime/keypoint_store.py) inside memory_mb.
+        their score, because the posterior saturates and ranks better than it thresholds;
+        before them, the places following the last verified match (the track prior,
+        `VerificationConfig.track`). Each place then keeps its keypoints
+        (runtime/keypoint_store.py) inside memory_mb.
     temporal_frames: temporal consistency (runtime/temporal.py): a verified match counts only
         when the `temporal_frames` preceding frames were verified to frames within
         `temporal_tolerance` frames of it. 0 (default) switches the check off.
@@ -182,6 +184,9 @@ class LoopClosureDetector:
         self._last_used = np.zeros(0, np.int64)
         self._sequence = 0
         self._last_scores: np.ndarray | None = None
+        # Frame sequence / stored frame of the last geometrically verified match (track prior).
+        self._track_seq = -2
+        self._track_frame = -1
 
     @classmethod
     def from_bundle(cls, path, config: DetectorConfig | None = None) -> "LoopClosureDetector":
@@ -304,27 +309,54 @@ class LoopClosureDetector:
         return res
 
     def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, seq: int) -> "_Check":
-        """Geometric (+ temporal) verification of the top-k places of one query."""
+        """Geometric (+ temporal) verification of one query.
+
+        Candidates, in order, the first that passes is taken: the tracked places (stored frames
+        following the previous query's verified match, `VerificationConfig.track`), then the
+        top_k places by FAB-MAP log-likelihood, each failed one followed by its island
+        neighbours (`VerificationConfig.island`). A place is verified at most once per query.
+        """
         v = self.config.verification
         check = _Check()
+        lag = seq - self._track_seq  # query frames since the last verified match
+        expect = self._track_frame + lag if 1 <= lag <= v.track_memory else None
         if features is not None and len(features) and ranking.size:
-            k = min(v.top_k, ranking.size)
-            top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
-            top = top[np.argsort(-ranking[top], kind="stable")]
             q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
-            for rank, pid in enumerate(top):
-                if not np.isfinite(ranking[pid]):
-                    break  # removed places (-inf) sort last
-                place = self.store.get(int(pid))
+            tried: set[int] = set()
+            cap = v.max_trials if v.max_trials is not None else np.inf
+
+            def attempt(pid: int, source: str, bruteforce: bool = False) -> bool:
+                if pid in tried or check.tried >= cap or not np.isfinite(ranking[pid]):
+                    return False
+                tried.add(pid)
+                place = self.store.get(pid)
                 if place is None or len(place) == 0:
-                    continue
+                    return False
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
-                                place.image_shape, v, bruteforce=rank < v.bruteforce_fallback)
+                                place.image_shape, v, bruteforce=bruteforce)
                 if check.best is None or g.verified or g.inliers > check.best.inliers:
-                    check.best, check.best_place = g, int(pid)
-                if g.verified:
-                    break  # the first candidate that passes is taken: true loops cost one check
+                    check.best, check.best_place, check.source = g, int(pid), source
+                return g.verified
+
+            done = False
+            if expect is not None and v.track:
+                # Tracked places get the brute-force retry as well (`bruteforce_track`).
+                for frame in [*range(expect, expect + v.track), expect - 1]:
+                    if any(attempt(int(p), "track", v.bruteforce_track) for p in self._places_of_frames(frame, frame)):
+                        done = True
+                        break
+            if not done:
+                k = min(v.top_k, ranking.size)
+                top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
+                top = top[np.argsort(-ranking[top], kind="stable")]
+                for rank, pid in enumerate(top):
+                    if not np.isfinite(ranking[pid]) or check.tried >= cap:
+                        break  # removed places (-inf) sort last
+                    if attempt(int(pid), "fabmap", rank < v.bruteforce_fallback):
+                        break  # the first candidate that passes is taken: true loops cost one check
+                    if v.island and rank < v.island_candidates and self._island_try(int(pid), v.island, attempt):
+                        break
         check.geometry_ok = check.best is not None and check.best.verified
         check.verified = check.geometry_ok
         if self.temporal is not None:
@@ -332,7 +364,24 @@ class LoopClosureDetector:
             check.temporal_ok = self.temporal.update(matched)
             check.verified = check.geometry_ok and check.temporal_ok
         check.place = check.best_place if check.verified else None
+        if check.geometry_ok:
+            self._track_seq, self._track_frame = seq, int(self._place_frame[check.best_place])
         return check
+
+    def _places_of_frames(self, lo: int, hi: int) -> np.ndarray:
+        """Place ids (alive in the keypoint store) made by frames lo..hi, nearest to lo first."""
+        frames = self._place_frame[: self._id_range()]
+        pids = np.flatnonzero((frames >= lo) & (frames <= hi))
+        pids = pids[np.argsort(frames[pids] - lo, kind="stable")]
+        return np.array([p for p in pids if int(p) in self.store], np.int64)
+
+    def _island_try(self, pid: int, radius: int, attempt) -> bool:
+        """Try the stored temporal neighbours of place pid (within +-radius frames), nearest first."""
+        f = int(self._place_frame[pid])
+        frames = self._place_frame[: self._id_range()]
+        pids = np.flatnonzero((np.abs(frames - f) <= radius) & (frames >= 0))
+        pids = pids[np.argsort(np.abs(frames[pids] - f), kind="stable")]
+        return any(attempt(int(p), "island") for p in pids if int(p) != pid)
 
     def _id_range(self) -> int:
         return self.fabmap.n_places if self.fabmap is not None else self.bow.n_places
@@ -388,6 +437,7 @@ class _Check:
     best_place: int | None = None
     place: int | None = None
     tried: int = 0
+    source: str | None = None
     geometry_ok: bool = False
     temporal_ok: bool | None = None
     verified: bool = False

@@ -279,3 +279,88 @@ def test_memory_cap_counts_the_keypoint_store(tmp_path):
         assert det.map_bytes() <= cap_mb * 2**20
         assert len(det.store) == det.n_places  # evicted places left the store
     assert any(e is not None for e in evicted) and det.store.nbytes() > 0
+
+
+# --- candidate generation: track prior, island, trial cap ----------------------------------------
+
+
+def _one_word_run(tmp_path, images, **verification):
+    """Run images through a detector where every keypoint has word 0: FAB-MAP then ties every
+    place (top_k=1 picks place 0, the first frame) and same-word matching is brute force, so
+    only the track prior / island can find any other place."""
+    from aefabmap.runtime.verification import VerificationConfig as VC
+
+    det = _detector(tmp_path, verification=VC(top_k=1, **verification))
+    ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=500, long_side=None))
+    out = []
+    for img in images:
+        f = ex.extract(img)
+        out.append(det.process_words(one_word(f).astype(np.int32), features=f))
+    return det, out
+
+
+def _revisit_sequence():
+    base = [texture(s) for s in range(60, 66)]
+    warp = [cv2.warpPerspective(b, PERSPECTIVE, (480, 360)) for b in base]
+    return base + [warp[0], warp[1], warp[2], texture(99), warp[3]]
+
+
+def test_track_prior_follows_a_revisit_that_fabmap_ranks_low(tmp_path):
+    _, r = _one_word_run(tmp_path, _revisit_sequence(), track=2, track_memory=1)
+    assert r[6].verified and r[6].verified_frame == 0  # found by FAB-MAP (place 0)
+    # The next frames continue where the last one matched: one trial each.
+    assert r[7].verified and r[7].verified_frame == 1 and r[7].candidates_tried == 1
+    assert r[8].verified and r[8].verified_frame == 2 and r[8].candidates_tried == 1
+    # An unrelated frame: the tracked places are tried and fail (no false loop); with a memory
+    # of one frame that ends the track, so the frame after it has FAB-MAP's candidate only.
+    assert not r[9].verified and r[9].candidates_tried >= 2
+    assert not r[10].verified and r[10].candidates_tried == 1
+
+
+def test_track_memory_bridges_a_failed_frame(tmp_path):
+    _, r = _one_word_run(tmp_path, _revisit_sequence(), track=2, track_memory=3)
+    assert not r[9].verified
+    # Two frames after the last match (frame 2): frame 2 + 2 = 4 is expected, 3 is tried after.
+    assert r[10].verified and r[10].verified_frame == 3
+
+
+def test_without_track_fabmap_candidates_alone_miss_it(tmp_path):
+    _, r = _one_word_run(tmp_path, _revisit_sequence(), track=0)
+    assert r[6].verified and r[6].verified_frame == 0
+    assert not r[7].verified and not r[8].verified
+
+
+def test_island_tries_the_temporal_neighbours_of_a_failed_candidate(tmp_path):
+    seq = _revisit_sequence()
+    _, r = _one_word_run(tmp_path, seq[:6] + [seq[7]], track=0, island=1)
+    assert r[6].verified and r[6].verified_frame == 1 and r[6].candidates_tried == 2
+    _, r = _one_word_run(tmp_path / "cap", seq[:6] + [seq[7]], track=0, island=1, max_trials=1)
+    assert not r[6].verified and r[6].candidates_tried == 1
+
+
+def test_bruteforce_retry_has_its_own_bars(extractor):
+    place = texture(1)
+    query = cv2.warpPerspective(place, PERSPECTIVE, (place.shape[1], place.shape[0]))
+    fp, fq = extractor.extract(place), extractor.extract(query)
+    # Disjoint word ids: same-word matching finds nothing, only the brute-force retry can.
+    qw, pw = np.zeros(len(fq), np.int64), np.ones(len(fp), np.int64)
+
+    def run(**kw):
+        return verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
+                           fp.image_shape, VerificationConfig(**kw), bruteforce=True)
+
+    assert not verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
+                           fp.image_shape, VerificationConfig()).verified
+    g = run()
+    assert g.verified and g.inliers >= VerificationConfig().min_inliers_h_bf
+    # The same matches against bars above their inlier count: rejected, although they clear
+    # the same-word bars.
+    high = run(min_inliers_h_bf=g.inliers + 1, min_inliers_bf=max(g.f_inliers, g.inliers) + 1)
+    assert not high.verified and high.inliers >= VerificationConfig().min_inliers_h
+
+
+def test_candidate_generation_config_is_validated():
+    for kw in ({"track": -1}, {"island": -1}, {"max_trials": 0}, {"track_memory": 0}, {"ratio_bruteforce": 0.0},
+               {"min_inliers_h_bf": 3}, {"island_candidates": -1}):
+        with pytest.raises(ConfigError):
+            VerificationConfig(**kw)
