@@ -15,6 +15,14 @@ def data_root() -> Path:
     return Path(os.environ.get("AEFABMAP_DATA", REPO.parent / "shared" / "data"))
 
 
+def train_dir() -> Path:
+    """../shared/data/train, or skip the calling test when it is absent."""
+    d = data_root() / "train"
+    if not d.is_dir():
+        pytest.skip(f"training images not found under {data_root()} (set AEFABMAP_DATA)")
+    return d
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     root = data_root()

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import data_root
+from tests.conftest import train_dir
 
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
@@ -25,19 +25,11 @@ WORDS = 64
 TINY = AeConfig(max_epochs=3, max_descriptors=3000, batch_size=64, threads=1, progress=False)
 
 
-def _train_dir() -> Path:
-    root = data_root()
-    d = root / "train"
-    if not d.is_dir():
-        pytest.skip(f"training images not found under {root} (set AEFABMAP_DATA)")
-    return d
-
-
 class Exported:
     """A tiny trained quantiser of one feature kind, its files and held-out test vectors."""
 
     def __init__(self, kind: str, out: Path) -> None:
-        d = _train_dir()
+        d = train_dir()
         train_paths = sorted((d / "camvid").glob("*.jpg"))[:15]
         # Held-out images from another dataset: parity must not depend on training data.
         test_paths = sorted((d / "scene15" / "street").glob("*.jpg"))[:12]
@@ -122,7 +114,7 @@ def test_batched_equals_one_by_one(exported, which):
 
 
 def test_build_ae_quantizer_is_deterministic(tmp_path):
-    d = _train_dir()
+    d = train_dir()
     vectors = descriptor_sample(sorted((d / "camvid").glob("*.jpg"))[:6], "orb", limit=2000)
     cfg = AeConfig(max_epochs=1, max_descriptors=1500, batch_size=128, threads=1, progress=False)
     manifests = []

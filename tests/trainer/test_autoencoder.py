@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import data_root
+from tests.conftest import train_dir
 
 torch = pytest.importorskip("torch")
 
@@ -24,23 +24,15 @@ from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E4
 
 
 
-def _train_dir() -> Path:
-    root = data_root()
-    d = root / "train"
-    if not d.is_dir():
-        pytest.skip(f"training images not found under {root} (set AEFABMAP_DATA)")
-    return d
-
-
 @pytest.fixture(scope="module")
 def sift_vectors() -> np.ndarray:
-    paths = sorted((_train_dir() / "camvid").glob("*.jpg"))[:12]
+    paths = sorted((train_dir() / "camvid").glob("*.jpg"))[:12]
     return descriptor_sample(paths, "sift", limit=2500)
 
 
 @pytest.fixture(scope="module")
 def orb_vectors() -> np.ndarray:
-    paths = sorted((_train_dir() / "camvid").glob("*.jpg"))[:12]
+    paths = sorted((train_dir() / "camvid").glob("*.jpg"))[:12]
     return descriptor_sample(paths, "orb", limit=2500)
 
 
