@@ -102,9 +102,14 @@ def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_tim
             break
         got.append(r)
         if r.get("loop"):
-            print(f"  LOOP  frame {r['sequence']:4d} -> frame {r['best_frame']:4d} (place {r['best_place']}), "
-                  f"score {r['score']:.4f}", flush=True)
+            how = f"{r['inliers']} inliers ({r['geometry_model']})" if r.get("verified") else f"score {r['score']:.4f}"
+            print(f"  LOOP  frame {r['sequence']:4d} -> frame {_match_frame(r):4d}, {how}", flush=True)
     return got
+
+
+def _match_frame(result: dict) -> int:
+    """The earlier frame a loop closure points at: the verified one when verification ran."""
+    return result["verified_frame"] if result.get("verified") else result["best_frame"]
 
 
 def _logged_results(mcap_path: Path) -> list[dict]:
@@ -123,7 +128,7 @@ def _report(received: list[dict], gt_path: Path | None) -> None:
     if gt_path is None or not gt_path.is_file() or not received:
         return
     gt = np.load(gt_path, allow_pickle=False)
-    ok = sum(bool(gt[r["sequence"], max(0, r["best_frame"] - 10): r["best_frame"] + 11].any()) for r in loops)
+    ok = sum(bool(gt[r["sequence"], max(0, _match_frame(r) - 10): _match_frame(r) + 11].any()) for r in loops)
     revisits = int(np.tril(gt, -1).any(axis=1).sum())
     print(f"against ground truth: {ok}/{len(loops)} loop closures correct (10-frame tolerance); "
           f"{revisits} frames revisit a place")
