@@ -56,23 +56,13 @@ class Detector(Protocol):
 
 
 def load_detector(bundle_path: str | Path, *, max_places: int | None = None, memory_mb: float | None = None):
-    """Load ``LoopClosureDetector.from_bundle`` with a DetectorConfig (only the options given).
+    """``LoopClosureDetector.from_bundle`` with the map caps (places, MB) given on the command line.
 
-    max_places: cap of the map (places). memory_mb: memory budget of the map (MB), passed
-    on when DetectorConfig has a ``memory_mb`` field. Raises ConfigError when an option is
-    not supported by the core, BundleError from the bundle loader.
+    Raises ConfigError for bad caps, BundleError from the bundle loader.
     """
-    import dataclasses
-
     from aefabmap.runtime.pipeline import DetectorConfig, LoopClosureDetector
 
-    known = {f.name for f in dataclasses.fields(DetectorConfig)}
-    kwargs = {k: v for k, v in (("max_places", max_places), ("memory_mb", memory_mb)) if v is not None}
-    unsupported = sorted(set(kwargs) - known)
-    if unsupported:
-        flags = ", ".join("--" + k.replace("_", "-") for k in unsupported)
-        raise ConfigError(f"{flags}: not supported by this detector core (DetectorConfig has no {unsupported})")
-    return LoopClosureDetector.from_bundle(bundle_path, DetectorConfig(**kwargs))
+    return LoopClosureDetector.from_bundle(bundle_path, DetectorConfig(max_places=max_places, memory_mb=memory_mb))
 
 
 def rss_mb() -> float | None:

@@ -42,7 +42,7 @@ class FakeDetector:
         self.sequence = 0
         self.manifest = {"format_version": 1, "detector": "fake", "threshold": threshold}
 
-    def process(self, gray: np.ndarray, stamp_ns: int) -> FakeResult:
+    def process(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
         t0 = time.perf_counter()
         if gray.ndim != 2 or gray.shape[0] < 8 or gray.shape[1] < 8:
             raise InputError(f"image of shape {gray.shape} is too small")
