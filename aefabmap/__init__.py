@@ -11,8 +11,8 @@ from aefabmap.errors import (  # noqa: E402
     LogError,
     TransportError,
 )
-from aefabmap.runtime.fabmap import FabMap2, Localization  # noqa: E402
-from aefabmap.runtime.tree import ChowLiuTree  # noqa: E402
+from aefabmap.runtime.core.fabmap import FabMap2, Localization  # noqa: E402
+from aefabmap.runtime.core.tree import ChowLiuTree  # noqa: E402
 
 __all__ = [
     "AefabmapError",

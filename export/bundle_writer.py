@@ -1,4 +1,4 @@
-"""Write a model bundle v1 (format defined in aefabmap.runtime.bundle)."""
+"""Write a model bundle v1 (format defined in aefabmap.runtime.adapters.bundle_reader)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 
 from aefabmap import __version__
 from aefabmap.errors import BundleError
-from aefabmap.runtime.bundle import (
+from aefabmap.runtime.adapters.bundle_reader import (
     BUNDLE_FORMAT,
     BUNDLE_VERSION,
     MANIFEST_NAME,
@@ -20,8 +20,8 @@ from aefabmap.runtime.bundle import (
     load_bundle,
     sha256_file,
 )
-from aefabmap.runtime.features import FeatureConfig
-from aefabmap.runtime.tree import ChowLiuTree
+from aefabmap.runtime.core.features import FeatureConfig
+from aefabmap.runtime.core.tree import ChowLiuTree
 
 
 def write_bundle(

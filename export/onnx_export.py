@@ -1,6 +1,6 @@
 """Export encoder + latent codebook arg-min as ONE ONNX graph (trainer side: needs torch and onnx).
 
-Graph contract (checked by runtime/onnx_quantizer.py):
+Graph contract (checked by runtime/core/onnx_quantizer.py):
     input   descriptors  float32 (batch, D)        raw descriptor vectors, dynamic batch
     output  words        int32   (batch,)          nearest codebook entry in latent space
     output  codes        float32 (batch, latent)   encoder output

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.runtime.onnx_quantizer import OnnxQuantizer
+from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
 from aefabmap.trainer.ae_quantizer import build_ae_quantizer, descriptor_sample
 from aefabmap.trainer.autoencoder import AeConfig
 

@@ -49,8 +49,11 @@ def make_synthetic_bundle(out: Path, vocabulary_size: int = 64, kind: str = "orb
     import numpy as np
 
     from aefabmap.export.bundle_writer import write_bundle
-    from aefabmap.runtime.benchmark import random_tree, synthetic_observations
-    from aefabmap.runtime.features import FeatureConfig
+    from aefabmap.runtime.core.features import FeatureConfig
+    from aefabmap.runtime.tools.synthetic_observations import (
+        random_tree,
+        synthetic_observations,
+    )
 
     features = FeatureConfig(kind=kind, max_features=200)
     rng = np.random.default_rng(seed)

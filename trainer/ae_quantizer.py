@@ -47,7 +47,7 @@ def build_ae_quantizer(
     """
     from aefabmap.export.onnx_export import export_quantizer_onnx
     from aefabmap.export.quantize_int8 import quantize_int8
-    from aefabmap.runtime.onnx_quantizer import OnnxQuantizer
+    from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
     from aefabmap.trainer.autoencoder import AeConfig, train_autoencoder
     from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary
 
@@ -120,14 +120,19 @@ def descriptor_sample(image_paths, feature_kind: str, *, max_features: int = 500
 
     A small helper for tests and benchmarks; `limit` truncates the result to its first rows.
     """
-    from aefabmap.runtime.features import FeatureConfig, FeatureExtractor, descriptor_vectors
+    from aefabmap.runtime.adapters.frames import load_image
+    from aefabmap.runtime.core.features import (
+        FeatureConfig,
+        FeatureExtractor,
+        descriptor_vectors,
+    )
 
     fx = FeatureExtractor(FeatureConfig(kind=feature_kind, max_features=max_features))
     d = fx.config.descriptor_length
     parts = []
     total = 0
     for p in image_paths:
-        v = descriptor_vectors(fx.extract(p).descriptors, feature_kind)
+        v = descriptor_vectors(fx.extract(load_image(p)).descriptors, feature_kind)
         parts.append(v)
         total += v.shape[0]
         if limit is not None and total >= limit:

@@ -7,7 +7,7 @@ import time
 import tracemalloc
 from dataclasses import dataclass
 
-from aefabmap.runtime.benchmark import synthetic_observations
+from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
 from aefabmap.trainer.chow_liu import fit_chow_liu
 
 

@@ -21,7 +21,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.tree import ChowLiuTree
+from aefabmap.runtime.core.tree import ChowLiuTree
 
 # Any MI is < 10 nats here (a cell's log ratio is at most log(1 / 0.01^2) = 9.2), so
 # OFFSET - MI is a positive edge weight and a minimum spanning tree of it is a maximum one of MI.

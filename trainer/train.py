@@ -13,8 +13,13 @@ from tqdm import tqdm
 
 from aefabmap.errors import ConfigError, DataNotFoundError, InputError
 from aefabmap.export.bundle_writer import write_bundle
-from aefabmap.runtime.features import FeatureConfig, FeatureExtractor, descriptor_vectors
-from aefabmap.runtime.sequence_eval import IMAGE_SUFFIXES
+from aefabmap.runtime.adapters.frames import load_image
+from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
+from aefabmap.runtime.core.features import (
+    FeatureConfig,
+    FeatureExtractor,
+    descriptor_vectors,
+)
 from aefabmap.trainer.chow_liu import fit_chow_liu
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
@@ -74,7 +79,7 @@ def extract_training_vectors(files: list[Path], features: FeatureConfig, show_pr
     extractor = FeatureExtractor(features)
     out = []
     for f in tqdm(files, desc="features", disable=not show_progress, mininterval=1.0):
-        feats = extractor.extract(f)
+        feats = extractor.extract(load_image(f))
         raw = feats.descriptors
         # ORB stays packed (32 bytes) in memory; unpacked per use.
         out.append(raw if features.kind == "orb" else descriptor_vectors(raw, "sift"))
@@ -153,13 +158,13 @@ def train_bundle(config: TrainConfig) -> TrainResult:
 
             centroids = fit_kmeans(sample, config.words, KMeansConfig(config.kmeans_iterations, seed=config.seed), tick)
             bar.close()
-            from aefabmap.runtime.quantizer import NearestCentroidQuantizer
+            from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
 
             quantizer = NearestCentroidQuantizer(centroids)
             q_manifest = {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}, "descriptors_clustered": int(sample.shape[0])}
             q_files: dict = {"vocabulary.npy": centroids}
         else:
-            from aefabmap.runtime.onnx_quantizer import OnnxQuantizer
+            from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
             from aefabmap.trainer.ae_quantizer import build_ae_quantizer
             from aefabmap.trainer.autoencoder import AeConfig
 

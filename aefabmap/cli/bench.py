@@ -70,7 +70,7 @@ def _emit(doc, path: Path | None) -> None:
 
 
 def run_inference(args) -> int:
-    from aefabmap.runtime.benchmark import bench_inference
+    from aefabmap.runtime.tools.synthetic_observations import bench_inference
 
     results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place)) for n in args.places]
     _emit(results[0] if len(results) == 1 else results, args.json)
@@ -91,7 +91,7 @@ def _model(args) -> Path:
 
 
 def run_pipeline(args) -> int:
-    from aefabmap.runtime.stream_bench import PipelineBenchConfig, bench_pipeline
+    from aefabmap.runtime.tools.stream_bench import PipelineBenchConfig, bench_pipeline
 
     cfg = PipelineBenchConfig(
         bundle=str(_model(args)), places=args.places, frames=args.frames, warmup=args.warmup,
@@ -116,7 +116,7 @@ def run_pipeline(args) -> int:
 
 
 def run_stream(args) -> int:
-    from aefabmap.runtime.stream_bench import StreamBenchConfig, bench_stream
+    from aefabmap.runtime.tools.stream_bench import StreamBenchConfig, bench_stream
 
     cfg = StreamBenchConfig(
         bundle=str(_model(args)), rate_hz=args.rate, seconds=args.seconds,

@@ -42,9 +42,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from aefabmap.runtime.node import images_dir_source, publish_frames
-    from aefabmap.runtime.node_process import connect_when_listening, free_tcp_port, stop_node
-    from aefabmap.runtime.zenoh_io import SessionConfig, result_key_for
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, result_key_for
+    from aefabmap.runtime.tools.node_process import (
+        connect_when_listening,
+        free_tcp_port,
+        stop_node,
+    )
+    from aefabmap.runtime.tools.publisher import images_dir_source, publish_frames
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -83,7 +87,7 @@ def _prepare_images(args, out: Path) -> tuple[Path, Path | None]:
         if not args.images.is_dir():
             raise DataNotFoundError(f"image directory {args.images} does not exist")
         return args.images, args.gt
-    from aefabmap.runtime.synthetic import make_demo_sequence
+    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
 
     seq = out / "sequence"
     if not (seq / "gt.npy").is_file() or len(list(seq.glob("frame_*.jpg"))) != args.frames:
@@ -114,7 +118,7 @@ def _match_frame(result: dict) -> int:
 
 def _logged_results(mcap_path: Path) -> list[dict]:
     """Results as the runtime logged them (complete even if live messages were missed)."""
-    from aefabmap.runtime.mcap_log import McapLogReader
+    from aefabmap.runtime.adapters.mcap_log import McapLogReader
 
     reader = McapLogReader(mcap_path)
     for _ in reader.frames():
@@ -135,8 +139,8 @@ def _report(received: list[dict], gt_path: Path | None) -> None:
 
 
 def _replay_check(model: Path, mcap_path: Path) -> int:
-    from aefabmap.runtime.node import load_detector
-    from aefabmap.runtime.replay import replay
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.replay import replay
 
     try:
         summary = replay(load_detector(model), mcap_path, check=True)

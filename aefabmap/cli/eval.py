@@ -6,8 +6,8 @@ import dataclasses
 import json
 from pathlib import Path
 
-from aefabmap.runtime.pipeline import FABMAP_SCORES, SCORERS, DetectorConfig
-from aefabmap.runtime.verification import VerificationConfig
+from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
+from aefabmap.runtime.core.verification import VerificationConfig
 
 
 def register(sub) -> None:
@@ -39,8 +39,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from aefabmap.runtime.reporting import format_table, require_plotting, save_pr_plot, save_score_matrix
-    from aefabmap.runtime.sequence_eval import evaluate_bundle, public
+    from aefabmap.runtime.tools.reporting import (
+        format_table,
+        require_plotting,
+        save_pr_plot,
+        save_score_matrix,
+    )
+    from aefabmap.runtime.tools.sequence_eval import evaluate_bundle, public
 
     if args.plot:
         require_plotting()  # fail before a long run, not after it

@@ -1,7 +1,7 @@
 """``aefabmap publish``: publish frames (image directory, video file or camera) on a zenoh key.
 
 Every frame carries a JSON attachment ``{"seq", "stamp_ns", "src"}`` so the node can count
-dropped frames (see aefabmap.runtime.zenoh_io).
+dropped frames (see aefabmap.runtime.adapters.zenoh_transport).
 """
 
 from __future__ import annotations
@@ -37,8 +37,14 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.node import camera_source, images_dir_source, publish_frames, stop_on_signals, video_source
-    from aefabmap.runtime.zenoh_io import SessionConfig
+    from aefabmap.runtime.adapters.node import stop_on_signals
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+    from aefabmap.runtime.tools.publisher import (
+        camera_source,
+        images_dir_source,
+        publish_frames,
+        video_source,
+    )
 
     stop = threading.Event()
     try:

@@ -31,15 +31,19 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.mcap_log import RUN_CONFIG_METADATA, read_log_metadata
-    from aefabmap.runtime.node import load_detector
-    from aefabmap.runtime.replay import replay
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.mcap_log import (
+        RUN_CONFIG_METADATA,
+        read_log_metadata,
+    )
+    from aefabmap.runtime.adapters.replay import replay
+    from aefabmap.runtime.core.detector import DetectorConfig
 
     try:
         # Replay with the detector options of the logged run (max places, memory budget).
         logged = read_log_metadata(args.log).get(RUN_CONFIG_METADATA) or {}
         detector = load_detector(
-            args.model, max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb")
+            args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
         )
         summary = replay(detector, args.log, out_path=args.out, check=args.check)
     except AefabmapError as exc:

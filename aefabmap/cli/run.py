@@ -1,7 +1,7 @@
 """``aefabmap run``: the streaming loop-closure node (Zenoh in, JSON results out, MCAP log).
 
 Results go to the sibling key ``lcd`` of the image key (``robot/camera/image`` ->
-``robot/camera/lcd``), stats to ``robot/camera/lcd/stats``; see aefabmap.runtime.zenoh_io.
+``robot/camera/lcd``), stats to ``robot/camera/lcd/stats``; see aefabmap.runtime.adapters.zenoh_transport.
 """
 
 from __future__ import annotations
@@ -49,13 +49,15 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.node import load_detector, run_node, stop_on_signals
-    from aefabmap.runtime.zenoh_io import SessionConfig
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.node import run_node, stop_on_signals
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+    from aefabmap.runtime.core.detector import DetectorConfig
 
     stop = threading.Event()
     try:
         session = SessionConfig(connect=tuple(args.connect), listen=tuple(args.listen), config_file=args.config)
-        detector = load_detector(args.model, max_places=args.max_places, memory_mb=args.memory_mb)
+        detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
 
         def on_stats(doc: dict) -> None:

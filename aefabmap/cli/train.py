@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from aefabmap.runtime.features import FEATURE_KINDS, FeatureConfig
+from aefabmap.runtime.core.features import FEATURE_KINDS, FeatureConfig
 
 
 def register(sub) -> None:

@@ -8,7 +8,11 @@ import pytest
 
 from aefabmap.cli.main import main
 from aefabmap.errors import BundleError, ConfigError
-from aefabmap.runtime.stream_bench import PipelineBenchConfig, StreamBenchConfig, bench_stream
+from aefabmap.runtime.tools.stream_bench import (
+    PipelineBenchConfig,
+    StreamBenchConfig,
+    bench_stream,
+)
 
 
 def _sane_stats(s: dict) -> None:

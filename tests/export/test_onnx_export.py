@@ -14,7 +14,7 @@ onnx = pytest.importorskip("onnx")
 
 from aefabmap.export.onnx_export import QuantizerGraph, export_quantizer_onnx  # noqa: E402
 from aefabmap.export.quantize_int8 import quantize_int8  # noqa: E402
-from aefabmap.runtime.onnx_quantizer import OnnxQuantizer  # noqa: E402
+from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer  # noqa: E402
 from aefabmap.trainer.ae_quantizer import build_ae_quantizer, descriptor_sample  # noqa: E402
 from aefabmap.trainer.autoencoder import AeConfig, train_autoencoder  # noqa: E402
 from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402

@@ -21,7 +21,6 @@ from aefabmap.trainer.autoencoder import (  # noqa: E402
 from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
 
 
-
 @pytest.fixture(scope="module")
 def sift_vectors() -> np.ndarray:
     paths = sorted((train_dir() / "camvid").glob("*.jpg"))[:12]

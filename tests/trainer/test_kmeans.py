@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from aefabmap import ConfigError, InputError
-from aefabmap.runtime.quantizer import NearestCentroidQuantizer
+from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
 

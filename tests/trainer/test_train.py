@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aefabmap.runtime.bundle import load_bundle
-from aefabmap.runtime.features import FeatureConfig
-from aefabmap.runtime.synthetic import SyntheticConfig, make_demo_sequence
+from aefabmap.runtime.adapters.bundle_reader import load_bundle
+from aefabmap.runtime.core.features import FeatureConfig
+from aefabmap.runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
 from aefabmap.trainer import train as train_mod
 from aefabmap.trainer.train import TrainConfig, train_bundle
 

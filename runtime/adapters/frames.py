@@ -1,0 +1,304 @@
+"""Frame payloads <-> grayscale images: the image contract of the Zenoh stream and the logs.
+
+Pure functions, no I/O. A frame travels as ``(payload bytes, encoding string)``:
+
+- ``image/jpeg`` and ``image/png``: a compressed image (zenoh ``Encoding.IMAGE_JPEG`` /
+  ``IMAGE_PNG``; a schema suffix such as ``image/jpeg;foo`` is ignored).
+- raw pixels with a schema string ``<format>;<W>x<H>``, either bare (``mono8;640x480``)
+  or behind a raw MIME type (``video/raw;mono8;640x480``,
+  ``application/octet-stream;bgr8;640x480``). Formats: ``mono8`` (1 byte/pixel),
+  ``bgr8``/``rgb8`` (3), ``bgra8``/``rgba8`` (4); rows are tightly packed, so the payload
+  must be exactly ``W * H * bytes_per_pixel`` bytes.
+
+Every refusal raises :class:`FrameError` (an ``ImageDecodeError``, hence an ``InputError``)
+whose ``reason`` is one of :data:`BAD_FRAME_REASONS`, so a streaming loop can count bad
+frames per reason and keep running.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from aefabmap.errors import ConfigError, ImageDecodeError, InputError
+from aefabmap.runtime.core.features import to_gray
+
+#: Reasons a frame is refused (the keys of the node's "bad" counters).
+BAD_FRAME_REASONS = ("corrupt", "empty", "wrong_encoding", "size_mismatch", "too_large", "not_image", "rejected")
+
+#: Raw pixel formats: name -> bytes per pixel.
+RAW_FORMATS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4, "8UC4": 4}
+
+ENCODING_JPEG = "image/jpeg"
+ENCODING_PNG = "image/png"
+#: MIME prefixes accepted in front of a raw schema string.
+RAW_MIME_TYPES = ("video/raw", "application/octet-stream", "zenoh/bytes")
+
+_JPEG_MAGIC = b"\xff\xd8"
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+# Decoding a 50 MP frame would stall a board for seconds and blow the memory cap.
+MAX_IMAGE_PIXELS = 40_000_000
+
+
+def decode_image(payload: bytes | bytearray | memoryview) -> np.ndarray:
+    """Decode a JPEG/PNG payload to a grayscale uint8 image (H, W).
+
+    Raises ImageDecodeError for empty, corrupt or oversized payloads.
+    """
+    buf = np.frombuffer(payload, dtype=np.uint8)
+    if buf.size == 0:
+        raise ImageDecodeError("empty image payload (0 bytes)")
+    # Read the header first: refuse huge images before allocating their pixels.
+    header_ok = _check_encoded_size(bytes(buf[:65536]))
+    if header_ok is not None:
+        raise ImageDecodeError(header_ok)
+    image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    if image is None or image.size == 0:
+        raise ImageDecodeError(f"payload of {buf.size} bytes is not a decodable JPEG/PNG image")
+    return image
+
+
+def _check_encoded_size(head: bytes) -> str | None:
+    """Return an error message when a PNG/JPEG header declares more than MAX_IMAGE_PIXELS."""
+    size = _png_size(head) or _jpeg_size(head)
+    if size is None:
+        return None
+    w, h = size
+    if w * h > MAX_IMAGE_PIXELS:
+        return f"image of {w}x{h} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels"
+    return None
+
+
+def _png_size(head: bytes) -> tuple[int, int] | None:
+    if len(head) >= 24 and head[:8] == b"\x89PNG\r\n\x1a\n":
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return None
+
+
+def _jpeg_size(head: bytes) -> tuple[int, int] | None:
+    if len(head) < 4 or head[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 < len(head):
+        if head[i] != 0xFF:
+            return None
+        marker = head[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        seg_len = int.from_bytes(head[i + 2 : i + 4], "big")
+        # SOF0..SOF15 except DHT(C4), JPG(C8), DAC(CC) carry the frame size.
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            h = int.from_bytes(head[i + 5 : i + 7], "big")
+            w = int.from_bytes(head[i + 7 : i + 9], "big")
+            return w, h
+        i += 2 + seg_len
+    return None
+
+
+def load_image(path: str | Path) -> np.ndarray:
+    """Read an image file as grayscale uint8 (H, W); raises InputError naming the file."""
+    path = Path(path)
+    try:
+        payload = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read image {path}: {exc.strerror or exc}") from exc
+    try:
+        return decode_image(payload)
+    except ImageDecodeError as exc:
+        raise ImageDecodeError(f"{path}: {exc}") from exc
+
+
+
+class FrameError(ImageDecodeError):
+    """A frame payload was refused; ``reason`` is one of BAD_FRAME_REASONS."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class RawSchema:
+    """Parsed raw-frame schema: pixel format, width and height in pixels."""
+
+    fmt: str
+    width: int
+    height: int
+
+    @property
+    def channels(self) -> int:
+        return RAW_FORMATS[self.fmt]
+
+    @property
+    def nbytes(self) -> int:
+        """Exact payload length in bytes (tightly packed rows)."""
+        return self.width * self.height * self.channels
+
+    def __str__(self) -> str:
+        return f"{self.fmt};{self.width}x{self.height}"
+
+
+def parse_raw_schema(schema: str) -> RawSchema:
+    """Parse ``"<format>;<W>x<H>"``; raises FrameError (wrong_encoding / too_large)."""
+    parts = [p.strip() for p in schema.split(";")]
+    if len(parts) != 2:
+        raise FrameError("wrong_encoding", f"raw frame schema must look like 'mono8;640x480', got {schema!r}")
+    fmt, size = parts
+    if fmt not in RAW_FORMATS:
+        raise FrameError(
+            "wrong_encoding", f"unknown raw pixel format {fmt!r} (known: {', '.join(sorted(RAW_FORMATS))})"
+        )
+    try:
+        w_text, h_text = size.lower().split("x")
+        width, height = int(w_text), int(h_text)
+    except ValueError:
+        raise FrameError("wrong_encoding", f"raw frame size must look like '640x480', got {size!r}") from None
+    if width < 1 or height < 1:
+        raise FrameError("wrong_encoding", f"raw frame size must be positive, got {width}x{height}")
+    if width * height > MAX_IMAGE_PIXELS:
+        raise FrameError(
+            "too_large", f"raw frame of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels"
+        )
+    return RawSchema(fmt, width, height)
+
+
+def classify_encoding(encoding: str) -> tuple[str, RawSchema | None]:
+    """Return ``("jpeg"|"png"|"raw", schema or None)`` for an encoding string.
+
+    Raises FrameError("wrong_encoding") for anything else.
+    """
+    enc = (encoding or "").strip()
+    head, _, rest = enc.partition(";")
+    head_l = head.strip().lower()
+    if head_l in (ENCODING_JPEG, "image/jpg"):
+        return "jpeg", None
+    if head_l == ENCODING_PNG:
+        return "png", None
+    if head_l in RAW_MIME_TYPES:
+        if not rest:
+            raise FrameError("wrong_encoding", f"raw encoding {enc!r} needs a schema such as 'mono8;640x480'")
+        return "raw", parse_raw_schema(rest)
+    if head.strip() in RAW_FORMATS:
+        return "raw", parse_raw_schema(enc)
+    raise FrameError(
+        "wrong_encoding",
+        f"unsupported frame encoding {enc!r} (expected image/jpeg, image/png or a raw schema such as mono8;640x480)",
+    )
+
+
+def decode_frame(payload: bytes | bytearray | memoryview, encoding: str) -> np.ndarray:
+    """Decode a frame payload into a grayscale uint8 image of shape (H, W).
+
+    payload: the bytes as received; encoding: see the module docstring.
+    Raises FrameError with a reason from BAD_FRAME_REASONS.
+    """
+    kind, schema = classify_encoding(encoding)
+    buf = memoryview(payload).cast("B") if not isinstance(payload, (bytes, bytearray)) else payload
+    if len(buf) == 0:
+        raise FrameError("empty", f"empty frame payload (0 bytes, encoding {encoding!r})")
+    if kind == "raw":
+        assert schema is not None
+        if len(buf) != schema.nbytes:
+            raise FrameError(
+                "size_mismatch",
+                f"raw frame {schema}: expected {schema.nbytes} bytes, got {len(buf)} bytes",
+            )
+        arr = np.frombuffer(buf, dtype=np.uint8)
+        if schema.channels == 1:
+            return arr.reshape(schema.height, schema.width).copy()
+        img = arr.reshape(schema.height, schema.width, schema.channels)
+        if schema.fmt.startswith("rgb"):
+            code = cv2.COLOR_RGB2GRAY if schema.channels == 3 else cv2.COLOR_RGBA2GRAY
+            return cv2.cvtColor(img, code)
+        return to_gray(img)
+    head = bytes(buf[:8])
+    if not (head.startswith(_JPEG_MAGIC) or head.startswith(_PNG_MAGIC)):
+        raise FrameError(
+            "not_image", f"payload of {len(buf)} bytes labelled {encoding!r} is not a JPEG/PNG image (bad magic)"
+        )
+    try:
+        return decode_image(buf)
+    except ImageDecodeError as exc:
+        reason = "too_large" if "exceeds the limit" in str(exc) else "corrupt"
+        raise FrameError(reason, str(exc)) from exc
+
+
+def encode_frame(image: np.ndarray, fmt: str = "jpeg", *, jpeg_quality: int = 90) -> tuple[bytes, str]:
+    """Encode an (H, W) or (H, W, 3) BGR uint8 image for publishing.
+
+    fmt: ``"jpeg"``, ``"png"``, ``"mono8"`` (gray raw) or ``"bgr8"`` (colour raw).
+    Returns ``(payload, encoding string)`` that :func:`decode_frame` accepts.
+    """
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
+        raise ConfigError("image to encode must be an (H, W) or (H, W, 3) uint8 array")
+    h, w = image.shape[:2]
+    if fmt in ("jpeg", "png"):
+        ext = ".jpg" if fmt == "jpeg" else ".png"
+        params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if fmt == "jpeg" else []
+        ok, buf = cv2.imencode(ext, image, params)
+        if not ok:
+            raise ConfigError(f"OpenCV could not encode a {w}x{h} image as {fmt}")
+        return buf.tobytes(), ENCODING_JPEG if fmt == "jpeg" else ENCODING_PNG
+    if fmt == "mono8":
+        gray = to_gray(image)
+        return np.ascontiguousarray(gray).tobytes(), f"mono8;{w}x{h}"
+    if fmt == "bgr8":
+        bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        if bgr.shape[2] != 3:
+            raise ConfigError(f"bgr8 needs 3 channels, got {bgr.shape}")
+        return np.ascontiguousarray(bgr).tobytes(), f"bgr8;{w}x{h}"
+    raise ConfigError(f"frame format must be one of jpeg, png, mono8, bgr8; got {fmt!r}")
+
+
+def compressed_format_to_encoding(fmt: str) -> str:
+    """Map a CompressedImage ``format`` field (foxglove or ROS 2) to a frame encoding.
+
+    ``"jpeg"``, ``"jpg"``, ``"bgr8; jpeg compressed bgr8"`` -> image/jpeg; ``"png"`` -> image/png.
+    Anything else maps to ``"unknown/<fmt>"`` which decode_frame refuses (wrong_encoding).
+    """
+    f = (fmt or "").lower()
+    if "png" in f:
+        return ENCODING_PNG
+    if "jpeg" in f or "jpg" in f:
+        return ENCODING_JPEG
+    return f"unknown/{fmt}"
+
+
+def encoding_to_compressed_format(encoding: str) -> str:
+    """image/jpeg -> "jpeg", image/png -> "png" (the foxglove.CompressedImage format field)."""
+    kind, _ = classify_encoding(encoding)
+    if kind == "raw":
+        raise ConfigError(f"raw encoding {encoding!r} has no compressed format; encode it first")
+    return kind
+
+
+def pack_raw_rows(data: bytes, fmt: str, width: int, height: int, step: int) -> tuple[bytes, str]:
+    """Repack a ROS ``sensor_msgs/Image`` buffer (rows of ``step`` bytes) to tight rows.
+
+    Returns ``(payload, "fmt;WxH")``. Raises FrameError when the buffer is too short or the
+    format unknown.
+    """
+    if fmt not in RAW_FORMATS:
+        raise FrameError("wrong_encoding", f"unsupported sensor_msgs/Image encoding {fmt!r}")
+    channels = RAW_FORMATS[fmt]
+    row = width * channels
+    if width * height > MAX_IMAGE_PIXELS:
+        raise FrameError("too_large", f"image of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS}")
+    if step < row or len(data) < step * (height - 1) + row:
+        raise FrameError(
+            "size_mismatch",
+            f"sensor_msgs/Image {width}x{height} {fmt} step {step}: expected {step * height} bytes, got {len(data)}",
+        )
+    if step == row:
+        payload = bytes(data[: row * height])
+    else:
+        arr = np.frombuffer(data, dtype=np.uint8, count=step * (height - 1) + row)
+        rows = np.lib.stride_tricks.as_strided(arr, shape=(height, row), strides=(step, 1))
+        payload = np.ascontiguousarray(rows).tobytes()
+    return payload, f"{fmt};{width}x{height}"

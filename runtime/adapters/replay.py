@@ -1,0 +1,279 @@
+"""Replay: run a detector over the frames of an MCAP log (aefabmap log or ROS 2 bag).
+
+The same per-frame core as the live node (runtime/adapters/node.py) sees the same frames: the image
+payloads logged on ``/camera/image`` (the live run logs the bytes it received; raw frames as
+lossless gray PNG) with the same capture stamps, in the same order. So, with the same
+bundle and a log written with ``image_every=1``, the deterministic result fields must come
+out identical; :func:`compare_results` checks that (``aefabmap replay --check``).
+Timings and latencies are never compared.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from aefabmap.errors import InputError
+from aefabmap.runtime.adapters.frames import BAD_FRAME_REASONS, FrameError
+from aefabmap.runtime.adapters.mcap_log import (
+    McapLogConfig,
+    McapLogReader,
+    McapLogWriter,
+    ReadStatus,
+)
+
+#: Result fields that vary from run to run (wall-clock timings, transport data); --check
+#: compares every other field of the result dicts (FrameResult.to_dict() of the core).
+NONDETERMINISTIC_FIELDS = ("timings_ms", "latency_ms", "age_ms", "frame_seq")
+
+
+@dataclass
+class CheckReport:
+    """Replayed vs logged results, matched by ``sequence``.
+
+    compared: frames present in both; mismatched: frames with at least one differing field;
+    field_counts: field -> frames where it differs; only_in_log / only_in_replay: unmatched
+    frames (tail_ignored of them after the end of a truncated log are not held against it);
+    mismatches: the first few differences as {sequence, field, logged, replayed}.
+    complete: the log held an image for every logged result (image_every == 1).
+    """
+
+    compared: int = 0
+    matched: int = 0
+    mismatched: int = 0
+    only_in_log: int = 0
+    only_in_replay: int = 0
+    tail_ignored: int = 0
+    field_counts: dict[str, int] = field(default_factory=dict)
+    mismatches: list[dict] = field(default_factory=list)
+    complete: bool = True
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return (
+            self.compared > 0
+            and self.mismatched == 0
+            and self.only_in_log == 0
+            and self.only_in_replay == 0
+        )
+
+    def describe(self) -> str:
+        head = "check OK" if self.ok else "check FAILED"
+        text = (
+            f"{head}: {self.compared} frames compared, {self.matched} identical, {self.mismatched} differ"
+            f", {self.only_in_log} only in log, {self.only_in_replay} only in replay"
+        )
+        if self.tail_ignored:
+            text += f", {self.tail_ignored} after the truncated end ignored"
+        if self.field_counts:
+            text += "; differing fields: " + ", ".join(f"{k}={v}" for k, v in sorted(self.field_counts.items()))
+        for note in self.notes:
+            text += f"; {note}"
+        return text
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["ok"] = self.ok
+        return d
+
+
+def _same(a, b, rtol: float, atol: float) -> bool:
+    if isinstance(a, bool) or isinstance(b, bool) or a is None or b is None:
+        return a == b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        if isinstance(a, float) or isinstance(b, float):
+            if math.isnan(a) and math.isnan(b):
+                return True
+            return math.isclose(a, b, rel_tol=rtol, abs_tol=atol)
+        return a == b
+    return a == b
+
+
+def compare_results(
+    logged: list[dict],
+    replayed: list[dict],
+    *,
+    fields: tuple[str, ...] | None = None,
+    ignore: tuple[str, ...] = NONDETERMINISTIC_FIELDS,
+    rtol: float = 1e-6,
+    atol: float = 1e-9,
+    max_listed: int = 20,
+    truncated: bool = False,
+) -> CheckReport:
+    """Compare result dicts field by field (floats with rtol/atol), matched by ``sequence``.
+
+    fields: the fields to compare; None = every field present in either dict except
+    ``ignore`` (a field missing on one side compares as None, so format drift shows up).
+
+    Dicts without an integer ``sequence`` are matched by position. When ``truncated``, the
+    replayed frames after the last logged one (and vice versa) are counted as tail_ignored.
+    """
+
+    def keyed(docs: list[dict]) -> dict[int, dict]:
+        out: dict[int, dict] = {}
+        for i, d in enumerate(docs):
+            s = d.get("sequence")
+            out[s if isinstance(s, int) and not isinstance(s, bool) else i] = d
+        return out
+
+    a, b = keyed(logged), keyed(replayed)
+    report = CheckReport()
+    common = sorted(set(a) & set(b))
+    last_common = common[-1] if common else -1
+    for s in sorted(set(a) - set(b)):
+        if truncated and s > last_common:
+            report.tail_ignored += 1
+        else:
+            report.only_in_log += 1
+    for s in sorted(set(b) - set(a)):
+        if truncated and s > last_common:
+            report.tail_ignored += 1
+        else:
+            report.only_in_replay += 1
+    for s in common:
+        names = fields if fields is not None else sorted((set(a[s]) | set(b[s])) - set(ignore))
+        differing = [f for f in names if not _same(a[s].get(f), b[s].get(f), rtol, atol)]
+        report.compared += 1
+        if not differing:
+            report.matched += 1
+            continue
+        report.mismatched += 1
+        for f in differing:
+            report.field_counts[f] = report.field_counts.get(f, 0) + 1
+            if len(report.mismatches) < max_listed:
+                report.mismatches.append({"sequence": s, "field": f, "logged": a[s].get(f), "replayed": b[s].get(f)})
+    return report
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay did; status says how much of the log was read (truncation)."""
+
+    source: str
+    frames_read: int
+    frames_processed: int
+    bad: dict[str, int]
+    loops: int
+    duration_s: float
+    status: ReadStatus
+    out_path: str | None = None
+    check: CheckReport | None = None
+
+    @property
+    def fps(self) -> float:
+        return self.frames_processed / self.duration_s if self.duration_s > 0 else 0.0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["fps"] = self.fps
+        if self.check is not None:
+            d["check"] = self.check.to_dict()
+        return d
+
+
+def replay(
+    detector,
+    mcap_path: str | Path,
+    *,
+    out_path: str | Path | None = None,
+    check: bool = False,
+    image_topic: str | None = None,
+    log_config: McapLogConfig | None = None,
+    on_result: Callable[[dict], None] | None = None,
+) -> ReplaySummary:
+    """Run ``detector`` (see runtime.node.Detector) over the images of ``mcap_path``.
+
+    out_path: write a new log (images, replayed results, final stats, manifest metadata).
+    check: compare the replayed results with the ones logged (all but NONDETERMINISTIC_FIELDS).
+    image_topic: which image topic to read (default: /camera/image, else the first found).
+    Raises LogError when the source cannot be read or the output not written.
+    """
+    reader = McapLogReader(mcap_path, image_topic=image_topic)
+    replayed: list[dict] = []
+    bad = {r: 0 for r in BAD_FRAME_REASONS}
+    frames_read = loops = 0
+    writer = None
+    t0 = time.monotonic()
+    manifest = getattr(detector, "manifest", None)
+    if out_path is not None:
+        writer = McapLogWriter(
+            out_path,
+            log_config or McapLogConfig(),
+            manifest=manifest if isinstance(manifest, dict) else None,
+            run_config={"replay_of": str(mcap_path), "image_topic": image_topic, "started_ns": time.time_ns()},
+        )
+    try:
+        for image in reader.frames():
+            frames_read += 1
+            try:
+                gray = image.decode()
+                result = detector.process(gray, image.stamp_ns)
+            except FrameError as exc:
+                bad[exc.reason] = bad.get(exc.reason, 0) + 1
+                continue
+            except InputError:
+                bad["rejected"] += 1
+                continue
+            doc = dict(result.to_dict())
+            replayed.append(doc)
+            loops += bool(doc.get("loop"))
+            if on_result is not None:
+                on_result(doc)
+            if writer is not None:
+                seq = doc.get("sequence")
+                writer.write_image(image.payload, image.encoding, image.stamp_ns,
+                                   sequence=seq if isinstance(seq, int) else len(replayed) - 1, gray=gray)
+                writer.write_result(doc)
+        duration = time.monotonic() - t0
+        if writer is not None:
+            writer.write_stats(
+                {
+                    "stamp_ns": time.time_ns(),
+                    "uptime_s": round(duration, 3),
+                    "frames_received": frames_read,
+                    "frames_processed": len(replayed),
+                    "dropped": 0,
+                    "bad": bad,
+                    "bad_total": sum(bad.values()),
+                    "loops": loops,
+                }
+            )
+    finally:
+        if writer is not None:
+            writer.close()
+    report = None
+    if check:
+        report = compare_results(reader.results, replayed, truncated=reader.status.truncated)
+        if not reader.results:
+            report.notes.append("the log holds no /lcd/result messages to compare with")
+        if reader.results and reader.status.images_read < len(reader.results):
+            report.complete = False
+            report.notes.append(
+                f"the log has {reader.status.images_read} images for {len(reader.results)} results "
+                "(logged with image_every > 1?): the replayed detector saw fewer frames, so results differ"
+            )
+        logged_manifest = reader.manifest
+        if (
+            logged_manifest is not None
+            and isinstance(manifest, dict)
+            and logged_manifest != json.loads(json.dumps(manifest, sort_keys=True, default=str))
+        ):
+            report.notes.append("the bundle manifest differs from the one in the log")
+        if reader.status.truncated:
+            report.notes.append("the log was truncated (no summary): compared up to its last complete chunk")
+    return ReplaySummary(
+        source=str(mcap_path),
+        frames_read=frames_read,
+        frames_processed=len(replayed),
+        bad=bad,
+        loops=loops,
+        duration_s=time.monotonic() - t0,
+        status=reader.status,
+        out_path=str(out_path) if out_path is not None else None,
+        check=report,
+    )

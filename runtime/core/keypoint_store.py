@@ -1,0 +1,134 @@
+"""Compact per-place keypoint store for geometric verification (pure, in memory).
+
+Per place one numpy structured array, one record per keypoint:
+
+========= ================= =========================================================
+field     type              meaning
+========= ================= =========================================================
+xy        2 x uint16        position as a fraction of the image's longer side, in
+                            units of 1/65535 (0.01 px at 640 px, 0.06 px at 4000 px)
+word      uint16 / int32    visual word id (uint16 when the vocabulary has <= 65536 words)
+desc      32 / 128 x uint8  ORB bytes as extracted; SIFT rescaled per row to uint8
+                            (see verification.compress_descriptors)
+========= ================= =========================================================
+
+So an ORB keypoint costs 4 + 2 + 32 = 38 bytes (500 keypoints: 19 000 bytes per place) and a
+SIFT keypoint 134 bytes, plus PLACE_OVERHEAD_BYTES per place for the array header, the
+image shape and the dictionary slot. `nbytes()` is kept as a running total so the
+detector's memory cap can ask for it on every insertion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from aefabmap.errors import InputError
+from aefabmap.runtime.core.verification import compress_descriptors
+
+# numpy array header (~112 B) + PlaceKeypoints object + dict slot + shape tuple, rounded up.
+PLACE_OVERHEAD_BYTES = 256
+_XY_SCALE = 65535.0
+
+
+@dataclass
+class PlaceKeypoints:
+    """Keypoints of one frame in store form.
+
+    records: structured (K,) array with fields xy (uint16 x2), word, desc (see module doc).
+    image_shape: (height, width) of the original image in pixels.
+    """
+
+    records: np.ndarray
+    image_shape: tuple[int, int]
+
+    def __len__(self) -> int:
+        return int(self.records.shape[0])
+
+    @property
+    def xy(self) -> np.ndarray:
+        """(K, 2) float32 positions in original pixels."""
+        return self.records["xy"].astype(np.float32) * np.float32(max(self.image_shape) / _XY_SCALE)
+
+    @property
+    def words(self) -> np.ndarray:
+        """(K,) int64 word ids."""
+        return self.records["word"].astype(np.int64)
+
+    @property
+    def descriptors(self) -> np.ndarray:
+        """(K, D) uint8 stored descriptors."""
+        return self.records["desc"]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.records.nbytes) + PLACE_OVERHEAD_BYTES
+
+
+class KeypointStore:
+    """place id -> PlaceKeypoints, with a running byte count.
+
+    descriptor_bytes: 32 (ORB) or 128 (SIFT) bytes per stored descriptor.
+    vocabulary_size: decides the word-id type (uint16 up to 65536 words, else int32).
+    max_keypoints: keep at most this many keypoints per place (the first ones: the extractor
+        orders them strongest first); None keeps all.
+    """
+
+    def __init__(self, descriptor_bytes: int, vocabulary_size: int, max_keypoints: int | None = None) -> None:
+        if descriptor_bytes not in (32, 128):
+            raise InputError(f"descriptor_bytes must be 32 (ORB) or 128 (SIFT), got {descriptor_bytes}")
+        word_type = np.uint16 if vocabulary_size <= 65536 else np.int32
+        self.dtype = np.dtype([("xy", np.uint16, (2,)), ("word", word_type), ("desc", np.uint8, (descriptor_bytes,))])
+        self.max_keypoints = max_keypoints
+        self._places: dict[int, PlaceKeypoints] = {}
+        self._nbytes = 0
+
+    @property
+    def bytes_per_keypoint(self) -> int:
+        return int(self.dtype.itemsize)
+
+    def pack(self, keypoints: np.ndarray, words: np.ndarray, descriptors: np.ndarray, image_shape) -> PlaceKeypoints:
+        """Build the store form of one frame (not yet stored; see `put`).
+
+        keypoints: (N, 2) float positions in original pixels; words: (N,) ids;
+        descriptors: (N, 32) uint8 or (N, 128) float32; image_shape: (height, width).
+        """
+        n = int(keypoints.shape[0])
+        if words.shape[0] != n or descriptors.shape[0] != n:
+            raise InputError(f"keypoints ({n}), words ({words.shape[0]}) and descriptors ({descriptors.shape[0]}) differ in count")
+        if self.max_keypoints is not None:
+            n = min(n, self.max_keypoints)
+        shape = (int(image_shape[0]), int(image_shape[1]))
+        rec = np.zeros(n, self.dtype)
+        if n:
+            scale = _XY_SCALE / max(max(shape), 1)
+            rec["xy"] = np.clip(np.rint(np.asarray(keypoints[:n], np.float64) * scale), 0, _XY_SCALE)
+            rec["word"] = words[:n]
+            rec["desc"] = compress_descriptors(descriptors[:n])
+        return PlaceKeypoints(rec, shape)
+
+    def put(self, place_id: int, place: PlaceKeypoints) -> None:
+        """Store (or replace) the keypoints of a place."""
+        self.remove(place_id)
+        self._places[int(place_id)] = place
+        self._nbytes += place.nbytes
+
+    def get(self, place_id: int) -> PlaceKeypoints | None:
+        return self._places.get(int(place_id))
+
+    def remove(self, place_id: int) -> None:
+        """Forget a place (no-op when absent): evicted places must leave the store."""
+        old = self._places.pop(int(place_id), None)
+        if old is not None:
+            self._nbytes -= old.nbytes
+
+    def __len__(self) -> int:
+        return len(self._places)
+
+    def __contains__(self, place_id: int) -> bool:
+        return int(place_id) in self._places
+
+    def nbytes(self) -> int:
+        """Bytes held by every stored place (records + PLACE_OVERHEAD_BYTES each)."""
+        return self._nbytes

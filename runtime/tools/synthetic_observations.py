@@ -1,0 +1,96 @@
+"""Synthetic observations with realistic sparsity and the FAB-MAP inference benchmark (pure)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from aefabmap.runtime.core.fabmap import FabMap2
+from aefabmap.runtime.core.tree import ChowLiuTree
+
+
+def synthetic_observations(n: int, vocabulary_size: int, words_per_obs: int = 300, seed: int = 0) -> list[np.ndarray]:
+    """n observations of ~words_per_obs distinct words each (sorted int64 arrays).
+
+    Word frequencies are log-normal (sigma 0.75: the most common words are ~10x more
+    frequent than the median one, as in k-means vocabularies of real images).
+    """
+    rng = np.random.default_rng(seed)
+    weights = rng.lognormal(0.0, 0.75, vocabulary_size)
+    cdf = np.cumsum(weights / weights.sum())
+    k = min(words_per_obs, vocabulary_size)
+    out = []
+    for _ in range(n):
+        draws = np.searchsorted(cdf, rng.random(int(k * 1.15)))
+        w = np.unique(np.minimum(draws, vocabulary_size - 1))[:k]
+        out.append(w.astype(np.int64))
+    return out
+
+
+def random_tree(vocabulary_size: int, seed: int = 0) -> ChowLiuTree:
+    """A random Chow-Liu tree with plausible probabilities (for benchmarks and tests)."""
+    rng = np.random.default_rng(seed)
+    v = vocabulary_size
+    parent = np.zeros(v, np.int64)
+    perm = rng.permutation(v)
+    # Each word's parent is an earlier word in a random order: a random recursive tree.
+    for idx in range(1, v):
+        parent[perm[idx]] = perm[rng.integers(0, idx)]
+    parent[perm[0]] = perm[0]
+    p = rng.uniform(0.01, 0.2, v)
+    a = rng.uniform(0.05, 0.9, v)
+    b = rng.uniform(0.01, 0.3, v)
+    a[perm[0]] = b[perm[0]] = p[perm[0]]
+    return ChowLiuTree(parent, p, a, b)
+
+
+@dataclass
+class InferenceBenchResult:
+    places: int
+    words: int
+    words_per_place: float
+    training_observations: int
+    queries: int
+    median_ms: float
+    p95_ms: float
+    mean_ms: float
+    add_ms_median: float
+    bytes_per_place: float
+    index_bytes: int
+
+
+def bench_inference(places: int, words: int, *, queries: int = 200, training: int = 1000, words_per_place: int = 300, seed: int = 0) -> InferenceBenchResult:
+    """Time FabMap2.localize (no add) on a map of `places` synthetic places over `words` words."""
+    tree = random_tree(words, seed)
+    engine = FabMap2(tree, synthetic_observations(training, words, words_per_place, seed + 1))
+    obs = synthetic_observations(places, words, words_per_place, seed + 2)
+    add_times = []
+    for i, o in enumerate(obs):
+        t0 = time.perf_counter()
+        engine.add(o)
+        if i % max(1, places // 200) == 0:
+            add_times.append(time.perf_counter() - t0)
+    del obs
+    qs = synthetic_observations(queries, words, words_per_place, seed + 3)
+    times = []
+    for q in qs:
+        t0 = time.perf_counter()
+        engine.localize(q, add=False)
+        times.append(time.perf_counter() - t0)
+    t = np.array(times) * 1e3
+    nbytes = engine.nbytes()
+    return InferenceBenchResult(
+        places=places,
+        words=words,
+        words_per_place=float(np.mean([len(q) for q in qs])),
+        training_observations=training,
+        queries=queries,
+        median_ms=float(np.median(t)),
+        p95_ms=float(np.percentile(t, 95)),
+        mean_ms=float(t.mean()),
+        add_ms_median=float(np.median(add_times) * 1e3),
+        bytes_per_place=nbytes / max(1, places),
+        index_bytes=nbytes,
+    )

@@ -1,0 +1,200 @@
+"""Helpers of the streaming-runtime tests: free ports, a stand-in detector, waiting utilities.
+
+The stand-in detector only mimics the interface of aefabmap.runtime.core.detector.LoopClosureDetector
+(process(gray, stamp_ns) -> result with to_dict(); manifest); it lives in the tests only.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import cv2
+import numpy as np
+import zenoh
+
+from aefabmap.errors import InputError
+from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+from aefabmap.runtime.core.detector import FrameResult
+from aefabmap.runtime.tools.node_process import free_tcp_port
+
+
+def session_pair() -> tuple[SessionConfig, SessionConfig]:
+    """(listener, connector) session configs on a fresh loopback port, scouting off."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    return SessionConfig(listen=(ep,)), SessionConfig(connect=(ep,))
+
+
+class FakeDetector:
+    """Deterministic stand-in: places are 16x12 thumbnails; a frame is a loop closure when
+    its thumbnail is within ``threshold`` (mean abs gray difference) of a stored place,
+    otherwise it becomes a new place at once (no delayed insertion).
+
+    delay_s simulates a slow core (seconds per frame).
+    """
+
+    def __init__(self, threshold: float = 12.0, delay_s: float = 0.0) -> None:
+        self.threshold = threshold
+        self.delay_s = delay_s
+        self.places: list[np.ndarray] = []
+        self.place_frames: list[int] = []
+        self.sequence = 0
+        self.manifest = {"format_version": 1, "detector": "fake", "threshold": threshold}
+
+    def process(self, gray: np.ndarray, stamp_ns: int) -> FrameResult:
+        t0 = time.perf_counter()
+        if gray.ndim != 2 or gray.shape[0] < 8 or gray.shape[1] < 8:
+            raise InputError(f"image of shape {gray.shape} is too small")
+        if self.delay_s:
+            time.sleep(self.delay_s)  # simulated compute cost, not a wait
+        thumb = cv2.resize(gray, (16, 12), interpolation=cv2.INTER_AREA).astype(np.float32)
+        dists = [float(np.abs(thumb - p).mean()) for p in self.places]
+        best = int(np.argmin(dists)) if dists else None
+        best_d = dists[best] if best is not None else 255.0
+        loop = best is not None and best_d < self.threshold
+        inserted = None
+        if not loop:
+            inserted = len(self.places)
+            self.places.append(thumb)
+            self.place_frames.append(self.sequence)
+        res = FrameResult(
+            sequence=self.sequence,
+            stamp_ns=int(stamp_ns),
+            n_keypoints=int(gray.mean()),
+            n_words=int(gray.std()),
+            best_place=best,
+            best_frame=self.place_frames[best] if best is not None else None,
+            score=float(1.0 - best_d / 255.0),
+            p_new=float(min(1.0, best_d / 255.0 * 4)),
+            loop=bool(loop),
+            inserted_frame=self.sequence if inserted is not None else None,
+            inserted_place=inserted,
+            n_places=len(self.places),
+            timings_ms={"total": (time.perf_counter() - t0) * 1e3},
+        )
+        self.sequence += 1
+        return res
+
+
+class JsonCollector:
+    """Callback subscriber collecting JSON docs of a key into a queue."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        import json
+
+        self.queue: queue.Queue = queue.Queue()
+        self._sub = session.declare_subscriber(key, lambda s: self.queue.put(json.loads(s.payload.to_bytes())))
+
+    def wait_for(self, predicate, timeout_s: float) -> list[dict]:
+        """Collect docs until predicate(doc) is true for one of them; returns all docs seen."""
+        seen = []
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise AssertionError(f"timed out after {timeout_s} s; got {len(seen)} docs: {seen[-3:]}")
+            try:
+                doc = self.queue.get(timeout=remaining)
+            except queue.Empty:
+                continue
+            seen.append(doc)
+            if predicate(doc):
+                return seen
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+class NodeThread:
+    """Runs run_node in a thread; .summary / .error after join."""
+
+    def __init__(self, **kwargs) -> None:
+        from aefabmap.runtime.adapters.node import run_node
+
+        self.stop = threading.Event()
+        self.ready = threading.Event()
+        self.summary = None
+        self.error: BaseException | None = None
+
+        def target() -> None:
+            try:
+                self.summary = run_node(stop_event=self.stop, ready_event=self.ready, **kwargs)
+            except BaseException as exc:  # reported to the test
+                self.error = exc
+            finally:
+                self.ready.set()
+
+        self.thread = threading.Thread(target=target, daemon=True)
+
+    def __enter__(self) -> "NodeThread":
+        self.thread.start()
+        assert self.ready.wait(10), "node did not become ready"
+        if self.error is not None:
+            raise self.error
+        return self
+
+    def finish(self, timeout_s: float = 10.0):
+        self.stop.set()
+        self.thread.join(timeout_s)
+        assert not self.thread.is_alive(), "node did not stop"
+        if self.error is not None:
+            raise self.error
+        return self.summary
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(10)
+
+
+def sample_images(n: int, size=(160, 120), seed: int = 0) -> list[np.ndarray]:
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(max(n, 4), seed, size)
+    return images[:n]
+
+
+ROS2_HEADER_DEFS = """
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
+ROS2_COMPRESSED_IMAGE = "std_msgs/Header header\nstring format\nuint8[] data\n" + ROS2_HEADER_DEFS
+ROS2_IMAGE = (
+    "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\n"
+    "uint32 step\nuint8[] data\n" + ROS2_HEADER_DEFS
+)
+
+
+def write_ros2_bag(path, images, *, stamp0_ns: int = 1_700_000_000_000_000_000, raw_topic: bool = True,
+                   pad: int = 3) -> list[int]:
+    """Write a ROS 2 bag with /cam/compressed (jpeg CompressedImage) and, if raw_topic,
+    /cam/raw (mono8 Image rows padded by ``pad`` bytes). Returns the stamps (ns)."""
+    from mcap_ros2.writer import Writer as Ros2Writer
+
+    stamps = []
+    with open(path, "wb") as f:
+        w = Ros2Writer(f)
+        cschema = w.register_msgdef("sensor_msgs/msg/CompressedImage", ROS2_COMPRESSED_IMAGE)
+        rschema = w.register_msgdef("sensor_msgs/msg/Image", ROS2_IMAGE)
+        for i, img in enumerate(images):
+            stamp = stamp0_ns + i * 100_000_000
+            stamps.append(stamp)
+            header = {"stamp": {"sec": stamp // 1_000_000_000, "nanosec": stamp % 1_000_000_000}, "frame_id": "cam"}
+            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            w.write_message("/cam/compressed", cschema, {"header": header, "format": "jpeg", "data": buf.tobytes()},
+                            log_time=stamp, publish_time=stamp)
+            if raw_topic:
+                h, wd = img.shape
+                padded = np.zeros((h, wd + pad), np.uint8)
+                padded[:, :wd] = img
+                msg = {"header": header, "height": h, "width": wd, "encoding": "mono8", "is_bigendian": 0,
+                       "step": wd + pad, "data": padded.tobytes()}
+                w.write_message("/cam/raw", rschema, msg, log_time=stamp + 1, publish_time=stamp)
+        w.finish()
+    return stamps

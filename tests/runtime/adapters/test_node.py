@@ -1,0 +1,319 @@
+"""Streaming node and publisher on real loopback Zenoh sessions (runtime/adapters/node.py)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from aefabmap.errors import LogError
+from aefabmap.runtime.adapters.frames import encode_frame
+from aefabmap.runtime.adapters.mcap_log import (
+    MANIFEST_METADATA,
+    RUN_CONFIG_METADATA,
+    McapLogReader,
+)
+from aefabmap.runtime.adapters.node import rss_mb, run_node, stop_on_signals
+from aefabmap.runtime.adapters.zenoh_transport import FramePublisher, open_session
+from aefabmap.runtime.tools.publisher import (
+    array_source,
+    images_dir_source,
+    publish_frames,
+)
+from aefabmap.runtime.tools.synthetic_route import write_sequence
+
+from .stream_fakes import (
+    FakeDetector,
+    JsonCollector,
+    NodeThread,
+    sample_images,
+    session_pair,
+)
+
+pytestmark = pytest.mark.timeout(90)
+KEY = "robot/camera/image"
+RESULTS = "robot/camera/lcd"
+STATS = "robot/camera/lcd/stats"
+
+
+def test_end_to_end_publish_detect_log(tmp_path):
+    listen, connect = session_pair()
+    log_path = tmp_path / "run.mcap"
+    images = sample_images(12, size=(160, 120))
+    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=log_path,
+                    queue_size=16, stats_period_s=0.2, image_log_every=1, run_config={"model": "fake"}) as node:
+        watch = open_session(connect)
+        results = JsonCollector(watch, RESULTS)
+        stats = JsonCollector(watch, STATS)
+        pub = publish_frames(connect, KEY, array_source(images, "jpeg"), rate_hz=100, wait_for_subscriber_s=10)
+        assert pub.published == 12 and pub.matched
+        docs = results.wait_for(lambda d: d["frame_seq"] == 11, timeout_s=20)
+        stats.wait_for(lambda d: d["frames_processed"] == 12, timeout_s=20)
+        summary = node.finish()
+        results.close()
+        stats.close()
+        watch.close()
+    assert summary.frames_processed == 12 and summary.dropped == 0 and summary.bad_total == 0
+    assert [d["sequence"] for d in docs] == list(range(12))
+    assert all(d["latency_ms"] >= 0 and "timings_ms" in d for d in docs)
+    assert summary.latency_ms_p50 is not None and summary.latency_ms_p95 >= summary.latency_ms_p50
+    assert summary.result_key == RESULTS and summary.images_logged == 12
+    reader = McapLogReader(log_path)
+    frames = list(reader.frames())
+    assert not reader.status.truncated
+    assert len(frames) == 12 and [r["sequence"] for r in reader.results] == list(range(12))
+    assert [f.stamp_ns for f in frames] == [r["stamp_ns"] for r in reader.results]
+    assert reader.stats and reader.stats[-1]["frames_processed"] == 12
+    assert reader.metadata[MANIFEST_METADATA]["detector"] == "fake"
+    assert reader.metadata[RUN_CONFIG_METADATA]["model"] == "fake"
+    assert reader.metadata[RUN_CONFIG_METADATA]["key"] == KEY
+
+
+def _jpeg_header_50mp() -> bytes:
+    sof = b"\xff\xc0\x00\x11\x08" + (6250).to_bytes(2, "big") + (8000).to_bytes(2, "big") + b"\x03" + b"\x00" * 9
+    return b"\xff\xd8" + sof + b"\x00" * 64
+
+
+def test_bad_frames_are_counted_per_reason_and_the_loop_goes_on(tmp_path):
+    listen, connect = session_pair()
+    good, genc = encode_frame(sample_images(1, size=(64, 48))[0], "jpeg")
+    bad_frames = [
+        (good[:60], "image/jpeg", "corrupt"),
+        (b"", "image/jpeg", "empty"),
+        (good, "text/plain", "wrong_encoding"),
+        (b"\x00" * 99, "mono8;10x10", "size_mismatch"),
+        (_jpeg_header_50mp(), "image/jpeg", "too_large"),
+        (b"hello, I am not an image", "image/png", "not_image"),
+        (b"\x00" * 16, "mono8;4x4", "rejected"),  # decodes, but the detector refuses 4x4
+    ]
+    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=tmp_path / "bad.mcap",
+                    queue_size=32, stats_period_s=0.2) as node:
+        with open_session(connect) as s:
+            results = JsonCollector(s, RESULTS)
+            stats = JsonCollector(s, STATS)
+            pub = FramePublisher(s, KEY, congestion="block")
+            assert pub.wait_for_subscriber(10)
+            for payload, enc, _ in bad_frames:
+                pub.put(payload, enc)
+            pub.put(good, genc)
+            docs = results.wait_for(lambda d: True, timeout_s=20)
+            assert docs[0]["frame_seq"] == len(bad_frames)
+            stat = stats.wait_for(lambda d: d["bad_total"] == len(bad_frames), timeout_s=20)[-1]
+            pub.close()
+            results.close()
+            stats.close()
+        summary = node.finish()
+    expected = {reason: 1 for _, _, reason in bad_frames}
+    assert {k: v for k, v in summary.bad.items() if v} == expected
+    assert {k: v for k, v in stat["bad"].items() if v} == expected
+    assert stat["rss_mb"] is None or stat["rss_mb"] > 10
+    assert summary.frames_processed == 1 and summary.frames_received == len(bad_frames) + 1
+
+
+def test_publisher_vanishing_mid_stream(tmp_path):
+    listen, connect = session_pair()
+    images = sample_images(8, size=(64, 48))
+    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=tmp_path / "v.mcap",
+                    queue_size=16, stats_period_s=0.2) as node:
+        watch = open_session(connect)
+        results = JsonCollector(watch, RESULTS)
+        # first publisher: a whole session that goes away after 4 frames
+        first = publish_frames(connect, KEY, array_source(images[:4]), rate_hz=200, wait_for_subscriber_s=10)
+        assert first.published == 4
+        results.wait_for(lambda d: d["sequence"] == 3, timeout_s=20)
+        # the node is still alive and serves a new publisher (its seq restarts at 0)
+        second = publish_frames(connect, KEY, array_source(images[4:]), rate_hz=200, wait_for_subscriber_s=10)
+        assert second.published == 4
+        results.wait_for(lambda d: d["sequence"] == 7, timeout_s=20)
+        assert node.thread.is_alive()
+        summary = node.finish()
+        results.close()
+        watch.close()
+    assert summary.frames_processed == 8 and summary.dropped == 0 and summary.bad_total == 0
+
+
+def test_slow_detector_drops_old_frames_and_counts_them(tmp_path):
+    listen, connect = session_pair()
+    n = 30
+    with NodeThread(detector=FakeDetector(delay_s=0.03), session_config=listen, key=KEY,
+                    mcap_path=tmp_path / "slow.mcap", queue_size=1, stats_period_s=0.5) as node:
+        with open_session(connect) as s:
+            results = JsonCollector(s, RESULTS)
+            src = array_source(sample_images(n, size=(64, 48)))
+            publish_frames(connect, KEY, src, rate_hz=500, wait_for_subscriber_s=10)
+            docs = results.wait_for(lambda d: d["frame_seq"] == n - 1, timeout_s=30)
+            results.close()
+        summary = node.finish()
+    assert summary.dropped > 0
+    assert summary.frames_processed + summary.dropped + docs[0]["frame_seq"] == n
+    assert len(docs) == summary.frames_processed
+
+
+def test_unwritable_mcap_fails_before_opening_the_session(tmp_path):
+    listen, _ = session_pair()
+    with pytest.raises(LogError, match="nowhere"):
+        run_node(FakeDetector(), listen, KEY, tmp_path / "nowhere" / "x.mcap", stop_event=threading.Event())
+
+
+def test_stop_event_ends_an_idle_node_cleanly(tmp_path):
+    listen, _ = session_pair()
+    log_path = tmp_path / "idle.mcap"
+    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=log_path,
+                    stats_period_s=60) as node:
+        summary = node.finish(timeout_s=5)
+    assert summary.frames_received == 0
+    r = McapLogReader(log_path)
+    list(r.frames())
+    assert not r.status.truncated and len(r.stats) == 1  # the final stats
+
+
+def test_publish_rate_count_loop_and_images_dir(tmp_path):
+    listen, connect = session_pair()
+    images = sample_images(4, size=(64, 48))
+    write_sequence(tmp_path / "seq", images, np.zeros((4, 4), bool))
+    src = images_dir_source(tmp_path / "seq")
+    assert [enc for _, enc in src()] == ["image/jpeg"] * 4
+    with open_session(listen) as s:
+        sub = s.declare_subscriber(KEY, lambda sample: None)
+        t0 = time.monotonic()
+        summary = publish_frames(connect, KEY, src, rate_hz=40, count=10, loop=True, wait_for_subscriber_s=10)
+        elapsed = time.monotonic() - t0
+        sub.undeclare()
+    assert summary.published == 10 and summary.matched
+    assert elapsed >= 9 / 40 * 0.9
+    with pytest.raises(Exception):
+        images_dir_source(tmp_path / "missing")
+    stop = threading.Event()
+    stop.set()
+    stopped = publish_frames(connect, KEY, src, rate_hz=1, loop=True, stop_event=stop, wait_for_subscriber_s=0)
+    assert stopped.published == 0
+
+
+def test_sigterm_sets_the_stop_event():
+    stop = threading.Event()
+    before = signal.getsignal(signal.SIGTERM)
+    with stop_on_signals(stop):
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.wait(5)
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_rss_is_measured():
+    value = rss_mb()
+    assert value is None or 5 < value < 10_000
+
+
+def test_cli_options_parse():
+    from aefabmap.cli import publish, replay, run
+
+    parser = argparse.ArgumentParser(prog="aefabmap")
+    subparsers = parser.add_subparsers(dest="command")
+    for module in (run, publish, replay):
+        module.register(subparsers)
+    a = parser.parse_args(
+        "run --model B --key k/img --connect tcp/127.0.0.1:7447 --listen tcp/127.0.0.1:7448 --config z.json5 "
+        "--mcap L.mcap --max-places 100 --memory-mb 64 --queue 3 --image-every 2".split()
+    )
+    assert (a.model, a.key, a.connect, a.listen, a.config, a.mcap) == (
+        "B", "k/img", ["tcp/127.0.0.1:7447"], ["tcp/127.0.0.1:7448"], "z.json5", "L.mcap")
+    assert (a.max_places, a.memory_mb, a.queue, a.image_every, a.func) == (100, 64.0, 3, 2, run.main)
+    p = parser.parse_args("publish --images D --key k --rate 10 --loop --count 5".split())
+    assert (p.images, p.video, p.camera, p.rate, p.loop, p.count, p.func) == ("D", None, None, 10.0, True, 5,
+                                                                             publish.main)
+    with pytest.raises(SystemExit):
+        parser.parse_args("publish --images D --video V --key k --rate 10".split())
+    r = parser.parse_args("replay L.mcap --model B --out N.mcap --check".split())
+    assert (r.log, r.model, r.out, r.check, r.func) == ("L.mcap", "B", "N.mcap", True, replay.main)
+
+
+def test_cli_run_stops_on_sigint_with_a_finished_log(tmp_path, monkeypatch):
+    """`aefabmap run` main(): SIGINT (from another thread) stops it; exit 0; log complete."""
+    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    from aefabmap.cli import run
+
+    monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
+    listen, connect = session_pair()
+    log_path = tmp_path / "cli.mcap"
+    args = argparse.Namespace(model="fake", key=KEY, connect=[], listen=list(listen.listen), config=None,
+                              mcap=str(log_path), max_places=None, memory_mb=None, queue=4, image_every=1)
+    got = threading.Event()
+    errors = []
+
+    def drive() -> None:
+        try:
+            # The node may not listen yet: a peer session retries its connect in the
+            # background, so wait until our publisher matches the node's subscriber.
+            with open_session(connect) as s:
+                results = JsonCollector(s, RESULTS)
+                pub = FramePublisher(s, KEY, congestion="block")
+                assert pub.wait_for_subscriber(30)
+                for img in sample_images(3, size=(64, 48)):
+                    pub.put(*encode_frame(img, "jpeg"))
+                results.wait_for(lambda d: d["sequence"] == 2, timeout_s=20)
+                pub.close()
+                results.close()
+            got.set()
+        except BaseException as exc:
+            errors.append(exc)
+        finally:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    driver = threading.Thread(target=drive, daemon=True)
+    driver.start()
+    code = run.main(args)
+    driver.join(10)
+    assert not errors and got.is_set()
+    assert code == 0
+    r = McapLogReader(log_path)
+    assert len(list(r.frames())) == 3 and not r.status.truncated
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_cli_processes_run_publish_replay_with_a_real_bundle(tmp_path):
+    """`aefabmap run` and `aefabmap publish` as processes; SIGTERM stops run; replay --check passes."""
+    import json
+    import subprocess
+    import sys
+
+    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from tests.conftest import make_synthetic_bundle
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    make_demo_sequence(tmp_path / "seq", n_frames=16, seed=2, size=(160, 120))
+    listen, connect = session_pair()
+    ep = listen.listen[0]
+    log_path = tmp_path / "run.mcap"
+    cli = [sys.executable, "-m", "aefabmap.cli.main"]
+    run = subprocess.Popen(cli + ["run", "--model", str(bundle), "--key", KEY, "--listen", ep, "--mcap",
+                                  str(log_path), "--queue", "32"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True)
+    try:
+        with open_session(connect) as s:
+            results = JsonCollector(s, RESULTS)
+            probe = FramePublisher(s, KEY)
+            assert probe.wait_for_subscriber(60), "the node never subscribed"
+            probe.close()
+            pub = subprocess.run(cli + ["publish", "--images", str(tmp_path / "seq"), "--key", KEY, "--rate", "50",
+                                        "--connect", ep], capture_output=True, text=True, timeout=60)
+            assert pub.returncode == 0, pub.stderr
+            assert json.loads(pub.stdout.strip().splitlines()[-1])["published"] == 16
+            results.wait_for(lambda d: d["sequence"] == 15, timeout_s=60)
+            results.close()
+        run.send_signal(signal.SIGTERM)
+        out, err = run.communicate(timeout=30)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(10)
+    assert run.returncode == 0, err
+    assert json.loads(out.strip().splitlines()[-1])["frames_processed"] == 16
+    rep = subprocess.run(cli + ["replay", str(log_path), "--model", str(bundle), "--check", "--out",
+                                str(tmp_path / "re.mcap")], capture_output=True, text=True, timeout=120)
+    assert rep.returncode == 0, rep.stderr
+    assert json.loads(rep.stdout.strip().splitlines()[-1])["check"]["compared"] == 16

@@ -1,0 +1,84 @@
+"""Per-frame detector: delayed insertion, exclusion window, caps and eviction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aefabmap import ConfigError
+from aefabmap.runtime.adapters.bundle_reader import load_detector
+from aefabmap.runtime.core.detector import DetectorConfig
+from tests.conftest import make_synthetic_bundle
+
+
+def words_stream(n, v=64, seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.integers(0, v, 40) for _ in range(n)]
+
+
+@pytest.mark.parametrize("scorer", ["fabmap", "bow"])
+def test_delayed_insertion_and_exclusion(synthetic_bundle, scorer):
+    det = load_detector(synthetic_bundle, DetectorConfig(scorer=scorer, exclude=5))
+    stream = words_stream(12)
+    for i, w in enumerate(stream):
+        r = det.process_words(w)
+        assert r.sequence == i
+        if i < 5:
+            assert r.best_place is None and r.inserted_frame is None
+        else:
+            assert r.inserted_frame == i - 5  # frame i-5 enters the map just before query i
+            assert r.best_frame <= i - 5  # never a frame inside the window
+        assert r.n_places == max(0, i - 4)
+
+
+def test_revisit_is_found_and_scores_are_named(synthetic_bundle):
+    det = load_detector(synthetic_bundle, DetectorConfig(exclude=2))
+    stream = words_stream(6, seed=1)
+    for w in stream:
+        det.process_words(w)
+    r = det.process_words(stream[1])
+    assert r.best_frame == 1 and r.score == r.probability and r.llr > 0
+    det_llr = load_detector(synthetic_bundle, DetectorConfig(exclude=2, fabmap_score="llr"))
+    for w in stream:
+        det_llr.process_words(w)
+    assert det_llr.process_words(stream[1]).score == pytest.approx(r.llr)
+
+
+def test_max_places_evicts_least_recently_used(synthetic_bundle):
+    det = load_detector(synthetic_bundle, DetectorConfig(exclude=0, max_places=5))
+    for w in words_stream(30, seed=2):
+        r = det.process_words(w)
+        assert det.n_places <= 5
+    assert r.evicted_place is not None
+    assert det.fabmap.n_places == 5  # freed ids are reused: no growth of the id range
+
+
+def test_memory_cap_holds_over_a_long_run(tmp_path):
+    bundle = make_synthetic_bundle(tmp_path / "b", vocabulary_size=500)
+    cap_mb = 0.05
+    det = load_detector(bundle, DetectorConfig(exclude=3, memory_mb=cap_mb))
+    sizes = []
+    for w in words_stream(3000, v=500, seed=3):
+        det.process_words(w)
+        sizes.append(det.map_bytes())
+    assert max(sizes) <= cap_mb * 2**20
+    # Flat once at the cap: the last thousand frames do not grow the map.
+    assert max(sizes[-1000:]) <= max(sizes[1000:2000]) * 1.05
+
+
+def test_empty_frames_still_get_results(synthetic_bundle):
+    det = load_detector(synthetic_bundle, DetectorConfig(exclude=1))
+    for _ in range(3):
+        r = det.process_words(np.zeros(0, np.int32))
+    assert r.sequence == 2 and r.n_keypoints == 0
+
+
+def test_bad_config():
+    with pytest.raises(ConfigError):
+        DetectorConfig(scorer="dbow")
+    with pytest.raises(ConfigError):
+        DetectorConfig(scorer="bow", max_places=3)
+    with pytest.raises(ConfigError):
+        DetectorConfig(memory_mb=0)
+    with pytest.raises(ConfigError):
+        DetectorConfig(fabmap_score="odds")

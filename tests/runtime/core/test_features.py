@@ -1,0 +1,85 @@
+"""Feature extraction: deterministic, scaled back to original pixels, bad input named."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from aefabmap import ConfigError, ImageDecodeError, InputError
+from aefabmap.runtime.adapters.frames import decode_image, load_image
+from aefabmap.runtime.core.features import (
+    FeatureConfig,
+    FeatureExtractor,
+    descriptor_vectors,
+)
+
+
+def textured(seed=0, shape=(240, 320)):
+    rng = np.random.default_rng(seed)
+    img = cv2.resize(rng.integers(0, 255, (shape[0] // 8, shape[1] // 8), np.uint8), shape[::-1], interpolation=cv2.INTER_NEAREST)
+    return cv2.GaussianBlur(img, (3, 3), 0)
+
+
+@pytest.mark.parametrize("cfg", [FeatureConfig("orb", 300), FeatureConfig("sift", 200), FeatureConfig("sift", 200, rootsift=True)])
+def test_deterministic_and_shaped(cfg):
+    img = textured()
+    a = FeatureExtractor(cfg).extract(img)
+    b = FeatureExtractor(cfg).extract(img.copy())
+    assert 0 < len(a) <= cfg.max_features
+    np.testing.assert_array_equal(a.descriptors, b.descriptors)
+    np.testing.assert_array_equal(a.keypoints, b.keypoints)
+    v = descriptor_vectors(a.descriptors, cfg.kind)
+    assert v.shape == (len(a), cfg.descriptor_length) and v.dtype == np.float32
+    # Keypoints are reported in the original image's pixels even though detection ran at 640 px.
+    assert a.keypoints[:, 0].max() < 320 and a.keypoints[:, 1].max() < 240
+    if cfg.kind == "sift":
+        np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-5)
+    else:
+        assert set(np.unique(v)) <= {0.0, 1.0}
+
+
+def test_blank_image_gives_no_features():
+    f = FeatureExtractor().extract(np.full((120, 160), 128, np.uint8))
+    assert len(f) == 0 and f.descriptors.shape == (0, 32)
+
+
+def test_path_and_array_agree(tmp_path):
+    img = textured(1)
+    p = tmp_path / "a.png"
+    cv2.imwrite(str(p), img)
+    ex = FeatureExtractor()
+    np.testing.assert_array_equal(ex.extract(load_image(p)).descriptors, ex.extract(img).descriptors)
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(ImageDecodeError, match="empty"):
+        decode_image(b"")
+    with pytest.raises(ImageDecodeError, match="not a decodable"):
+        decode_image(b"\xff\xd8\xff\xe0 this is not a jpeg")
+    ok, jpg = cv2.imencode(".jpg", textured())
+    with pytest.raises(ImageDecodeError):
+        decode_image(jpg.tobytes()[:200])  # truncated
+    big_png = b"\x89PNG\r\n\x1a\n" + b"\x00\x00\x00\rIHDR" + (10000).to_bytes(4, "big") + (8000).to_bytes(4, "big") + b"\x08\x00\x00\x00\x00"
+    with pytest.raises(ImageDecodeError, match="exceeds"):
+        decode_image(big_png)
+    with pytest.raises(InputError, match="cannot read"):
+        load_image(tmp_path / "missing.jpg")
+    with pytest.raises(ConfigError):
+        FeatureConfig(kind="surf")
+    with pytest.raises(ConfigError):
+        FeatureConfig(kind="orb", rootsift=True)
+    with pytest.raises(InputError):
+        FeatureExtractor().extract(np.zeros((4, 4), np.uint8))
+
+
+def test_big_jpeg_header_refused():
+    # A 50 MP JPEG would take seconds and hundreds of MB to decode: refuse it from the header.
+    img = np.zeros((16, 16), np.uint8)
+    ok, jpg = cv2.imencode(".jpg", img)
+    data = bytearray(jpg.tobytes())
+    i = data.index(b"\xff\xc0")
+    data[i + 5 : i + 7] = (5000).to_bytes(2, "big")
+    data[i + 7 : i + 9] = (10000).to_bytes(2, "big")
+    with pytest.raises(ImageDecodeError, match="exceeds"):
+        decode_image(bytes(data))

@@ -1,0 +1,144 @@
+"""runtime/core/onnx_quantizer.py: validation, edge cases, and no torch/onnx at run time.
+
+The model files are made with the trainer (torch); a runtime-only install skips these tests.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from aefabmap.errors import BundleError, ConfigError, InputError
+from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
+
+REPO = Path(__file__).resolve().parents[2]
+WORDS = 16
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    """An untrained-but-valid SIFT quantiser graph (random weights, random codebook)."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from aefabmap.export.onnx_export import export_quantizer_onnx
+    from aefabmap.trainer.autoencoder import AeConfig, Autoencoder
+
+    torch.manual_seed(0)
+    cfg = AeConfig().resolved(128, "sift")
+    enc = Autoencoder(128, cfg).encoder.eval()
+    codebook = np.random.default_rng(0).normal(size=(WORDS, cfg.latent_dim)).astype(np.float32) * 0.1
+    return export_quantizer_onnx(enc, codebook, tmp_path_factory.mktemp("oq") / "q.onnx")
+
+
+def _vectors(n: int, seed: int = 1) -> np.ndarray:
+    x = np.random.default_rng(seed).random((n, 128)).astype(np.float32)
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def test_quantize_and_encode(model):
+    q = OnnxQuantizer(model, vocabulary_size=WORDS, descriptor_length=128, threads=1)
+    assert (q.vocabulary_size, q.descriptor_length, q.latent_dim) == (WORDS, 128, 64)
+    words = q.quantize(_vectors(50))
+    assert words.dtype == np.int32 and words.shape == (50,)
+    assert words.min() >= 0 and words.max() < WORDS
+    codes = q.encode(_vectors(50))
+    assert codes.dtype == np.float32 and codes.shape == (50, 64)
+    w2, c2 = q.quantize_and_encode(_vectors(50))
+    assert np.array_equal(w2, words) and np.array_equal(c2, codes)
+
+
+def test_empty_input(model):
+    q = OnnxQuantizer(model, vocabulary_size=WORDS, descriptor_length=128)
+    assert q.quantize(np.zeros((0, 128), np.float32)).shape == (0,)
+    assert q.quantize(np.zeros((0, 128), np.float32)).dtype == np.int32
+    assert q.encode(np.zeros((0, 128), np.float32)).shape == (0, 64)
+
+
+def test_bad_input_raises_input_error(model):
+    q = OnnxQuantizer(model, vocabulary_size=WORDS, descriptor_length=128)
+    with pytest.raises(InputError):
+        q.quantize(np.zeros((3, 256), np.float32))
+    with pytest.raises(InputError):
+        q.quantize(np.zeros(128, np.float32))
+    bad = _vectors(2)
+    bad[0, 0] = np.inf
+    with pytest.raises(InputError):
+        q.quantize(bad)
+
+
+def test_float64_input_is_accepted(model):
+    q = OnnxQuantizer(model, vocabulary_size=WORDS, descriptor_length=128)
+    x = _vectors(10)
+    assert np.array_equal(q.quantize(x.astype(np.float64)), q.quantize(x))
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [({"vocabulary_size": WORDS + 1, "descriptor_length": 128}, "codebook of 16 words"),
+     ({"vocabulary_size": WORDS, "descriptor_length": 256}, "length 128")],
+)
+def test_shape_mismatch_raises_bundle_error(model, kwargs, match):
+    with pytest.raises(BundleError, match=match):
+        OnnxQuantizer(model, **kwargs)
+
+
+def test_missing_and_corrupt_files(tmp_path):
+    with pytest.raises(BundleError, match="does not exist"):
+        OnnxQuantizer(tmp_path / "nope.onnx", vocabulary_size=WORDS, descriptor_length=128)
+    bad = tmp_path / "corrupt.onnx"
+    bad.write_bytes(b"this is not a protobuf" * 10)
+    with pytest.raises(BundleError, match="cannot load"):
+        OnnxQuantizer(bad, vocabulary_size=WORDS, descriptor_length=128)
+
+
+def test_truncated_model_raises_bundle_error(model, tmp_path):
+    data = model.read_bytes()
+    cut = tmp_path / "cut.onnx"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(BundleError):
+        OnnxQuantizer(cut, vocabulary_size=WORDS, descriptor_length=128)
+
+
+def test_foreign_graph_raises_bundle_error(tmp_path):
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", 128])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", 128])
+    graph = helper.make_graph([helper.make_node("Identity", ["x"], ["y"])], "g", [x], [y])
+    path = tmp_path / "identity.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8), str(path))
+    with pytest.raises(BundleError, match="expected one input 'descriptors'"):
+        OnnxQuantizer(path, vocabulary_size=WORDS, descriptor_length=128)
+
+
+def test_bad_arguments_raise_config_error(model):
+    with pytest.raises(ConfigError):
+        OnnxQuantizer(model, vocabulary_size=WORDS, descriptor_length=128, threads=0)
+
+
+def test_runtime_path_imports_neither_torch_nor_onnx(model):
+    code = textwrap.dedent(
+        f"""
+        import sys
+        import numpy as np
+        from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
+        q = OnnxQuantizer({str(model)!r}, vocabulary_size={WORDS}, descriptor_length=128, threads=1)
+        x = np.random.default_rng(0).random((20, 128)).astype(np.float32)
+        w = q.quantize(x)
+        assert w.shape == (20,) and w.dtype == np.int32
+        assert 'torch' not in sys.modules, 'torch was imported'
+        assert 'onnx' not in sys.modules, 'onnx was imported'
+        print('ok')
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONSTARTUP"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=env, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().endswith("ok")

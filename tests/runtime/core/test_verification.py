@@ -1,0 +1,368 @@
+"""Geometric verification, keypoint store and temporal filter (pure, generated data)."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from aefabmap import ConfigError
+from aefabmap.runtime.adapters.frames import load_image
+from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
+from aefabmap.runtime.core.keypoint_store import PLACE_OVERHEAD_BYTES, KeypointStore
+from aefabmap.runtime.core.temporal import TemporalFilter
+from aefabmap.runtime.core.verification import (
+    VerificationConfig,
+    compress_descriptors,
+    estimate_geometry,
+    hamming_rows,
+    match_keypoints,
+    symmetric_epipolar_distance,
+    verify_pair,
+)
+
+
+def texture(seed: int, size=(480, 360)) -> np.ndarray:
+    """A cluttered gray image: random rectangles, circles and lines on smoothed noise."""
+    w, h = size
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (h, w)).astype(np.uint8), (0, 0), 3)
+    for _ in range(120):
+        kind = rng.integers(3)
+        c = int(rng.integers(0, 256))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        if kind == 0:
+            cv2.rectangle(img, (x, y), (x + int(rng.integers(5, 60)), y + int(rng.integers(5, 60))), c, -1)
+        elif kind == 1:
+            cv2.circle(img, (x, y), int(rng.integers(3, 30)), c, -1)
+        else:
+            cv2.line(img, (x, y), (int(rng.integers(0, w)), int(rng.integers(0, h))), c, int(rng.integers(1, 4)))
+    return img
+
+
+PERSPECTIVE = np.array([[0.9, 0.08, 30.0], [-0.05, 0.95, 12.0], [1e-4, -5e-5, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def extractor():
+    return FeatureExtractor(FeatureConfig(kind="orb", max_features=500, long_side=None))
+
+
+def one_word(feats) -> np.ndarray:
+    """Every keypoint in word 0: same-word matching becomes plain brute force."""
+    return np.zeros(len(feats), np.int64)
+
+
+def test_warped_texture_verifies_and_returns_the_homography(extractor):
+    place = texture(1)
+    query = cv2.warpPerspective(place, PERSPECTIVE, (place.shape[1], place.shape[0]))
+    fp, fq = extractor.extract(place), extractor.extract(query)
+    g = verify_pair(fq.keypoints, one_word(fq), fq.descriptors, fq.image_shape,
+                    fp.keypoints, one_word(fp), fp.descriptors, fp.image_shape, VerificationConfig())
+    assert g.verified and g.inliers >= 50 and g.model == "H"
+    # The matrix maps the place image to the query image in pixels: compare with the warp.
+    pts = np.array([[100.0, 100.0, 1.0], [300.0, 200.0, 1.0], [200.0, 300.0, 1.0]])
+    est = pts @ g.matrix.T
+    true = pts @ PERSPECTIVE.T
+    err = np.linalg.norm(est[:, :2] / est[:, 2:] - true[:, :2] / true[:, 2:], axis=1)
+    assert err.max() < 3.0
+
+
+def test_unrelated_textures_do_not_verify(extractor):
+    cfg = VerificationConfig()
+    for a, b in [(1, 2), (3, 4), (5, 6)]:
+        fa, fb = extractor.extract(texture(a)), extractor.extract(texture(b))
+        g = verify_pair(fa.keypoints, one_word(fa), fa.descriptors, fa.image_shape,
+                        fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg)
+        assert not g.verified and g.inliers < cfg.min_inliers_h
+
+
+def test_fundamental_matrix_of_a_3d_scene_is_in_pixels():
+    """Two views of random 3-D points (not planar): F is found and x_q^T F x_p ~ 0 in pixels."""
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-4, 4, 200), rng.uniform(-3, 3, 200), rng.uniform(6, 20, 200)]
+    K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
+    R, _ = cv2.Rodrigues(np.array([0.0, 0.15, 0.02]))
+    t = np.array([1.0, 0.1, 0.3])
+
+    def project(P):
+        x = P @ K.T
+        return x[:, :2] / x[:, 2:]
+
+    xp = project(X)
+    xq = project(X @ R.T + t) + rng.normal(0, 0.3, (200, 2))
+    cfg = VerificationConfig(min_inliers_h=1000)  # force the F path
+    g = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg)
+    assert g.verified and g.model == "F" and g.inliers > 180
+    assert np.median(symmetric_epipolar_distance(g.matrix, xq, xp)) < 1.0
+
+
+def test_matching_is_restricted_to_words_mutual_and_ratio_tested():
+    rng = np.random.default_rng(0)
+    desc = rng.integers(0, 256, (50, 32), dtype=np.uint8)
+    words = np.arange(50) % 5
+    pairs = match_keypoints(words, desc, words, desc.copy(), VerificationConfig())
+    assert len(pairs) == 50 and np.array_equal(pairs[:, 0], pairs[:, 1])
+    # Different words never match, even with identical descriptors.
+    assert len(match_keypoints(words, desc, (words + 1) % 5 + 10, desc, VerificationConfig())) == 0
+    # Two equally near place descriptors: the ratio test rejects the ambiguous match.
+    q = desc[:1]
+    p = np.vstack([desc[:1], desc[:1]])
+    assert len(match_keypoints(np.zeros(1), q, np.zeros(2), p, VerificationConfig())) == 0
+    assert np.array_equal(hamming_rows(desc[:3], desc[:3]), [0, 0, 0])
+
+
+def test_too_few_matches_and_empty_inputs_do_not_verify():
+    cfg = VerificationConfig()
+    g = estimate_geometry(np.zeros((3, 2)), np.zeros((3, 2)), (100, 100), (100, 100), cfg)
+    assert not g.verified and g.matches == 3
+    empty = np.zeros((0, 2), np.float32)
+    g = verify_pair(empty, np.zeros(0, np.int64), np.zeros((0, 32), np.uint8), (10, 10),
+                    empty, np.zeros(0, np.int64), np.zeros((0, 32), np.uint8), (10, 10), cfg)
+    assert not g.verified
+
+
+def test_config_is_validated():
+    with pytest.raises(ConfigError):
+        VerificationConfig(top_k=0)
+    with pytest.raises(ConfigError):
+        VerificationConfig(method="lmeds")
+    with pytest.raises(ConfigError):
+        VerificationConfig(min_inliers=3)
+
+
+def test_keypoint_store_round_trip_and_bytes():
+    store = KeypointStore(32, vocabulary_size=2000, max_keypoints=300)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, [640, 480], (500, 2)).astype(np.float32)
+    words = rng.integers(0, 2000, 500)
+    desc = rng.integers(0, 256, (500, 32), dtype=np.uint8)
+    place = store.pack(xy, words, desc, (480, 640))
+    assert len(place) == 300 and store.bytes_per_keypoint == 38
+    assert np.abs(place.xy - xy[:300]).max() < 0.01  # 1/65535 of the long side
+    assert np.array_equal(place.words, words[:300]) and np.array_equal(place.descriptors, desc[:300])
+    store.put(7, place)
+    assert store.nbytes() == 300 * 38 + PLACE_OVERHEAD_BYTES and 7 in store
+    store.put(7, place)  # replacing does not double count
+    assert store.nbytes() == 300 * 38 + PLACE_OVERHEAD_BYTES
+    store.remove(7)
+    assert store.nbytes() == 0 and store.get(7) is None
+
+
+def test_sift_descriptors_are_stored_as_bytes_and_still_match():
+    rng = np.random.default_rng(1)
+    d = rng.random((40, 128)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c = compress_descriptors(d)
+    assert c.dtype == np.uint8 and c.shape == (40, 128)
+    pairs = match_keypoints(np.zeros(40), d, np.zeros(40), c, VerificationConfig(ratio=0.95))
+    assert len(pairs) == 40 and np.array_equal(pairs[:, 0], pairs[:, 1])
+
+
+def test_temporal_filter_needs_consecutive_agreement():
+    f = TemporalFilter(frames=2, tolerance=5)
+    assert [f.update(m) for m in (100, 101, 103, None, 105, 106, 107, 300)] == [
+        False, False, True, False, False, False, True, False,
+    ]
+    assert TemporalFilter(0, 0).update(3) and not TemporalFilter(0, 0).update(None)
+
+
+# --- the detector with verification ----------------------------------------------------------
+
+
+def _detector(tmp_path, **kw):
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.core.detector import DetectorConfig
+    from tests.conftest import make_synthetic_bundle
+
+    bundle = make_synthetic_bundle(tmp_path / "b", vocabulary_size=64)
+    return load_detector(bundle, DetectorConfig(exclude=2, fabmap_score="llr", **kw))
+
+
+def test_detector_verifies_a_revisit_and_every_frame_gets_a_result(tmp_path):
+    det = _detector(tmp_path)
+    frames = [texture(s) for s in range(10, 15)]
+    revisit = cv2.warpPerspective(frames[1], PERSPECTIVE, (480, 360))
+    blank = np.full((360, 480), 128, np.uint8)  # a blank wall: no keypoints
+    results = [det.process(f) for f in frames + [blank, revisit]]
+    assert [r.sequence for r in results] == list(range(7))
+    assert all(not r.verified for r in results[:-1])
+    assert results[5].n_keypoints == 0 and results[5].verified is False
+    r = results[-1]
+    assert r.verified and r.loop and r.verified_frame == 1 and r.inliers >= 30
+    assert r.geometry_model in ("F", "H") and np.asarray(r.geometry).shape == (3, 3)
+    assert "verification" in r.timings_ms
+    doc = json.loads(json.dumps(r.to_dict()))  # the Zenoh/MCAP message carries it
+    assert doc["verified"] is True and doc["inliers"] == r.inliers
+
+
+def test_store_is_in_map_bytes_and_evicted_places_leave_it(tmp_path):
+    det = _detector(tmp_path, max_places=3)
+    base = det.map_bytes()
+    for s in range(20, 28):
+        det.process(texture(s))
+    assert len(det.store) == det.n_places == 3
+    assert set(det.store._places) <= set(np.flatnonzero(det.fabmap.places.alive))
+    assert det.map_bytes() >= base + det.store.nbytes() > base
+
+
+def test_verification_can_be_switched_off(tmp_path):
+    from aefabmap.runtime.core.verification import VerificationConfig as VC
+
+    det = _detector(tmp_path, verification=VC(enabled=False))
+    r = det.process(texture(1))
+    assert det.store is None and r.verified is False and "verification" not in r.timings_ms
+    with pytest.raises(ConfigError):
+        _detector(tmp_path / "x", verification=VC(enabled=False), temporal_frames=2)
+
+
+def test_results_are_deterministic(tmp_path):
+    frames = [texture(s) for s in range(30, 34)] + [cv2.warpPerspective(texture(30), PERSPECTIVE, (480, 360))]
+    runs = []
+    for k in range(2):
+        det = _detector(tmp_path / str(k))
+        runs.append([{k2: v for k2, v in det.process(f).to_dict().items() if k2 != "timings_ms"} for f in frames])
+    assert runs[0] == runs[1]
+
+
+# --- real data (skipped when ../shared/data is absent) -----------------------------------------
+
+
+def _camvid_pairs(train_images):
+    by_drive: dict[str, list] = {}
+    for p in train_images:
+        by_drive.setdefault(p.name.split("_")[0], []).append(p)
+    drives = sorted(by_drive)
+    positives = [(by_drive[d][k], by_drive[d][k + 1]) for d in drives for k in (10, 40)]
+    negatives = [(by_drive[a][k], by_drive[b][k]) for a, b in zip(drives, drives[1:] + drives[:1]) for k in (10, 40)]
+    return positives, negatives
+
+
+@pytest.mark.slow
+def test_default_thresholds_on_training_street_pairs(train_images):
+    """Frames 1 s apart in a camvid drive mostly verify; frames of different drives never do."""
+    if len(train_images) < 100:
+        pytest.skip("camvid training images not found")
+    ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=500))
+    cfg = VerificationConfig()
+    positives, negatives = _camvid_pairs(train_images)
+
+    def check(a, b):
+        fa, fb = ex.extract(load_image(a)), ex.extract(load_image(b))
+        return verify_pair(fa.keypoints, one_word(fa), fa.descriptors, fa.image_shape,
+                           fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg)
+
+    pos = [check(a, b).verified for a, b in positives]
+    neg = [check(a, b) for a, b in negatives]
+    assert sum(pos) >= len(pos) - 2, pos
+    assert not any(g.verified for g in neg), [(g.f_inliers, g.h_inliers) for g in neg]
+
+
+def test_every_lip6_frame_gets_a_result(lip6, tmp_path):
+    from aefabmap.runtime.adapters.frames import load_image
+    from aefabmap.runtime.adapters.image_folder import list_images
+
+    det = _detector(tmp_path)
+    images = list_images(lip6)[:12]
+    results = [det.process(load_image(p)) for p in images]
+    assert [r.sequence for r in results] == list(range(12))
+    assert all(isinstance(r.verified, bool) and "verification" in r.timings_ms for r in results)
+
+
+def test_memory_cap_counts_the_keypoint_store(tmp_path):
+    cap_mb = 0.08  # a few places of ~19 kB of ORB keypoints each
+    det = _detector(tmp_path, memory_mb=cap_mb)
+    evicted = []
+    for s in range(40, 52):
+        r = det.process(texture(s, size=(320, 240)))
+        evicted.append(r.evicted_place)
+        assert det.map_bytes() <= cap_mb * 2**20
+        assert len(det.store) == det.n_places  # evicted places left the store
+    assert any(e is not None for e in evicted) and det.store.nbytes() > 0
+
+
+# --- candidate generation: track prior, island, trial cap ----------------------------------------
+
+
+def _one_word_run(tmp_path, images, **verification):
+    """Run images through a detector where every keypoint has word 0: FAB-MAP then ties every
+    place (top_k=1 picks place 0, the first frame) and same-word matching is brute force, so
+    only the track prior / island can find any other place."""
+    from aefabmap.runtime.core.verification import VerificationConfig as VC
+
+    det = _detector(tmp_path, verification=VC(top_k=1, **verification))
+    ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=500, long_side=None))
+    out = []
+    for img in images:
+        f = ex.extract(img)
+        out.append(det.process_words(one_word(f).astype(np.int32), features=f))
+    return det, out
+
+
+def _revisit_sequence():
+    base = [texture(s) for s in range(60, 66)]
+    warp = [cv2.warpPerspective(b, PERSPECTIVE, (480, 360)) for b in base]
+    return base + [warp[0], warp[1], warp[2], texture(99), warp[3]]
+
+
+def test_track_prior_follows_a_revisit_that_fabmap_ranks_low(tmp_path):
+    _, r = _one_word_run(tmp_path, _revisit_sequence(), track=2, track_memory=1)
+    assert r[6].verified and r[6].verified_frame == 0  # found by FAB-MAP (place 0)
+    # The next frames continue where the last one matched: one trial each.
+    assert r[7].verified and r[7].verified_frame == 1 and r[7].candidates_tried == 1
+    assert r[8].verified and r[8].verified_frame == 2 and r[8].candidates_tried == 1
+    # An unrelated frame: the tracked places are tried and fail (no false loop); with a memory
+    # of one frame that ends the track, so the frame after it has FAB-MAP's candidate only.
+    assert not r[9].verified and r[9].candidates_tried >= 2
+    assert not r[10].verified and r[10].candidates_tried == 1
+
+
+def test_track_memory_bridges_a_failed_frame(tmp_path):
+    _, r = _one_word_run(tmp_path, _revisit_sequence(), track=2, track_memory=3)
+    assert not r[9].verified
+    # Two frames after the last match (frame 2): frame 2 + 2 = 4 is expected, 3 is tried after.
+    assert r[10].verified and r[10].verified_frame == 3
+
+
+def test_without_track_fabmap_candidates_alone_miss_it(tmp_path):
+    _, r = _one_word_run(tmp_path, _revisit_sequence(), track=0)
+    assert r[6].verified and r[6].verified_frame == 0
+    assert not r[7].verified and not r[8].verified
+
+
+def test_island_tries_the_temporal_neighbours_of_a_failed_candidate(tmp_path):
+    seq = _revisit_sequence()
+    _, r = _one_word_run(tmp_path, seq[:6] + [seq[7]], track=0, island=1)
+    assert r[6].verified and r[6].verified_frame == 1 and r[6].candidates_tried == 2
+    _, r = _one_word_run(tmp_path / "cap", seq[:6] + [seq[7]], track=0, island=1, max_trials=1)
+    assert not r[6].verified and r[6].candidates_tried == 1
+
+
+def test_bruteforce_retry_has_its_own_bars(extractor):
+    place = texture(1)
+    query = cv2.warpPerspective(place, PERSPECTIVE, (place.shape[1], place.shape[0]))
+    fp, fq = extractor.extract(place), extractor.extract(query)
+    # Disjoint word ids: same-word matching finds nothing, only the brute-force retry can.
+    qw, pw = np.zeros(len(fq), np.int64), np.ones(len(fp), np.int64)
+
+    def run(**kw):
+        return verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
+                           fp.image_shape, VerificationConfig(**kw), bruteforce=True)
+
+    assert not verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
+                           fp.image_shape, VerificationConfig()).verified
+    g = run()
+    assert g.verified and g.inliers >= VerificationConfig().min_inliers_h_bf
+    # The same matches against bars above their inlier count: rejected, although they clear
+    # the same-word bars.
+    high = run(min_inliers_h_bf=g.inliers + 1, min_inliers_bf=max(g.f_inliers, g.inliers) + 1)
+    assert not high.verified and high.inliers >= VerificationConfig().min_inliers_h
+
+
+def test_candidate_generation_config_is_validated():
+    for kw in ({"track": -1}, {"island": -1}, {"max_trials": 0}, {"track_memory": 0}, {"ratio_bruteforce": 0.0},
+               {"min_inliers_h_bf": 3}, {"island_candidates": -1}):
+        with pytest.raises(ConfigError):
+            VerificationConfig(**kw)
