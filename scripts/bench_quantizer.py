@@ -4,7 +4,7 @@
 Prints and writes JSON: training time/loss, int8 agreement, ms per 500 descriptors, file sizes.
 Training images: <data>/train (never lip6_outdoor); timing vectors come from scene15 images
 not used for training. Usage:
-    python scripts/bench_quantizer.py --data ../shared/data --out out/bench_quantizer.json
+    python scripts/bench_quantizer.py --data "$AEFABMAP_DATA" --out out/bench_quantizer.json
 """
 
 from __future__ import annotations

@@ -11,12 +11,12 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def data_root() -> Path:
-    """../shared/data beside the repo, or $AEFABMAP_DATA."""
+    """$AEFABMAP_DATA, else shared/data in the directory holding the checkout (docs/data.md)."""
     return Path(os.environ.get("AEFABMAP_DATA", REPO.parent / "shared" / "data"))
 
 
 def train_dir() -> Path:
-    """../shared/data/train, or skip the calling test when it is absent."""
+    """<data root>/train, or skip the calling test when it is absent."""
     d = data_root() / "train"
     if not d.is_dir():
         pytest.skip(f"training images not found under {data_root()} (set AEFABMAP_DATA)")

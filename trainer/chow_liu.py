@@ -1,6 +1,6 @@
 """Chow-Liu tree learning from binary image-word observations, sparse and exact.
 
-Follows ../shared/docs/fabmap2.md: smoothed marginals, raw joint frequencies, mutual
+Follows docs/fabmap2.md: smoothed marginals, raw joint frequencies, mutual
 information over the 4 cells, maximum-weight spanning tree, root at the first word of the
 highest-MI edge, smoothed conditionals.
 

@@ -11,7 +11,7 @@ from aefabmap.runtime.core.verification import VerificationConfig
 
 
 def register(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a bundle on an image sequence (evaluation.md protocol)")
+    p = sub.add_parser("eval", help="evaluate a bundle on an image sequence (docs/evaluation.md protocol)")
     p.add_argument("--model", required=True, type=Path, metavar="BUNDLE")
     p.add_argument("--images", required=True, type=Path, metavar="DIR", help="frames, sorted by name = temporal order")
     p.add_argument("--gt", required=True, type=Path, metavar="GT.npy", help="bool N x N ground truth")

@@ -66,9 +66,9 @@ class DetectorConfig:
         exclusion window: a query never sees its `exclude` predecessors.
     loop_threshold: a loop is declared when the best place's score reaches this.
     quantizer_variant: "fp32" or "int8" (autoencoder bundles). threads: onnxruntime threads.
-    motion_model, naive_bayes, smoothing: FAB-MAP options (fabmap2.md).
+    motion_model, naive_bayes, smoothing: FAB-MAP options (docs/fabmap2.md).
     fabmap_score: what `score` holds with the fabmap scorer: "probability" (the normalised
-        posterior P of the best place, evaluation.md's FAB-MAP score) or "llr" (log-likelihood
+        posterior P of the best place, docs/evaluation.md's FAB-MAP score) or "llr" (log-likelihood
         ratio of the best place against the new-place model, in nats: it keeps ranking frames
         where P has saturated at 0.99 + 0.01 / (n + 1)).
     max_places: hard cap of the map in places (None: unbounded).

@@ -1,7 +1,6 @@
 """Exact FAB-MAP 2.0 inference over a Chow-Liu tree with an incremental inverted index.
 
-Pure: no I/O. Follows ../shared/docs/fabmap2.md (openFABMAP's tables); see the README
-for the one place where the doc's prose formula and its reference vector disagree.
+Pure: no I/O. The model, term by term, with its reference vector: docs/fabmap2.md.
 """
 
 from __future__ import annotations
@@ -30,7 +29,7 @@ def observation_term(tree: ChowLiuTree, det: DetectorModel, z: int, zp: int, l: 
     """G(z, zp, l) = P(z_q = z | z_pq = zp, place observation l) for every word, shape (V,).
 
     The detector and Chow-Liu terms combine as openFABMAP's PzqGL does (which is what the
-    reference vector in fabmap2.md was produced with).
+    reference vector in docs/fabmap2.md was produced with).
     """
     p = tree.p
     pz_given_e = {1: det.pzge, 0: det.pzgne}  # P(z=1 | e)
@@ -283,7 +282,7 @@ class FabMap2:
     training_observations: sequence of observations (word-id sequences) for the new-place
         likelihood (logsumexp over them minus log M).
     pzge, pzgne: detector model. smoothing: s in P = s * softmax + (1 - s) / (n + 1).
-    motion_model: use the previous posterior as prior (p_new_prior, bias) as in fabmap2.md.
+    motion_model: use the previous posterior as prior (p_new_prior, bias) as in docs/fabmap2.md.
     naive_bayes: ignore the tree (independent words).
     """
 

@@ -1,4 +1,4 @@
-"""Loop-closure metrics of ../shared/docs/evaluation.md (pure numpy).
+"""Loop-closure metrics of the evaluation protocol, docs/evaluation.md (pure numpy).
 
 Each query frame i has at most one prediction: its best candidate j* (or none) and a score.
 A threshold t sweeps every distinct score; frame i is a predicted positive when s_i >= t.

@@ -1,4 +1,4 @@
-"""Evaluate a model bundle on an image sequence with ground truth (evaluation.md protocol).
+"""Evaluate a model bundle on an image sequence with ground truth (protocol: docs/evaluation.md).
 
 Adapter around LoopClosureDetector: reads image files in name order, runs every frame,
 collects predictions, timings and the score matrix, and computes the metrics.

@@ -1,4 +1,4 @@
-"""Chow-Liu learning: exact against a dense brute force (fabmap2.md), spanning on sparse data."""
+"""Chow-Liu learning: exact against a dense brute force (docs/fabmap2.md), spanning on sparse data."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""FAB-MAP 2.0 engine: the reference vector of fabmap2.md and agreement with a dense brute force."""
+"""FAB-MAP 2.0 engine: the reference vector of docs/fabmap2.md and agreement with a dense brute force."""
 
 from __future__ import annotations
 
@@ -150,7 +150,7 @@ def test_motion_model_matches_formula():
     prior = first.p_places
     q = np.flatnonzero(rng.random(v) < 0.2)
     loc = fm.localize(q, add=False)
-    # fabmap2.md: m_0 = l_0 + log Pnew; m_i = l_i + log((2(1-mB) pi_{i-1} + pi_i + 2 mB pi_{i+1}) / 3).
+    # docs/fabmap2.md: m_0 = l_0 + log Pnew; m_i = l_i + log((2(1-mB) pi_{i-1} + pi_i + 2 mB pi_{i+1}) / 3).
     padded = np.r_[prior[0], prior, prior[-1]]
     mix = (2 * 0.5 * padded[:-2] + prior + 2 * 0.5 * padded[2:]) / 3
     logs = np.r_[loc.loglik_new + np.log(0.9), loc.loglik + np.log(mix)]

@@ -227,7 +227,7 @@ def test_results_are_deterministic(tmp_path):
     assert runs[0] == runs[1]
 
 
-# --- real data (skipped when ../shared/data is absent) -----------------------------------------
+# --- real data (skipped when the data sets are absent, docs/data.md) --------------------------
 
 
 def _camvid_pairs(train_images):

@@ -1,4 +1,4 @@
-"""Metrics of evaluation.md on hand-made predictions."""
+"""Metrics of docs/evaluation.md on hand-made predictions."""
 
 from __future__ import annotations
 
