@@ -77,6 +77,12 @@ class FakeDetector:
         return res
 
 
+def make_result(sequence: int, stamp_ns: int, **fields) -> FrameResult:
+    """A minimal valid result record (what a log test writes on the results topic)."""
+    base = dict(n_keypoints=0, n_words=0, best_place=None, best_frame=None, score=0.0, p_new=0.5, loop=False)
+    return FrameResult(sequence=sequence, stamp_ns=stamp_ns, **{**base, **fields})
+
+
 class JsonCollector:
     """Callback subscriber collecting JSON docs of a key into a queue."""
 
@@ -109,8 +115,8 @@ class JsonCollector:
 class NodeThread:
     """Runs run_node in a thread; .summary / .error after join."""
 
-    def __init__(self, **kwargs) -> None:
-        from aefabmap.runtime.adapters.node import run_node
+    def __init__(self, detector, session_config, **options) -> None:
+        from aefabmap.runtime.adapters.node import NodeOptions, run_node
 
         self.stop = threading.Event()
         self.ready = threading.Event()
@@ -119,7 +125,8 @@ class NodeThread:
 
         def target() -> None:
             try:
-                self.summary = run_node(stop_event=self.stop, ready_event=self.ready, **kwargs)
+                self.summary = run_node(detector, NodeOptions(session=session_config, **options),
+                                        stop_event=self.stop, ready_event=self.ready)
             except BaseException as exc:  # reported to the test
                 self.error = exc
             finally:

@@ -29,8 +29,9 @@ from aefabmap.runtime.adapters.mcap_log import (
     McapLogWriter,
     read_log_metadata,
 )
+from aefabmap.runtime.core.messages import StatsMessage
 
-from .stream_fakes import sample_images, write_ros2_bag
+from .stream_fakes import make_result, sample_images, write_ros2_bag
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -41,8 +42,9 @@ def _write_log(path, images, *, config=None, manifest=None):
             fmt = ("jpeg", "png", "mono8")[i % 3]
             payload, enc = encode_frame(img, fmt)
             w.write_image(payload, enc, 1_000 + i, sequence=i)
-            w.write_result({"sequence": i, "stamp_ns": 1_000 + i, "loop": i % 2 == 0, "p_new": 0.5})
-        w.write_stats({"frames_processed": len(images)})
+            w.write_result(make_result(i, 1_000 + i, loop=i % 2 == 0))
+        w.write_stats(StatsMessage(stamp_ns=1, uptime_s=0.0, frames_received=len(images),
+                                   frames_processed=len(images), dropped=0, bad={}, loops=0))
     return w
 
 
@@ -73,8 +75,8 @@ def test_roundtrip_layout_schemas_and_metadata(tmp_path):
     assert [f.sequence for f in frames] == list(range(6))
     assert np.array_equal(frames[1].decode(), images[1])  # png lossless
     assert np.array_equal(frames[2].decode(), images[2])  # raw stored as gray png
-    assert [d["sequence"] for d in r.results] == list(range(6))
-    assert r.stats == [{"frames_processed": 6}]
+    assert [d.sequence for d in r.results] == list(range(6))
+    assert [s.frames_processed for s in r.stats] == [6] and r.status.invalid_messages == 0
     assert r.manifest == {"vocabulary_size": 1000, "files": {"a": "sha"}}
     assert r.metadata[RUN_CONFIG_METADATA] == {"key": "a/b"}
     assert not r.status.truncated and r.status.messages_read == 13
@@ -132,7 +134,7 @@ def test_truncated_files_read_up_to_last_complete_chunk(tmp_path):
         assert 0 <= len(frames) <= n_full
         assert len(frames) >= previous
         previous = len(frames)
-        assert [d["sequence"] for d in r.results] == list(range(len(r.results)))
+        assert [d.sequence for d in r.results] == list(range(len(r.results)))
         assert r.manifest == {"format_version": 1}  # metadata written at open survives
     assert previous > 0
 
