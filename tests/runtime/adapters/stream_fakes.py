@@ -84,19 +84,36 @@ def make_result(sequence: int, stamp_ns: int, **fields) -> FrameResult:
 
 
 class JsonCollector:
-    """Callback subscriber collecting JSON docs of a key into a queue."""
+    """Callback subscriber collecting the JSON docs of a key into a queue, each validated by its
+    message parser first (StatsMessage for a ``.../stats`` key, else FrameResult); a message
+    that fails validation is kept in ``invalid`` and fails the next wait_for."""
 
     def __init__(self, session: zenoh.Session, key: str) -> None:
         import json
 
+        from aefabmap.runtime.core.messages import StatsMessage
+
+        kind = StatsMessage if key.endswith("/stats") else FrameResult
         self.queue: queue.Queue = queue.Queue()
-        self._sub = session.declare_subscriber(key, lambda s: self.queue.put(json.loads(s.payload.to_bytes())))
+        self.invalid: list[str] = []
+
+        def on_sample(sample) -> None:
+            data = sample.payload.to_bytes()
+            try:
+                kind.from_json(data)
+            except InputError as exc:
+                self.invalid.append(str(exc))
+                return
+            self.queue.put(json.loads(data))
+
+        self._sub = session.declare_subscriber(key, on_sample)
 
     def wait_for(self, predicate, timeout_s: float) -> list[dict]:
         """Collect docs until predicate(doc) is true for one of them; returns all docs seen."""
         seen = []
         deadline = time.monotonic() + timeout_s
         while True:
+            assert not self.invalid, f"invalid messages: {self.invalid[:3]}"
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise AssertionError(f"timed out after {timeout_s} s; got {len(seen)} docs: {seen[-3:]}")
