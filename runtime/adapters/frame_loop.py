@@ -18,7 +18,12 @@ from typing import Any, Protocol
 import numpy as np
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.adapters.frames import BAD_FRAME_REASONS, FrameError, decode_frame, load_image
+from aefabmap.runtime.adapters.frames import (
+    BAD_FRAME_REASONS,
+    FrameError,
+    decode_frame,
+    load_image,
+)
 from aefabmap.runtime.core.messages import FrameResult, LatencySummary, StatsMessage
 
 

@@ -29,12 +29,12 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop
+from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
 from aefabmap.runtime.adapters.zenoh_transport import (
     FrameSubscriber,
@@ -142,29 +142,61 @@ class RunStats:
         )
 
 
-class StatsClock:
-    """When the next stats message is due, and the frame rate since the previous one."""
+class StatsEmitter:
+    """Every ``period_s`` seconds (and on demand) a StatsMessage of the run, serialised once
+    and sent to the publisher, the log and the caller's ``on_stats``."""
 
-    def __init__(self, period_s: float, t0: float) -> None:
-        self.period_s = period_s
-        self.t0 = t0
+    def __init__(self, period_s: float, t0: float, loop: FrameLoop, stats: RunStats, drops,
+                 pub: ResultPublisher, log: McapLogWriter,
+                 on_stats: Callable[[StatsMessage], None] | None = None) -> None:
+        self.period_s, self.t0 = period_s, t0
+        self.loop, self.stats, self.drops = loop, stats, drops
+        self.pub, self.log, self.on_stats = pub, log, on_stats
         self.next = t0 + period_s
         self._last_t, self._last_n = t0, 0
 
-    def due(self, now: float) -> bool:
-        if now < self.next:
-            return False
-        self.next = max(self.next + self.period_s, now + self.period_s / 2)
-        return True
-
-    def wait_s(self, now: float) -> float:
-        """How long a receive may block (short, so that a stop is seen quickly)."""
+    def tick(self) -> float:
+        """Emit if due; returns how long a receive may block (short: a stop is seen quickly)."""
+        now = time.monotonic()
+        if now >= self.next:
+            self.emit()
+            self.next = max(self.next + self.period_s, now + self.period_s / 2)
         return min(0.1, max(0.0, self.next - now))
 
-    def fps(self, now: float, processed: int) -> float:
-        fps = (processed - self._last_n) / max(now - self._last_t, 1e-9)
-        self._last_t, self._last_n = now, processed
-        return fps
+    def emit(self) -> None:
+        now = time.monotonic()
+        fps = (self.loop.processed - self._last_n) / max(now - self._last_t, 1e-9)
+        self._last_t, self._last_n = now, self.loop.processed
+        self.stats.dropped, self.stats.publisher_restarts = self.drops.dropped, self.drops.restarts
+        msg = self.stats.snapshot(self.loop, now - self.t0, fps)
+        data = msg.to_json_bytes()
+        self.pub.publish_stats(data)
+        self.log.write_stats(msg, data=data)
+        if self.on_stats is not None:
+            self.on_stats(msg)
+
+
+class ResultOutput:
+    """Where a frame's result goes: its transport fields added, serialised once, published on
+    the results key and logged to MCAP with the frame's image."""
+
+    def __init__(self, pub: ResultPublisher, log: McapLogWriter, stats: RunStats) -> None:
+        self.pub, self.log, self.stats = pub, log, stats
+
+    def send(self, frame: ReceivedFrame, out: FrameOutcome) -> None:
+        if out.result is None:
+            return  # refused: counted by the frame loop
+        result = out.result
+        latency_ms = (time.monotonic_ns() - frame.recv_mono_ns) / 1e6
+        result.frame_seq = frame.meta.seq
+        result.latency_ms = round(latency_ms, 3)
+        result.age_ms = round((time.time_ns() - frame.stamp_ns) / 1e6, 3)
+        data = result.to_json_bytes()
+        self.pub.publish_result(data)
+        self.stats.latencies_ms.append(latency_ms)
+        self.log.write_image(frame.payload, frame.encoding, frame.stamp_ns, sequence=result.sequence,
+                             gray=out.gray, log_time_ns=frame.recv_ns)
+        self.log.write_result(result, data=data)
 
 
 class _Transport:
@@ -179,34 +211,18 @@ class _Transport:
                                        ignore_keys=(options.results_key, options.stats_key))
             self.pub = ResultPublisher(self.session, options.results_key)
         except BaseException:
-            self.close()
+            self.__exit__()
             raise
 
-    def close(self) -> None:
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
         if self.sub is not None:
             self.sub.close()
         if self.pub is not None:
             self.pub.close()
         self.session.close()
-
-
-def _publish_frame(frame: ReceivedFrame, loop: FrameLoop, stats: RunStats, pub: ResultPublisher,
-                   log: McapLogWriter) -> None:
-    """One received frame: frame loop -> transport fields -> serialise once -> publish and log."""
-    out = loop.step(frame.payload, frame.encoding, frame.stamp_ns)
-    if out.result is None:
-        return  # counted by the frame loop
-    result = out.result
-    latency_ms = (time.monotonic_ns() - frame.recv_mono_ns) / 1e6
-    result.frame_seq = frame.meta.seq
-    result.latency_ms = round(latency_ms, 3)
-    result.age_ms = round((time.time_ns() - frame.stamp_ns) / 1e6, 3)
-    data = result.to_json_bytes()
-    pub.publish_result(data)
-    stats.latencies_ms.append(latency_ms)
-    log.write_image(frame.payload, frame.encoding, frame.stamp_ns, sequence=result.sequence, gray=out.gray,
-                    log_time_ns=frame.recv_ns)
-    log.write_result(result, data=data)
 
 
 def run_node(
@@ -224,53 +240,28 @@ def run_node(
     activity), TransportError (session), ConfigError.
     """
     manifest = getattr(detector, "manifest", None)
-    loop, stats = FrameLoop(detector), RunStats()
-    t0 = time.monotonic()
-    clock = StatsClock(options.stats_period_s, t0)
-    with McapLogWriter(options.mcap_path, options.mcap_config(),
-                       manifest=manifest if isinstance(manifest, dict) else None,
-                       run_config=options.log_metadata()) as log:
-        io = _Transport(options)
-        try:
-            if ready_event is not None:
-                ready_event.set()
-
-            def emit_stats() -> None:
-                now = time.monotonic()
-                stats.dropped, stats.publisher_restarts = io.sub.drops.dropped, io.sub.drops.restarts
-                msg = stats.snapshot(loop, now - t0, clock.fps(now, loop.processed))
-                data = msg.to_json_bytes()
-                io.pub.publish_stats(data)
-                log.write_stats(msg, data=data)
-                if on_stats is not None:
-                    on_stats(msg)
-
-            while not stop_event.is_set():
-                if options.max_frames is not None and loop.processed >= options.max_frames:
-                    break
-                now = time.monotonic()
-                if clock.due(now):
-                    emit_stats()
-                frame = io.sub.receive(clock.wait_s(now), stop_event)
-                if frame is not None:
-                    _publish_frame(frame, loop, stats, io.pub, log)
-            emit_stats()
-        finally:
-            io.close()
+    loop, stats, t0 = FrameLoop(detector), RunStats(), time.monotonic()
+    with (
+        McapLogWriter(options.mcap_path, options.mcap_config(), run_config=options.log_metadata(),
+                      manifest=manifest if isinstance(manifest, dict) else None) as log,
+        _Transport(options) as io,
+    ):
+        if ready_event is not None:
+            ready_event.set()
+        emitter = StatsEmitter(options.stats_period_s, t0, loop, stats, io.sub.drops, io.pub, log, on_stats)
+        output = ResultOutput(io.pub, log, stats)
+        while not stop_event.is_set() and (options.max_frames is None or loop.processed < options.max_frames):
+            frame = io.sub.receive(emitter.tick(), stop_event)
+            if frame is not None:
+                output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
+        emitter.emit()
+    latency = stats.latency()
     return RunSummary(
-        frames_received=loop.frames_in,
-        frames_processed=loop.processed,
-        dropped=stats.dropped,
-        bad=dict(loop.bad.counts),
-        loops=loop.loops,
-        duration_s=time.monotonic() - t0,
-        latency_ms_p50=stats.latency().p50,
-        latency_ms_p95=stats.latency().p95,
-        peak_rss_mb=stats.peak_rss_mb,
-        mcap_path=str(options.mcap_path),
-        images_logged=log.images_written,
-        result_key=options.results_key,
-        stats_key=options.stats_key,
+        frames_received=loop.frames_in, frames_processed=loop.processed, dropped=stats.dropped,
+        bad=dict(loop.bad.counts), loops=loop.loops, duration_s=time.monotonic() - t0,
+        latency_ms_p50=latency.p50, latency_ms_p95=latency.p95, peak_rss_mb=stats.peak_rss_mb,
+        mcap_path=str(options.mcap_path), images_logged=log.images_written,
+        result_key=options.results_key, stats_key=options.stats_key,
     )
 
 

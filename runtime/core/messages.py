@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Any, Self
 
 from aefabmap.errors import InputError
 from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
@@ -37,17 +37,20 @@ SCORE_KINDS = ("probability", "llr", "similarity")
 TRANSPORT_FIELDS = ("frame_seq", "latency_ms", "age_ms")
 
 
-def _f(default: Any = dataclasses.MISSING, description: str = "", *, enum: tuple | None = None,
-       since: str | None = None, factory: Any = dataclasses.MISSING, init: bool = True) -> Any:
-    """A dataclass field with the schema metadata (description, enum, format version added)."""
-    meta: dict[str, Any] = {}
-    if description:
-        meta["description"] = description
+def _meta(description: str, *, enum: tuple | None = None, since: str | None = None) -> dict[str, Any]:
+    """Schema metadata of a field: description, allowed values, format version that added it."""
+    meta: dict[str, Any] = {"description": description} if description else {}
     if enum is not None:
         meta["enum"] = enum
     if since is not None:
         meta["since"] = since
-    return field(default=default, default_factory=factory, init=init, metadata=meta)
+    return meta
+
+
+def _f(default: Any = dataclasses.MISSING, description: str = "", *, enum: tuple | None = None,
+       since: str | None = None, init: bool = True) -> Any:
+    """A dataclass field of an immutable value with its schema metadata (see _meta)."""
+    return field(default=default, init=init, metadata=_meta(description, enum=enum, since=since))
 
 
 def parse_version(text: Any) -> tuple[int, int]:
@@ -69,7 +72,6 @@ def check_readable(text: Any) -> tuple[int, int]:
     return version
 
 
-M = TypeVar("M", bound="_Message")
 _SCHEMAS: dict[type, dict] = {}
 
 
@@ -100,7 +102,7 @@ class _Message:
         return json.dumps(self.to_dict(), separators=(",", ":"), allow_nan=True).encode()
 
     @classmethod
-    def from_json(cls: type[M], data: bytes | bytearray | memoryview | str | dict) -> M:
+    def from_json(cls, data: bytes | bytearray | memoryview | str | dict) -> Self:
         """Parse and validate one message (JSON text/bytes or an already decoded dict)."""
         if isinstance(data, dict):
             doc = data
@@ -187,15 +189,15 @@ class FrameResult(_Message):
     inserted_place: int | None = _f(None, "place id of inserted_frame")
     evicted_place: int | None = _f(None, "place evicted to respect max_places / memory_mb")
     n_places: int = _f(0, "places in the map after this step")
-    timings_ms: dict[str, float] = _f(factory=dict, description="detector time per stage, ms")
+    timings_ms: dict[str, float] = field(default_factory=dict, metadata=_meta("detector time per stage, ms"))
     verified: bool = _f(False, "a candidate passed geometric (+ temporal) verification")
     verified_place: int | None = _f(None, "place id of the verified candidate")
     verified_frame: int | None = _f(None, "sequence of the frame that made verified_place")
     inliers: int = _f(0, "inliers of the accepted geometry (or of the best attempt)")
     matches: int = _f(0, "putative keypoint matches behind inliers")
     geometry_model: str | None = _f(None, "F: fundamental matrix, H: homography", enum=("F", "H"))
-    geometry: list[list[float]] | None = _f(
-        None, "3x3 row-major matrix mapping the place image to the query image, original pixels; null unless verified")
+    geometry: list[list[float]] | None = field(default=None, metadata=_meta(
+        "3x3 row-major matrix mapping the place image to the query image, original pixels; null unless verified"))
     candidates_tried: int = _f(0, "places verified for this frame")
     geometry_ok: bool = _f(False, "geometric check passed (before the temporal check)")
     temporal_ok: bool | None = _f(None, "temporal check passed (null: the check is off)")
@@ -238,12 +240,13 @@ class StatsMessage(_Message):
     frames_processed: int = _f(description="frames that gave a result")
     dropped: int = _f(description="frames lost: sequence gaps (ring overflow or network)")
     publisher_restarts: int = _f(0, "times a publisher's sequence started again")
-    bad: dict[str, int] = _f(description="frames refused, by reason")
+    bad: dict[str, int] = field(metadata=_meta("frames refused, by reason"))
     bad_total: int = _f(init=False, description="sum of bad")
     last_bad: str = _f("", "message of the last refused frame ('' when none)")
     loops: int = _f(description="loop closures so far")
     rss_mb: float | None = _f(None, "resident memory of the process, MB (null where unknown)")
-    latency_ms: LatencySummary = _f(factory=LatencySummary, description="latency percentiles over the last frames")
+    latency_ms: LatencySummary = field(default_factory=LatencySummary,
+                                       metadata=_meta("latency percentiles over the last frames"))
     fps: float | None = _f(None, "processed frames per second since the previous stats message")
 
     def __post_init__(self) -> None:
@@ -264,7 +267,7 @@ class RunSummary(_Message):
     frames_received: int = _f(description="frames taken from the transport")
     frames_processed: int = _f(description="frames that gave a result")
     dropped: int = _f(description="frames lost (sequence gaps)")
-    bad: dict[str, int] = _f(description="frames refused, by reason")
+    bad: dict[str, int] = field(metadata=_meta("frames refused, by reason"))
     loops: int = _f(description="loop closures")
     duration_s: float = _f(description="run time, s")
     latency_ms_p50: float | None = _f(description="median latency, ms (null: no frame)")
