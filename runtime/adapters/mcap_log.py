@@ -392,6 +392,8 @@ class ReadStatus:
         text += f" on {self.image_topic})" if self.image_topic else ")"
         if self.truncated:
             text += f"; file truncated, read up to the last complete record ({self.reason})"
+        if self.invalid_messages:
+            text += f"; {self.invalid_messages} messages failed validation (last: {self.last_invalid})"
         return text
 
     def to_dict(self) -> dict:
