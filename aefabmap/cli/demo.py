@@ -15,10 +15,14 @@ import subprocess
 import sys
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from aefabmap.errors import AefabmapError, DataNotFoundError, TransportError
+
+if TYPE_CHECKING:
+    from aefabmap.runtime.core.messages import FrameResult
 
 log = logging.getLogger("aefabmap.demo")
 DEMO_KEY = "aefabmap/demo/camera/image"
@@ -43,6 +47,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, result_key_for
+    from aefabmap.runtime.core.messages import FrameResult
     from aefabmap.runtime.tools.node_process import (
         connect_when_listening,
         free_tcp_port,
@@ -63,9 +68,16 @@ def run(args) -> int:
     node = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=None, text=True)
     results: queue.Queue = queue.Queue()
     session = None
+
+    def on_result(sample) -> None:
+        try:
+            results.put(FrameResult.from_json(sample.payload.to_bytes()))
+        except AefabmapError as exc:  # a malformed message: say so, keep listening
+            log.warning("ignored a result message: %s", exc)
+
     try:
         session = connect_when_listening(endpoint, node, args.timeout)
-        sub = session.declare_subscriber(result_key_for(DEMO_KEY), lambda s: results.put(json.loads(s.payload.to_bytes())))
+        sub = session.declare_subscriber(result_key_for(DEMO_KEY), on_result)
         print(f"publisher: {n_frames} frames from {images_dir} at {args.rate} Hz on {DEMO_KEY} via {endpoint}", flush=True)
         pub = publish_frames(SessionConfig(connect=(endpoint,)), DEMO_KEY, images_dir_source(images_dir),
                              rate_hz=args.rate, wait_for_subscriber_s=args.timeout)
@@ -77,7 +89,7 @@ def run(args) -> int:
         if session is not None:
             session.close()
         summary = stop_node(node)
-    print(f"runtime summary: {json.dumps(summary)}" if summary else "runtime gave no summary")
+    print(f"runtime summary: {json.dumps(summary.to_dict())}" if summary else "runtime gave no summary")
     _report(_logged_results(mcap_path), gt_path)
     return _replay_check(model, mcap_path)
 
@@ -96,7 +108,7 @@ def _prepare_images(args, out: Path) -> tuple[Path, Path | None]:
     return seq, seq / "gt.npy"
 
 
-def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_timeout: float) -> list[dict]:
+def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_timeout: float) -> list[FrameResult]:
     """Print results as they arrive, until `expected` came or none came for idle_timeout s."""
     got = []
     while len(got) < expected:
@@ -105,18 +117,18 @@ def _collect(results: queue.Queue, expected: int, first_timeout: float, idle_tim
         except queue.Empty:
             break
         got.append(r)
-        if r.get("loop"):
-            how = f"{r['inliers']} inliers ({r['geometry_model']})" if r.get("verified") else f"score {r['score']:.4f}"
-            print(f"  LOOP  frame {r['sequence']:4d} -> frame {_match_frame(r):4d}, {how}", flush=True)
+        if r.loop:
+            how = f"{r.inliers} inliers ({r.geometry_model})" if r.verified else f"score {r.score:.4f}"
+            print(f"  LOOP  frame {r.sequence:4d} -> frame {_match_frame(r):4d}, {how}", flush=True)
     return got
 
 
-def _match_frame(result: dict) -> int:
+def _match_frame(result: FrameResult) -> int:
     """The earlier frame a loop closure points at: the verified one when verification ran."""
-    return result["verified_frame"] if result.get("verified") else result["best_frame"]
+    return result.verified_frame if result.verified else result.best_frame
 
 
-def _logged_results(mcap_path: Path) -> list[dict]:
+def _logged_results(mcap_path: Path) -> list[FrameResult]:
     """Results as the runtime logged them (complete even if live messages were missed)."""
     from aefabmap.runtime.adapters.mcap_log import McapLogReader
 
@@ -126,13 +138,13 @@ def _logged_results(mcap_path: Path) -> list[dict]:
     return reader.results
 
 
-def _report(received: list[dict], gt_path: Path | None) -> None:
-    loops = [r for r in received if r.get("loop")]
+def _report(received: list[FrameResult], gt_path: Path | None) -> None:
+    loops = [r for r in received if r.loop]
     print(f"frames processed: {len(received)}, loop closures: {len(loops)}")
     if gt_path is None or not gt_path.is_file() or not received:
         return
     gt = np.load(gt_path, allow_pickle=False)
-    ok = sum(bool(gt[r["sequence"], max(0, _match_frame(r) - 10): _match_frame(r) + 11].any()) for r in loops)
+    ok = sum(bool(gt[r.sequence, max(0, _match_frame(r) - 10): _match_frame(r) + 11].any()) for r in loops)
     revisits = int(np.tril(gt, -1).any(axis=1).sum())
     print(f"against ground truth: {ok}/{len(loops)} loop closures correct (10-frame tolerance); "
           f"{revisits} frames revisit a place")

@@ -50,7 +50,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.adapters.node import run_node, stop_on_signals
+    from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
     from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
     from aefabmap.runtime.core.detector import DetectorConfig
 
@@ -60,20 +60,18 @@ def main(args: argparse.Namespace) -> int:
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
 
-        def on_stats(doc: dict) -> None:
-            lat = doc.get("latency_ms") or {}
+        options = NodeOptions(key=args.key, mcap_path=args.mcap, session=session, queue_size=args.queue,
+                              stats_period_s=5.0, image_log_every=args.image_every, run_config=run_config)
+
+        def on_stats(msg) -> None:
             log.info(
-                "processed %d, dropped %d, bad %d, loops %d, %.1f fps, latency p50 %s ms p95 %s ms, RSS %s MB",
-                doc["frames_processed"], doc["dropped"], doc["bad_total"], doc["loops"], doc["fps"],
-                _fmt(lat.get("p50")), _fmt(lat.get("p95")), doc.get("rss_mb"),
+                "processed %d, dropped %d, bad %d, loops %d, %s fps, latency p50 %s ms p95 %s ms, RSS %s MB",
+                msg.frames_processed, msg.dropped, msg.bad_total, msg.loops, _fmt(msg.fps),
+                _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb,
             )
 
         with stop_on_signals(stop):
-            summary = run_node(
-                detector, session, args.key, args.mcap,
-                queue_size=args.queue, stop_event=stop, stats_period_s=5.0,
-                image_log_every=args.image_every, run_config=run_config, on_stats=on_stats,
-            )
+            summary = run_node(detector, options, stop_event=stop, on_stats=on_stats)
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code

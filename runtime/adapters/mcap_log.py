@@ -11,8 +11,11 @@ topic          schema / encoding                       content
 /lcd/stats     ``aefabmap.LcdStats`` (jsonschema/json)  periodic run statistics
 ============== ====================================== ===============================
 
-Metadata records ``aefabmap.manifest`` and ``aefabmap.run_config`` each hold one key
-``json`` with the JSON text of the bundle manifest / run configuration; they are written
+The topics are McapLogConfig's (defaults above). The JSON schemas and messages are those of
+runtime/core/messages.py (schemas generated from the message records). Metadata record
+``aefabmap.log`` holds ``format_version`` (MESSAGE_FORMAT_VERSION, "major.minor") and the
+three topic names; ``aefabmap.manifest`` and ``aefabmap.run_config`` each hold one key
+``json`` with the JSON text of the bundle manifest / run configuration. All are written
 at open, so they survive a crash. Message ``sequence`` = the frame's sequence number in the
 run (0-based count of processed frames); image ``timestamp`` = the frame's capture stamp.
 
@@ -46,7 +49,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from aefabmap.errors import ConfigError, ImageDecodeError, LogError
+from aefabmap.errors import ConfigError, ImageDecodeError, InputError, LogError
 from aefabmap.runtime.adapters.frames import (
     FrameError,
     classify_encoding,
@@ -55,71 +58,24 @@ from aefabmap.runtime.adapters.frames import (
     encode_frame,
     pack_raw_rows,
 )
+from aefabmap.runtime.core.messages import (
+    MESSAGE_FORMAT_VERSION,
+    FrameResult,
+    StatsMessage,
+    check_readable,
+)
 
 IMAGE_TOPIC = "/camera/image"
 RESULT_TOPIC = "/lcd/result"
 STATS_TOPIC = "/lcd/stats"
 MANIFEST_METADATA = "aefabmap.manifest"
 RUN_CONFIG_METADATA = "aefabmap.run_config"
-LOG_FORMAT_VERSION = "1"
-
-RESULT_SCHEMA = {
-    "title": "aefabmap.LcdResult",
-    "description": "loop-closure result of one frame (runtime.pipeline.FrameResult.to_dict() + transport fields)",
-    "type": "object",
-    "properties": {
-        "sequence": {"type": "integer", "description": "0-based index of the processed frame"},
-        "stamp_ns": {"type": "integer", "description": "capture time, ns since the Unix epoch"},
-        "n_keypoints": {"type": "integer"},
-        "n_words": {"type": "integer"},
-        "best_place": {"type": ["integer", "null"], "description": "best candidate place id"},
-        "best_frame": {"type": ["integer", "null"], "description": "sequence of the frame that made best_place"},
-        "score": {"type": "number", "description": "FAB-MAP probability or BoW similarity of best_place"},
-        "p_new": {"type": ["number", "null"], "description": "FAB-MAP new-place probability"},
-        "loop": {"type": "boolean", "description": "loop closure accepted"},
-        "inserted_frame": {"type": ["integer", "null"]},
-        "inserted_place": {"type": ["integer", "null"]},
-        "evicted_place": {"type": ["integer", "null"]},
-        "n_places": {"type": "integer"},
-        "timings_ms": {"type": "object", "additionalProperties": {"type": "number"}},
-        "probability": {"type": ["number", "null"], "description": "FAB-MAP posterior of best_place"},
-        "llr": {"type": ["number", "null"], "description": "log-likelihood ratio best_place vs new place, nats"},
-        "verified": {"type": "boolean", "description": "a candidate passed geometric (+ temporal) verification"},
-        "verified_place": {"type": ["integer", "null"], "description": "place id of the verified candidate"},
-        "verified_frame": {"type": ["integer", "null"], "description": "sequence of the frame that made verified_place"},
-        "inliers": {"type": "integer", "description": "inliers of the accepted geometry (or of the best attempt)"},
-        "matches": {"type": "integer", "description": "putative keypoint matches behind `inliers`"},
-        "geometry_model": {"type": ["string", "null"], "enum": ["F", "H", None],
-                           "description": "F: fundamental matrix, H: homography"},
-        "geometry": {"type": ["array", "null"], "items": {"type": "array", "items": {"type": "number"}},
-                     "description": "3x3 row-major matrix, place image -> query image, original pixels"},
-        "candidates_tried": {"type": "integer", "description": "places verified for this frame"},
-        "geometry_ok": {"type": "boolean", "description": "geometric check passed (before the temporal check)"},
-        "temporal_ok": {"type": ["boolean", "null"], "description": "temporal check passed (null: off)"},
-        "frame_seq": {"type": ["integer", "null"], "description": "publisher sequence number (live runs)"},
-        "latency_ms": {"type": "number", "description": "taken from the ring -> result, ms (live runs)"},
-        "age_ms": {"type": "number", "description": "capture stamp -> result, ms (live runs, synced clocks)"},
-    },
-}
-
-STATS_SCHEMA = {
-    "title": "aefabmap.LcdStats",
-    "description": "periodic statistics of a streaming run",
-    "type": "object",
-    "properties": {
-        "stamp_ns": {"type": "integer"},
-        "uptime_s": {"type": "number"},
-        "frames_received": {"type": "integer"},
-        "frames_processed": {"type": "integer"},
-        "dropped": {"type": "integer", "description": "sequence gaps (ring overflow or network)"},
-        "bad": {"type": "object", "additionalProperties": {"type": "integer"}},
-        "bad_total": {"type": "integer"},
-        "loops": {"type": "integer"},
-        "rss_mb": {"type": "number"},
-        "latency_ms": {"type": "object", "properties": {"p50": {"type": "number"}, "p95": {"type": "number"}}},
-        "fps": {"type": "number", "description": "processed frames per second since the last stats"},
-    },
-}
+LOG_METADATA = "aefabmap.log"
+#: The log layout and its messages share one version (runtime/core/messages.py).
+LOG_FORMAT_VERSION = MESSAGE_FORMAT_VERSION
+#: JSON channels are recognised by their schema name, whatever their topic.
+RESULT_SCHEMA_NAME = FrameResult.TITLE
+STATS_SCHEMA_NAME = StatsMessage.TITLE
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -183,6 +139,15 @@ def _json_bytes(doc: dict) -> bytes:
     return json.dumps(doc, separators=(",", ":"), allow_nan=True).encode()
 
 
+def check_log_version(path: Path | str, log_meta: dict) -> tuple[int, int]:
+    """(major, minor) of a log's format from its ``aefabmap.log`` metadata; LogError when
+    this code cannot read it (a newer major version, or a malformed one)."""
+    try:
+        return check_readable(log_meta.get("format_version", "1"))
+    except InputError as exc:
+        raise LogError(f"cannot read MCAP log {path}: {exc}") from exc
+
+
 class McapLogWriter:
     """Context manager writing one run to an MCAP file (see module docstring for the layout).
 
@@ -217,9 +182,14 @@ class McapLogWriter:
             )
             self._writer.start(profile="", library=f"aefabmap/{LOG_FORMAT_VERSION}")
             self._image_channel = self._register_image_channel()
-            self._result_channel = self._register_json_channel(self.config.result_topic, RESULT_SCHEMA)
-            self._stats_channel = self._register_json_channel(self.config.stats_topic, STATS_SCHEMA)
-            self._writer.add_metadata("aefabmap.log", {"format_version": LOG_FORMAT_VERSION})
+            self._result_channel = self._register_json_channel(self.config.result_topic, FrameResult.json_schema())
+            self._stats_channel = self._register_json_channel(self.config.stats_topic, StatsMessage.json_schema())
+            self._writer.add_metadata(LOG_METADATA, {
+                "format_version": LOG_FORMAT_VERSION,
+                "image_topic": self.config.image_topic,
+                "result_topic": self.config.result_topic,
+                "stats_topic": self.config.stats_topic,
+            })
             if manifest is not None:
                 self.add_metadata(MANIFEST_METADATA, manifest)
             if run_config is not None:
@@ -288,21 +258,33 @@ class McapLogWriter:
         self.images_written += 1
         return True
 
-    def write_result(self, result: dict, *, log_time_ns: int | None = None) -> None:
-        """Log one per-frame result dict (JSON) on the results topic."""
-        stamp = result.get("stamp_ns")
-        seq = result.get("sequence")
+    def write_result(self, result: FrameResult | dict, *, data: bytes | None = None,
+                     log_time_ns: int | None = None) -> None:
+        """Log one per-frame result on the results topic.
+
+        data: the result's ``to_json_bytes()`` when the caller has it already (a live node
+        serialises once for Zenoh and the log); a dict is written as it is.
+        """
+        if isinstance(result, FrameResult):
+            stamp, seq = result.stamp_ns, result.sequence
+            data = data if data is not None else result.to_json_bytes()
+        else:
+            stamp, seq = result.get("stamp_ns"), result.get("sequence")
+            data = data if data is not None else _json_bytes(result)
         self._add(
             self._result_channel,
-            _json_bytes(result),
+            data,
             log_time_ns,
             stamp if isinstance(stamp, int) else None,
             seq if isinstance(seq, int) else None,
         )
 
-    def write_stats(self, stats: dict, *, log_time_ns: int | None = None) -> None:
-        """Log one stats dict (JSON) on the stats topic."""
-        self._add(self._stats_channel, _json_bytes(stats), log_time_ns, None, None)
+    def write_stats(self, stats: StatsMessage | dict, *, data: bytes | None = None,
+                    log_time_ns: int | None = None) -> None:
+        """Log one stats message on the stats topic (data: its JSON bytes, if already made)."""
+        if data is None:
+            data = stats.to_json_bytes() if isinstance(stats, StatsMessage) else _json_bytes(stats)
+        self._add(self._stats_channel, data, log_time_ns, None, None)
 
     def _add(self, channel: int, data: bytes, log_time_ns, publish_time_ns, sequence) -> None:
         if self._closed:
@@ -401,12 +383,17 @@ class ReadStatus:
     image_topic: str | None = None
     ignored_image_topics: list[str] = field(default_factory=list)
     undecodable_messages: int = 0
+    invalid_messages: int = 0
+    last_invalid: str = ""
+    format_version: str | None = None
 
     def describe(self) -> str:
         text = f"{self.path}: read {self.messages_read} messages ({self.images_read} images"
         text += f" on {self.image_topic})" if self.image_topic else ")"
         if self.truncated:
             text += f"; file truncated, read up to the last complete record ({self.reason})"
+        if self.invalid_messages:
+            text += f"; {self.invalid_messages} messages failed validation (last: {self.last_invalid})"
         return text
 
     def to_dict(self) -> dict:
@@ -417,9 +404,14 @@ class McapLogReader:
     """Single-pass reader of an aefabmap log or a ROS 2 bag, robust to truncation.
 
     Iterate :meth:`frames` once; while it runs, the reader collects ``results`` (the
-    logged /lcd/result dicts), ``stats``, ``metadata`` (name -> dict) and ``status``.
-    image_topic: which image topic to read; None = ``/camera/image`` when present, else
-    the first image channel met (others are listed in status.ignored_image_topics).
+    logged results, FrameResult), ``stats`` (StatsMessage), ``metadata`` (name -> dict) and
+    ``status``. Result and stats channels are recognised by their schema name, so their
+    topics are the log's own; each message is validated (runtime/core/messages.py) and an
+    invalid one counted in status.invalid_messages. A log of a newer major format than this
+    code reads raises LogError.
+    image_topic: which image topic to read; None = the image topic the log names in its
+    ``aefabmap.log`` metadata (``/camera/image`` by default) when present, else the first
+    image channel met (others are listed in status.ignored_image_topics).
     """
 
     def __init__(self, path: str | Path, *, image_topic: str | None = None) -> None:
@@ -431,8 +423,8 @@ class McapLogReader:
         if magic != b"\x89MCAP0\r\n":
             raise LogError(f"{self.path} is not an MCAP file (bad magic)")
         self.image_topic = image_topic
-        self.results: list[dict] = []
-        self.stats: list[dict] = []
+        self.results: list[FrameResult] = []
+        self.stats: list[StatsMessage] = []
         self.metadata: dict[str, dict] = {}
         self.status = ReadStatus(str(self.path))
         self._spent = False
@@ -445,6 +437,16 @@ class McapLogReader:
     def run_config(self) -> dict | None:
         return self.metadata.get(RUN_CONFIG_METADATA)
 
+    @property
+    def format_version(self) -> tuple[int, int] | None:
+        """(major, minor) of the log's format; None for logs not written by aefabmap."""
+        meta = self.metadata.get(LOG_METADATA)
+        return check_log_version(self.path, meta) if meta is not None else None
+
+    def _preferred_image_topic(self) -> str:
+        topic = (self.metadata.get(LOG_METADATA) or {}).get("image_topic")
+        return topic if isinstance(topic, str) and topic else IMAGE_TOPIC
+
     def frames(self) -> Iterator[LoggedImage]:
         """Yield the images of the chosen topic in file order (single pass)."""
         if self._spent:
@@ -453,6 +455,7 @@ class McapLogReader:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         kinds: dict[int, str] = {}
+        json_kinds: dict[int, type] = {}
         ros_decoders: dict[int, object] = {}
         chosen: int | None = None
         with open(self.path, "rb") as f:
@@ -479,6 +482,8 @@ class McapLogReader:
                     if kind is not None:
                         kinds[record.id] = kind
                         chosen = self._choose(record, chosen, channels)
+                    elif schema is not None and schema.name in _JSON_MESSAGES and record.message_encoding == "json":
+                        json_kinds[record.id] = _JSON_MESSAGES[schema.name]
                 elif isinstance(record, Metadata):
                     self._take_metadata(record)
                 elif isinstance(record, Message):
@@ -493,15 +498,16 @@ class McapLogReader:
                         if image is not None:
                             self.status.images_read += 1
                             yield image
-                    elif channel.message_encoding == "json":
-                        self._take_json(record, channel)
+                    elif record.channel_id in json_kinds:
+                        self._take_json(record, json_kinds[record.channel_id])
 
     def _choose(self, channel: Channel, chosen: int | None, channels: dict[int, Channel]) -> int | None:
         topic = channel.topic
         if self.image_topic is not None:
             pick = chosen is None and topic == self.image_topic
         else:
-            pick = chosen is None or (topic == IMAGE_TOPIC and channels[chosen].topic != IMAGE_TOPIC)
+            preferred = self._preferred_image_topic()
+            pick = chosen is None or (topic == preferred and channels[chosen].topic != preferred)
         if pick:
             if chosen is not None:
                 self._ignore(channels[chosen].topic)
@@ -517,16 +523,18 @@ class McapLogReader:
 
     def _take_metadata(self, record: Metadata) -> None:
         self.metadata[record.name] = _metadata_dict(record)
+        if record.name == LOG_METADATA:
+            check_log_version(self.path, self.metadata[record.name])  # LogError: newer major
+            self.status.format_version = str(self.metadata[record.name].get("format_version"))
 
-    def _take_json(self, record: Message, channel: Channel) -> None:
-        if channel.topic not in (RESULT_TOPIC, STATS_TOPIC):
-            return
+    def _take_json(self, record: Message, kind: type) -> None:
         try:
-            doc = json.loads(record.data)
-        except ValueError:
-            self.status.undecodable_messages += 1
+            message = kind.from_json(record.data)
+        except InputError as exc:
+            self.status.invalid_messages += 1
+            self.status.last_invalid = str(exc)[:200]
             return
-        (self.results if channel.topic == RESULT_TOPIC else self.stats).append(doc)
+        (self.results if kind is FrameResult else self.stats).append(message)
 
     def _decode_image(self, record, channel, kind, schemas, ros_decoders) -> LoggedImage | None:
         try:
@@ -571,6 +579,10 @@ class McapLogReader:
             return None
 
 
+#: JSON message type of each aefabmap schema name.
+_JSON_MESSAGES: dict[str, type] = {RESULT_SCHEMA_NAME: FrameResult, STATS_SCHEMA_NAME: StatsMessage}
+
+
 def log_size_bytes(path: str | Path) -> int:
     """Size of a log file in bytes (0 when missing)."""
     try:
@@ -608,6 +620,8 @@ def read_log_metadata(path: str | Path, *, max_records: int = 10_000) -> dict[st
                 break
             if isinstance(record, Metadata):
                 out[record.name] = _metadata_dict(record)
+                if record.name == LOG_METADATA:
+                    check_log_version(path, out[record.name])
             elif not isinstance(record, (Header, Schema, Channel)):
                 break
     return out

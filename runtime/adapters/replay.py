@@ -17,14 +17,14 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from aefabmap.errors import InputError
-from aefabmap.runtime.adapters.frames import BAD_FRAME_REASONS, FrameError
+from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.mcap_log import (
     McapLogConfig,
     McapLogReader,
     McapLogWriter,
     ReadStatus,
 )
+from aefabmap.runtime.core.messages import FrameResult
 
 #: Result fields that vary from run to run (wall-clock timings, transport data); --check
 #: compares every other field of the result dicts (FrameResult.to_dict() of the core).
@@ -186,17 +186,19 @@ def replay(
     log_config: McapLogConfig | None = None,
     on_result: Callable[[dict], None] | None = None,
 ) -> ReplaySummary:
-    """Run ``detector`` (see runtime.node.Detector) over the images of ``mcap_path``.
+    """Run ``detector`` (see frame_loop.Detector) over the images of ``mcap_path``.
 
     out_path: write a new log (images, replayed results, final stats, manifest metadata).
-    check: compare the replayed results with the ones logged (all but NONDETERMINISTIC_FIELDS).
-    image_topic: which image topic to read (default: /camera/image, else the first found).
-    Raises LogError when the source cannot be read or the output not written.
+    check: compare the replayed results with the ones logged (all but NONDETERMINISTIC_FIELDS,
+    and fields added to the message format after the log's version).
+    image_topic: which image topic to read (default: the log's image topic, else the first found).
+    on_result: called with each replayed result's dict.
+    Raises LogError when the source cannot be read (or is of a newer format) or the output
+    not written.
     """
     reader = McapLogReader(mcap_path, image_topic=image_topic)
-    replayed: list[dict] = []
-    bad = {r: 0 for r in BAD_FRAME_REASONS}
-    frames_read = loops = 0
+    replayed: list[FrameResult] = []
+    loop = FrameLoop(detector)
     writer = None
     t0 = time.monotonic()
     manifest = getattr(detector, "manifest", None)
@@ -209,46 +211,36 @@ def replay(
         )
     try:
         for image in reader.frames():
-            frames_read += 1
-            try:
-                gray = image.decode()
-                result = detector.process(gray, image.stamp_ns)
-            except FrameError as exc:
-                bad[exc.reason] = bad.get(exc.reason, 0) + 1
-                continue
-            except InputError:
-                bad["rejected"] += 1
-                continue
-            doc = dict(result.to_dict())
-            replayed.append(doc)
-            loops += bool(doc.get("loop"))
+            out = loop.step(image.payload, image.encoding, image.stamp_ns)
+            if out.result is None:
+                continue  # counted by the frame loop
+            result = out.result
+            replayed.append(result)
             if on_result is not None:
-                on_result(doc)
+                on_result(result.to_dict())
             if writer is not None:
-                seq = doc.get("sequence")
-                writer.write_image(image.payload, image.encoding, image.stamp_ns,
-                                   sequence=seq if isinstance(seq, int) else len(replayed) - 1, gray=gray)
-                writer.write_result(doc)
+                writer.write_image(image.payload, image.encoding, image.stamp_ns, sequence=result.sequence,
+                                   gray=out.gray)
+                writer.write_result(result)
         duration = time.monotonic() - t0
         if writer is not None:
-            writer.write_stats(
-                {
-                    "stamp_ns": time.time_ns(),
-                    "uptime_s": round(duration, 3),
-                    "frames_received": frames_read,
-                    "frames_processed": len(replayed),
-                    "dropped": 0,
-                    "bad": bad,
-                    "bad_total": sum(bad.values()),
-                    "loops": loops,
-                }
-            )
+            writer.write_stats(loop.stats_message(uptime_s=duration, fps=round(loop.processed / duration, 2)
+                                                  if duration > 0 else None))
     finally:
         if writer is not None:
             writer.close()
     report = None
     if check:
-        report = compare_results(reader.results, replayed, truncated=reader.status.truncated)
+        version = reader.format_version
+        newer = FrameResult.fields_since(version) if version is not None else ()
+        report = compare_results([r.to_dict() for r in reader.results], [r.to_dict() for r in replayed],
+                                 ignore=NONDETERMINISTIC_FIELDS + newer, truncated=reader.status.truncated)
+        if newer:
+            report.notes.append(f"not in this log's format {reader.status.format_version}, not compared: "
+                                + ", ".join(newer))
+        if reader.status.invalid_messages:
+            report.notes.append(f"{reader.status.invalid_messages} logged messages failed validation "
+                                f"(last: {reader.status.last_invalid})")
         if not reader.results:
             report.notes.append("the log holds no /lcd/result messages to compare with")
         if reader.results and reader.status.images_read < len(reader.results):
@@ -268,10 +260,10 @@ def replay(
             report.notes.append("the log was truncated (no summary): compared up to its last complete chunk")
     return ReplaySummary(
         source=str(mcap_path),
-        frames_read=frames_read,
-        frames_processed=len(replayed),
-        bad=bad,
-        loops=loops,
+        frames_read=loop.frames_in,
+        frames_processed=loop.processed,
+        bad=dict(loop.bad.counts),
+        loops=loop.loops,
         duration_s=time.monotonic() - t0,
         status=reader.status,
         out_path=str(out_path) if out_path is not None else None,

@@ -325,9 +325,11 @@ class JsonPublisher:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare publisher on {key!r}: {_short(exc)}") from exc
 
-    def put(self, doc: dict) -> None:
+    def put(self, doc: dict | bytes) -> None:
+        """Publish a dict, or JSON bytes already made (a message's ``to_json_bytes()``)."""
+        data = doc if isinstance(doc, bytes) else json.dumps(doc, separators=(",", ":")).encode()
         try:
-            self._pub.put(json.dumps(doc, separators=(",", ":")))
+            self._pub.put(data)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {self.key!r}: {_short(exc)}") from exc
 
@@ -347,10 +349,10 @@ class ResultPublisher:
         self._results = JsonPublisher(session, result_key)
         self._stats = JsonPublisher(session, self.stats_key)
 
-    def publish_result(self, result: dict) -> None:
+    def publish_result(self, result: dict | bytes) -> None:
         self._results.put(result)
 
-    def publish_stats(self, stats: dict) -> None:
+    def publish_stats(self, stats: dict | bytes) -> None:
         self._stats.put(stats)
 
     def close(self) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -23,6 +23,7 @@ from aefabmap.runtime.core.features import (
     descriptor_vectors,
 )
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
+from aefabmap.runtime.core.messages import FrameResult  # the result record lives with the wire messages
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.tree import ChowLiuTree
 from aefabmap.runtime.core.verification import (
@@ -123,61 +124,6 @@ class DetectorConfig:
             raise ConfigError("temporal_frames and temporal_tolerance must be >= 0")
         if self.temporal_frames and not self.verification.enabled:
             raise ConfigError("temporal consistency works on verified matches: enable verification")
-
-
-@dataclass
-class FrameResult:
-    """What the detector says about one frame.
-
-    sequence: index of the frame in the stream (0-based); stamp_ns: its time stamp.
-    best_place / best_frame: best candidate place and the sequence number of the frame that
-        created it (None when the map is empty); score: see DetectorConfig.fabmap_score, or the
-        cosine similarity (BoW); probability: FAB-MAP's posterior of the best place; llr: its
-        log-likelihood ratio against the new place (nats); p_new: FAB-MAP's new-place
-        probability (None for BoW).
-    loop: score >= loop_threshold, or, with verification enabled, `verified`.
-    inserted_frame / inserted_place: the frame that entered the map during this step (delayed
-        insertion) and its place id. timings_ms: per stage (ms).
-    verified: a candidate passed geometric verification (and the temporal check when enabled).
-    verified_place / verified_frame: that candidate (None when none passed).
-    inliers / matches: inliers of the accepted geometry and putative matches; when nothing
-        passed, those of the best attempt (diagnostics). geometry_model: "F" (fundamental
-        matrix) or "H" (homography); geometry: its 3x3 matrix as nested lists, row-major,
-        mapping the place's image to the query's, in original pixels (x_q^T F x_p = 0 or
-        x_q ~ H x_p); None unless verified. candidates_tried: places verified this frame.
-    geometry_ok: the geometric check passed (before the temporal check); temporal_ok: the
-        temporal check passed (None when it is off).
-    """
-
-    sequence: int
-    stamp_ns: int
-    n_keypoints: int
-    n_words: int
-    best_place: int | None
-    best_frame: int | None
-    score: float
-    p_new: float | None
-    loop: bool
-    probability: float | None = None
-    llr: float | None = None
-    inserted_frame: int | None = None
-    inserted_place: int | None = None
-    evicted_place: int | None = None
-    n_places: int = 0
-    timings_ms: dict = field(default_factory=dict)
-    verified: bool = False
-    verified_place: int | None = None
-    verified_frame: int | None = None
-    inliers: int = 0
-    matches: int = 0
-    geometry_model: str | None = None
-    geometry: list | None = None
-    candidates_tried: int = 0
-    geometry_ok: bool = False
-    temporal_ok: bool | None = None
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 class LoopClosureDetector:
@@ -331,6 +277,7 @@ class LoopClosureDetector:
             inserted_place=inserted_place,
             evicted_place=evicted,
             n_places=self.n_places,
+            score_kind=self.config.fabmap_score if self.fabmap is not None else "similarity",
         )
         if check is not None:
             check.fill(res, self._place_frame)

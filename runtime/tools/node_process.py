@@ -6,14 +6,14 @@ reads its JSON run summary.
 
 from __future__ import annotations
 
-import json
 import signal
 import socket
 import subprocess
 import threading
 import time
 
-from aefabmap.errors import TransportError
+from aefabmap.errors import InputError, TransportError
+from aefabmap.runtime.core.messages import RunSummary
 
 
 def free_tcp_port() -> int:
@@ -41,8 +41,9 @@ def connect_when_listening(endpoint: str, node: subprocess.Popen, timeout_s: flo
             gate.wait(0.2)  # the node is starting: there is no event to wait on
 
 
-def stop_node(node: subprocess.Popen, timeout_s: float = 30.0) -> dict | None:
-    """SIGTERM the node, wait for it (kill after timeout_s) and return its JSON summary line."""
+def stop_node(node: subprocess.Popen, timeout_s: float = 30.0) -> RunSummary | None:
+    """SIGTERM the node, wait for it (kill after timeout_s) and return its run summary
+    (the last stdout line that parses as one; None when there is none)."""
     if node.poll() is None:
         node.send_signal(signal.SIGTERM)
     try:
@@ -52,7 +53,7 @@ def stop_node(node: subprocess.Popen, timeout_s: float = 30.0) -> dict | None:
         stdout, _ = node.communicate()
     for line in reversed((stdout or "").splitlines()):
         try:
-            return json.loads(line)
-        except ValueError:
+            return RunSummary.from_json(line)
+        except InputError:
             continue
     return None

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from aefabmap.errors import InputError
 from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.frames import load_image
+from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.image_folder import list_images
 from aefabmap.runtime.core.detector import (
     DetectorConfig,
@@ -76,13 +76,12 @@ def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix:
     stages: dict[str, list[float]] = {"decode": [], "features": [], "quantise": [], "inference": []}
     if detector.store is not None:
         stages["verification"] = []
+    loop = FrameLoop(detector, strict=True)  # an unreadable frame stops the run: gt indices must hold
     t_start = time.perf_counter()
     for i, path in enumerate(tqdm(images, desc="frames", disable=not show_progress, mininterval=1.0)):
-        t0 = time.perf_counter()
-        image = load_image(path)
-        decode_ms = (time.perf_counter() - t0) * 1e3
-        res = detector.process(image, stamp_ns=i)
-        stages["decode"].append(decode_ms)
+        out = loop.step_file(path, stamp_ns=i)
+        res = out.result
+        stages["decode"].append(out.decode_ms)
         for k, v in res.timings_ms.items():
             stages.setdefault(k, []).append(v)
         if matrix is not None:

@@ -4,8 +4,10 @@ Pure of argparse (``aefabmap bench pipeline`` / ``aefabmap bench stream`` wrap i
 function returns a JSON-able dict.
 
 :func:`bench_pipeline` times decode -> features -> quantise -> FAB-MAP inference (->
-verification) per frame for 640x480 synthetic frames (runtime/tools/synthetic_route.py, JPEG) with a
-map pre-filled to N places. It runs in a fresh *spawned* process pinned to one CPU with
+verification) per frame for 640x480 synthetic frames (runtime/tools/synthetic_route.py, JPEG)
+with a map pre-filled to N places, through the runtime's own frame loop
+(runtime/adapters/frame_loop.py): stage times are the loop's decode time and the detector's
+``timings_ms``. It runs in a fresh *spawned* process pinned to one CPU with
 ``OMP_NUM_THREADS=OPENBLAS_NUM_THREADS=1``, ``cv2.setNumThreads(1)`` and onnxruntime at one
 thread, so that numpy's BLAS (the k-means quantiser's product) cannot use a second core.
 Pre-filling goes through the detector's public ``process_words`` (delayed insertion, LRU
@@ -14,6 +16,8 @@ the bundle's own training observations cycled (real word statistics of real imag
 inverted-index postings have realistic lengths), or ``synthetic_observations`` of the
 bundle's mean words per image. Wall time (perf_counter) and CPU time (process_time) are
 both reported: on a loaded machine wall time includes time the process was not scheduled.
+The detector times its stages by wall clock only, so a stage's CPU time is the frame's CPU
+time shared out in proportion to the stages' wall times (``stages_cpu_method``).
 
 :func:`bench_stream` starts ``aefabmap run`` as a child process listening on a free
 loopback port and drives it from this process (publisher thread + result subscriber on one
@@ -31,7 +35,6 @@ Zenoh session), in phases against the same node:
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -44,7 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.errors import BundleError, ConfigError, TransportError
+from aefabmap.errors import BundleError, ConfigError, InputError, TransportError
+from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
     connect_when_listening,
     free_tcp_port,
@@ -159,7 +163,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     import cv2
 
     from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.adapters.frames import decode_frame
+    from aefabmap.runtime.adapters.frame_loop import FrameLoop
     from aefabmap.runtime.core.detector import DetectorConfig
     from aefabmap.runtime.core.verification import VerificationConfig
     from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
@@ -192,34 +196,28 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     stages_cpu: dict[str, list[float]] = {k: [] for k in names}
     total_wall, total_cpu, total_wo_verif = [], [], []
     n_places, n_words, n_kps, loops = [], [], [], 0
-    clock = (time.perf_counter, time.process_time)
+    loop = FrameLoop(det, strict=True)  # the runtime's own per-frame step; a bad frame is a bug here
     for i, (payload, enc) in enumerate(frames[: config.frames + config.warmup]):
-        # The calls of LoopClosureDetector.process, one by one, so each stage gets both clocks.
-        t0 = [c() for c in clock]
-        gray = decode_frame(payload, enc)
-        t1 = [c() for c in clock]
-        feats = det.extractor.extract(gray)
-        t2 = [c() for c in clock]
-        words = det.words_of(feats)
-        t3 = [c() for c in clock]
-        res = det.process_words(words, config.places + i, feats)
-        t4 = [c() for c in clock]
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = loop.step(payload, enc, config.places + i)
+        wall_ms, cpu_ms = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
         if i < config.warmup:
             continue
-        verif = float(res.timings_ms.get("verification", 0.0))
-        for j, (store, a, b) in enumerate(((stages, 0, 0), (stages_cpu, 1, 1))):
-            store["decode"].append((t1[j] - t0[j]) * 1e3)
-            store["features"].append((t2[j] - t1[j]) * 1e3)
-            store["quantise"].append((t3[j] - t2[j]) * 1e3)
-            # verification is timed (wall) inside process_words; its CPU time ~ wall (one thread)
-            store["inference"].append(max(0.0, (t4[j] - t3[j]) * 1e3 - verif))
-            store["verification"].append(verif)
-        total_wall.append((t4[0] - t0[0]) * 1e3)
-        total_cpu.append((t4[1] - t0[1]) * 1e3)
-        total_wo_verif.append((t4[0] - t0[0]) * 1e3 - verif)
+        res = out.result
+        # Stage times are the frame loop's decode time and the detector's own timings_ms (wall).
+        wall = {"decode": out.decode_ms, "verification": 0.0, **res.timings_ms}
+        # CPU per stage: the step's CPU time shared out in proportion to the stages' wall times
+        # (one pinned thread: CPU ~ wall unless the process was descheduled).
+        share = cpu_ms / wall_ms if wall_ms > 0 else 1.0
+        for name in names:
+            stages[name].append(wall.get(name, 0.0))
+            stages_cpu[name].append(wall.get(name, 0.0) * share)
+        total_wall.append(wall_ms)
+        total_cpu.append(cpu_ms)
+        total_wo_verif.append(wall_ms - wall["verification"])
         n_places.append(res.n_places)
         n_words.append(res.n_words)
-        n_kps.append(len(feats))
+        n_kps.append(res.n_keypoints)
         loops += int(bool(res.loop))
     out = {
         "benchmark": "pipeline",
@@ -246,6 +244,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "cv2_threads": cv2.getNumThreads(),
         "stages_ms": {k: _stats(v) for k, v in stages.items()},
         "stages_cpu_ms": {k: _stats(v) for k, v in stages_cpu.items()},
+        "stages_cpu_method": "frame CPU time (process_time) shared out by the stages' wall times",
         "total_ms": _stats(total_wall),
         "total_cpu_ms": _stats(total_cpu),
         "total_without_verification_ms": _stats(total_wo_verif),
@@ -332,24 +331,26 @@ class _Results:
     def __init__(self) -> None:
         self.cond = threading.Condition()
         self.results: list[dict] = []  # {"recv_ns", "stamp_ns", "frame_seq", "n_places", "node_ms"}
-        self.stats: list[dict] = []
+        self.stats: list[StatsMessage] = []
+        self.invalid = 0  # messages that failed validation
         self.last_recv = time.monotonic()
 
     def on_result(self, sample) -> None:
         recv_ns = time.time_ns()
         try:
-            doc = json.loads(sample.payload.to_bytes())
-        except ValueError:
+            res = FrameResult.from_json(sample.payload.to_bytes())
+        except InputError:
+            self.invalid += 1
             return
         rec = {
             "recv_ns": recv_ns,
             "recv_mono": time.monotonic(),
-            "stamp_ns": doc.get("stamp_ns"),
-            "frame_seq": doc.get("frame_seq"),
-            "n_places": doc.get("n_places"),
-            "node_ms": doc.get("latency_ms"),
-            "timings_ms": doc.get("timings_ms") or {},
-            "loop": bool(doc.get("loop")),
+            "stamp_ns": res.stamp_ns,
+            "frame_seq": res.frame_seq,
+            "n_places": res.n_places,
+            "node_ms": res.latency_ms,
+            "timings_ms": res.timings_ms,
+            "loop": res.loop,
         }
         with self.cond:
             self.results.append(rec)
@@ -358,11 +359,12 @@ class _Results:
 
     def on_stats(self, sample) -> None:
         try:
-            doc = json.loads(sample.payload.to_bytes())
-        except ValueError:
+            msg = StatsMessage.from_json(sample.payload.to_bytes())
+        except InputError:
+            self.invalid += 1
             return
         with self.cond:
-            self.stats.append(doc)
+            self.stats.append(msg)
 
     def count(self) -> int:
         with self.cond:
@@ -555,8 +557,9 @@ def bench_stream(config: StreamBenchConfig) -> dict:
             "max": max(rss_all) if rss_all else None,
             "series": sampler.samples[:: max(1, len(sampler.samples) // 120)],
         },
-        "node_stats_rss_mb": [s.get("rss_mb") for s in coll.stats],
-        "node_summary": summary,
+        "node_stats_rss_mb": [s.rss_mb for s in coll.stats],
+        "node_summary": summary.to_dict() if summary is not None else None,
+        "invalid_messages": coll.invalid,
         "mcap_bytes": mcap_bytes,
         "load_average_start": load_start,
         "machine": machine_info(),

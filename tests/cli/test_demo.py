@@ -22,5 +22,5 @@ def test_demo_runs_end_to_end(tmp_path, capsys):
     assert images == len(reader.results) >= 60
     assert reader.manifest is not None and reader.manifest["format"] == "aefabmap-bundle"
     # The second lap revisits the first: the shipped bundle must find at least one loop.
-    assert any(r["loop"] for r in reader.results)
+    assert any(r.loop for r in reader.results)
     assert "LOOP" in out

@@ -77,20 +77,43 @@ class FakeDetector:
         return res
 
 
+def make_result(sequence: int, stamp_ns: int, **fields) -> FrameResult:
+    """A minimal valid result record (what a log test writes on the results topic)."""
+    base = dict(n_keypoints=0, n_words=0, best_place=None, best_frame=None, score=0.0, p_new=0.5, loop=False)
+    return FrameResult(sequence=sequence, stamp_ns=stamp_ns, **{**base, **fields})
+
+
 class JsonCollector:
-    """Callback subscriber collecting JSON docs of a key into a queue."""
+    """Callback subscriber collecting the JSON docs of a key into a queue, each validated by its
+    message parser first (StatsMessage for a ``.../stats`` key, else FrameResult); a message
+    that fails validation is kept in ``invalid`` and fails the next wait_for."""
 
     def __init__(self, session: zenoh.Session, key: str) -> None:
         import json
 
+        from aefabmap.runtime.core.messages import StatsMessage
+
+        kind = StatsMessage if key.endswith("/stats") else FrameResult
         self.queue: queue.Queue = queue.Queue()
-        self._sub = session.declare_subscriber(key, lambda s: self.queue.put(json.loads(s.payload.to_bytes())))
+        self.invalid: list[str] = []
+
+        def on_sample(sample) -> None:
+            data = sample.payload.to_bytes()
+            try:
+                kind.from_json(data)
+            except InputError as exc:
+                self.invalid.append(str(exc))
+                return
+            self.queue.put(json.loads(data))
+
+        self._sub = session.declare_subscriber(key, on_sample)
 
     def wait_for(self, predicate, timeout_s: float) -> list[dict]:
         """Collect docs until predicate(doc) is true for one of them; returns all docs seen."""
         seen = []
         deadline = time.monotonic() + timeout_s
         while True:
+            assert not self.invalid, f"invalid messages: {self.invalid[:3]}"
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise AssertionError(f"timed out after {timeout_s} s; got {len(seen)} docs: {seen[-3:]}")
@@ -109,8 +132,8 @@ class JsonCollector:
 class NodeThread:
     """Runs run_node in a thread; .summary / .error after join."""
 
-    def __init__(self, **kwargs) -> None:
-        from aefabmap.runtime.adapters.node import run_node
+    def __init__(self, detector, session_config, **options) -> None:
+        from aefabmap.runtime.adapters.node import NodeOptions, run_node
 
         self.stop = threading.Event()
         self.ready = threading.Event()
@@ -119,7 +142,8 @@ class NodeThread:
 
         def target() -> None:
             try:
-                self.summary = run_node(stop_event=self.stop, ready_event=self.ready, **kwargs)
+                self.summary = run_node(detector, NodeOptions(session=session_config, **options),
+                                        stop_event=self.stop, ready_event=self.ready)
             except BaseException as exc:  # reported to the test
                 self.error = exc
             finally:

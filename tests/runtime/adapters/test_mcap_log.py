@@ -29,8 +29,9 @@ from aefabmap.runtime.adapters.mcap_log import (
     McapLogWriter,
     read_log_metadata,
 )
+from aefabmap.runtime.core.messages import StatsMessage
 
-from .stream_fakes import sample_images, write_ros2_bag
+from .stream_fakes import make_result, sample_images, write_ros2_bag
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -41,8 +42,9 @@ def _write_log(path, images, *, config=None, manifest=None):
             fmt = ("jpeg", "png", "mono8")[i % 3]
             payload, enc = encode_frame(img, fmt)
             w.write_image(payload, enc, 1_000 + i, sequence=i)
-            w.write_result({"sequence": i, "stamp_ns": 1_000 + i, "loop": i % 2 == 0, "p_new": 0.5})
-        w.write_stats({"frames_processed": len(images)})
+            w.write_result(make_result(i, 1_000 + i, loop=i % 2 == 0))
+        w.write_stats(StatsMessage(stamp_ns=1, uptime_s=0.0, frames_received=len(images),
+                                   frames_processed=len(images), dropped=0, bad={}, loops=0))
     return w
 
 
@@ -73,8 +75,8 @@ def test_roundtrip_layout_schemas_and_metadata(tmp_path):
     assert [f.sequence for f in frames] == list(range(6))
     assert np.array_equal(frames[1].decode(), images[1])  # png lossless
     assert np.array_equal(frames[2].decode(), images[2])  # raw stored as gray png
-    assert [d["sequence"] for d in r.results] == list(range(6))
-    assert r.stats == [{"frames_processed": 6}]
+    assert [d.sequence for d in r.results] == list(range(6))
+    assert [s.frames_processed for s in r.stats] == [6] and r.status.invalid_messages == 0
     assert r.manifest == {"vocabulary_size": 1000, "files": {"a": "sha"}}
     assert r.metadata[RUN_CONFIG_METADATA] == {"key": "a/b"}
     assert not r.status.truncated and r.status.messages_read == 13
@@ -132,7 +134,7 @@ def test_truncated_files_read_up_to_last_complete_chunk(tmp_path):
         assert 0 <= len(frames) <= n_full
         assert len(frames) >= previous
         previous = len(frames)
-        assert [d["sequence"] for d in r.results] == list(range(len(r.results)))
+        assert [d.sequence for d in r.results] == list(range(len(r.results)))
         assert r.manifest == {"format_version": 1}  # metadata written at open survives
     assert previous > 0
 
@@ -202,3 +204,60 @@ def test_ros2_bag_compressed_and_raw_images(tmp_path):
     assert len(rframes) == 5 and rframes[0].encoding == "mono8;64x48"
     assert all(np.array_equal(f.decode(), img) for f, img in zip(rframes, images))
     assert r.results == [] and r.manifest is None
+
+
+def _raw_log(path, *, version: str | None, results: list[dict], result_topic: str = "/lcd/result") -> None:
+    """A log written by hand: metadata aefabmap.log (when version), one results channel."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        if version is not None:
+            w.add_metadata("aefabmap.log", {"format_version": version})
+        sid = w.register_schema(name="aefabmap.LcdResult", encoding="jsonschema", data=b"{}")
+        cid = w.register_channel(topic=result_topic, message_encoding="json", schema_id=sid)
+        for i, doc in enumerate(results):
+            w.add_message(channel_id=cid, log_time=i, publish_time=i, sequence=i, data=json.dumps(doc).encode())
+        w.finish()
+
+
+def test_log_format_version_newer_major_is_refused_older_is_read(tmp_path):
+    old_doc = {k: v for k, v in make_result(0, 5).to_dict().items() if k != "score_kind"}
+    old = tmp_path / "v1.mcap"
+    _raw_log(old, version="1", results=[old_doc], result_topic="/old/name")
+    r = McapLogReader(old)
+    list(r.frames())
+    assert r.format_version == (1, 0) and r.status.format_version == "1"
+    assert [x.stamp_ns for x in r.results] == [5] and r.results[0].score_kind is None
+    new = tmp_path / "v2.mcap"
+    _raw_log(new, version="2.0", results=[old_doc])
+    with pytest.raises(LogError, match=r"format 2\.0 is newer than this aefabmap reads") as err:
+        list(McapLogReader(new).frames())
+    assert "\n" not in str(err.value) and str(new) in str(err.value)
+    with pytest.raises(LogError, match="newer"):
+        read_log_metadata(new)
+    junk = tmp_path / "vjunk.mcap"
+    _raw_log(junk, version="one point two", results=[])
+    with pytest.raises(LogError, match="malformed"):
+        list(McapLogReader(junk).frames())
+
+
+def test_topics_come_from_the_log_and_invalid_messages_are_counted(tmp_path):
+    cfg = McapLogConfig(image_topic="/robot/cam", result_topic="/robot/loops", stats_topic="/robot/loops/stats")
+    path = tmp_path / "custom.mcap"
+    img = sample_images(1, size=(32, 32))[0]
+    with McapLogWriter(path, cfg) as w:
+        payload, enc = encode_frame(img, "png")
+        w.write_image(payload, enc, 7, sequence=0)
+        w.write_result(make_result(0, 7))
+        w.write_result({"sequence": "not a number", "stamp_ns": 8})  # a hostile writer
+        w.write_result(make_result(1, 9), data=b"{truncated")
+        w.write_stats(StatsMessage(stamp_ns=1, uptime_s=1.0, frames_received=1, frames_processed=1, dropped=0,
+                                   bad={}, loops=0))
+    r = McapLogReader(path)
+    assert len(list(r.frames())) == 1 and r.status.image_topic == "/robot/cam"
+    assert [x.stamp_ns for x in r.results] == [7] and len(r.stats) == 1
+    assert r.status.invalid_messages == 2 and "not JSON" in r.status.last_invalid
+    meta = read_log_metadata(path)["aefabmap.log"]
+    assert meta["result_topic"] == "/robot/loops" and meta["image_topic"] == "/robot/cam"

@@ -18,7 +18,7 @@ from aefabmap.runtime.adapters.mcap_log import (
     RUN_CONFIG_METADATA,
     McapLogReader,
 )
-from aefabmap.runtime.adapters.node import rss_mb, run_node, stop_on_signals
+from aefabmap.runtime.adapters.node import NodeOptions, rss_mb, run_node, stop_on_signals
 from aefabmap.runtime.adapters.zenoh_transport import FramePublisher, open_session
 from aefabmap.runtime.tools.publisher import (
     array_source,
@@ -66,9 +66,9 @@ def test_end_to_end_publish_detect_log(tmp_path):
     reader = McapLogReader(log_path)
     frames = list(reader.frames())
     assert not reader.status.truncated
-    assert len(frames) == 12 and [r["sequence"] for r in reader.results] == list(range(12))
-    assert [f.stamp_ns for f in frames] == [r["stamp_ns"] for r in reader.results]
-    assert reader.stats and reader.stats[-1]["frames_processed"] == 12
+    assert len(frames) == 12 and [r.sequence for r in reader.results] == list(range(12))
+    assert [f.stamp_ns for f in frames] == [r.stamp_ns for r in reader.results]
+    assert reader.stats and reader.stats[-1].frames_processed == 12
     assert reader.metadata[MANIFEST_METADATA]["detector"] == "fake"
     assert reader.metadata[RUN_CONFIG_METADATA]["model"] == "fake"
     assert reader.metadata[RUN_CONFIG_METADATA]["key"] == KEY
@@ -157,7 +157,7 @@ def test_slow_detector_drops_old_frames_and_counts_them(tmp_path):
 def test_unwritable_mcap_fails_before_opening_the_session(tmp_path):
     listen, _ = session_pair()
     with pytest.raises(LogError, match="nowhere"):
-        run_node(FakeDetector(), listen, KEY, tmp_path / "nowhere" / "x.mcap", stop_event=threading.Event())
+        run_node(FakeDetector(), NodeOptions(KEY, tmp_path / "nowhere" / "x.mcap", listen), stop_event=threading.Event())
 
 
 def test_stop_event_ends_an_idle_node_cleanly(tmp_path):

@@ -191,3 +191,108 @@ def test_real_detector_live_then_replay_check(tmp_path):
     replayed = replay(load_detector(bundle, config), log_path, check=True)
     assert replayed.check.ok, replayed.check.describe()
     assert replayed.check.compared == 20
+
+
+def _schemas_in_log(path) -> dict[str, dict]:
+    """topic -> the JSON schema the log itself carries for that channel."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    return {c.topic: json.loads(summary.schemas[c.schema_id].data) for c in summary.channels.values()
+            if summary.schemas[c.schema_id].encoding == "jsonschema"}
+
+
+def _raw_json_messages(path) -> dict[str, list[dict]]:
+    from mcap.reader import make_reader
+
+    out: dict[str, list[dict]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            if channel.message_encoding == "json":
+                out.setdefault(channel.topic, []).append(json.loads(message.data))
+    return out
+
+
+def _conforms(doc: dict, schema: dict) -> None:
+    from aefabmap.runtime.core.json_schema import validate
+
+    assert validate(doc, schema) is None, (validate(doc, schema), doc)
+    assert set(doc) <= set(schema["properties"]), set(doc) - set(schema["properties"])  # no undeclared key
+
+
+def test_real_run_messages_conform_to_the_schemas_written_in_the_log(tmp_path):
+    """Zenoh results/stats and MCAP records of a real run (real detector, loopback Zenoh),
+    the first stats message (nulls, before any frame) included, then those of its replay."""
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap.runtime.core.messages import RunSummary
+    from tests.conftest import make_synthetic_bundle
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    config = DetectorConfig(exclude=2)
+    listen, connect = session_pair()
+    log_path = tmp_path / "real.mcap"
+    with NodeThread(detector=load_detector(bundle, config), session_config=listen, key=KEY,
+                    mcap_path=log_path, queue_size=32, stats_period_s=0.2) as node:
+        with open_session(connect) as s:
+            results = JsonCollector(s, "robot/camera/lcd")
+            stats = JsonCollector(s, "robot/camera/lcd/stats")
+            first_stats = stats.wait_for(lambda d: True, timeout_s=20)[0]
+            publish_frames(connect, KEY, array_source(sample_images(12, size=(160, 120)), "jpeg"), rate_hz=100,
+                           wait_for_subscriber_s=10)
+            docs = results.wait_for(lambda d: d["sequence"] == 11, timeout_s=60)
+            stat_docs = stats.wait_for(lambda d: d["frames_processed"] == 12, timeout_s=20)
+            results.close()
+            stats.close()
+        summary = node.finish()
+    assert first_stats["frames_processed"] == 0 and first_stats["latency_ms"] == {"p50": None, "p95": None}
+    schemas = _schemas_in_log(log_path)
+    assert set(schemas) == {"/lcd/result", "/lcd/stats"}
+    logged = _raw_json_messages(log_path)
+    assert len(logged["/lcd/result"]) == 12 and logged["/lcd/stats"]
+    for doc in docs + logged["/lcd/result"]:
+        _conforms(doc, schemas["/lcd/result"])
+        assert doc["score_kind"] == "probability" and {"frame_seq", "latency_ms", "age_ms"} <= set(doc)
+    for doc in [first_stats, *stat_docs, *logged["/lcd/stats"]]:
+        _conforms(doc, schemas["/lcd/stats"])
+    _conforms(summary.to_dict(), RunSummary.json_schema())
+    # the replay's own log conforms to its schemas too (no transport fields, a final stats)
+    out = tmp_path / "re.mcap"
+    rep = replay(load_detector(bundle, config), log_path, out_path=out, check=True)
+    assert rep.check.ok, rep.check.describe()
+    re_logged, re_schemas = _raw_json_messages(out), _schemas_in_log(out)
+    assert len(re_logged["/lcd/result"]) == 12 and len(re_logged["/lcd/stats"]) == 1
+    for topic, messages in re_logged.items():
+        for doc in messages:
+            _conforms(doc, re_schemas[topic])
+
+
+def test_replay_check_of_an_older_format_log_skips_the_fields_it_cannot_hold(live_log, tmp_path, monkeypatch):
+    """A format-1 log (no score_kind; written as the old code did) still checks OK with the
+    real detector, whose results now carry score_kind; the report says what was not compared."""
+    from aefabmap.runtime.adapters import mcap_log
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.core.detector import DetectorConfig
+    from tests.conftest import make_synthetic_bundle
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    config = DetectorConfig(exclude=2)
+    det = load_detector(bundle, config)
+    src = McapLogReader(live_log)
+    frames = list(src.frames())
+    old = tmp_path / "v1.mcap"
+    monkeypatch.setattr(mcap_log, "LOG_FORMAT_VERSION", "1")
+    with McapLogWriter(old, manifest=det.manifest) as w:
+        for f in frames:
+            res = det.process(f.decode(), f.stamp_ns).to_dict()
+            del res["score_kind"]
+            w.write_image(f.payload, f.encoding, f.stamp_ns, sequence=res["sequence"])
+            w.write_result(res)
+    monkeypatch.undo()
+    summary = replay(load_detector(bundle, config), old, check=True)
+    assert summary.status.format_version == "1"
+    assert summary.check.ok and summary.check.compared == 16, summary.check.describe()
+    assert any("not compared: score_kind" in n for n in summary.check.notes)
+    again = replay(load_detector(bundle, config), live_log, check=True)  # a current log: nothing skipped
+    assert not any("not compared" in n for n in again.check.notes)

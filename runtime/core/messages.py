@@ -1,0 +1,296 @@
+"""The wire messages of the runtime: one typed record per message, its JSON and its schema.
+
+Every message that leaves a process (Zenoh results and stats, MCAP log, the `aefabmap run`
+summary line) is one of these dataclasses. From the fields come:
+
+- ``to_dict()`` / ``to_json_bytes()``: the JSON text, serialised once per message and used
+  for both the Zenoh publication and the MCAP record;
+- ``json_schema()``: the JSON schema the MCAP writer stores for the channel, generated from
+  the type hints (runtime/core/json_schema.py), so schema and message cannot drift;
+- ``from_json()``: the parser every reader uses; it validates against that schema and
+  raises InputError (one line) for a malformed message. Unknown keys are ignored (a newer
+  minor format may add fields); missing optional ones take their defaults.
+
+``MESSAGE_FORMAT_VERSION`` is "major.minor": a minor version only adds optional fields (the
+field metadata ``since`` says which), so a reader reads every log of its major version and
+refuses a newer major one. JSON keys are kept stable across versions: old logs compare.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any, Self
+
+from aefabmap.errors import InputError
+from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
+
+#: Format of the messages (and of the log layout that carries them): "major.minor".
+#: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``.
+MESSAGE_FORMAT_VERSION = "1.1"
+
+#: What ``score`` of a result holds: see FrameResult.score_kind.
+SCORE_KINDS = ("probability", "llr", "similarity")
+
+#: Result fields added by the transport (the live node), absent from replayed results.
+TRANSPORT_FIELDS = ("frame_seq", "latency_ms", "age_ms")
+
+
+def _meta(description: str, *, enum: tuple | None = None, since: str | None = None) -> dict[str, Any]:
+    """Schema metadata of a field: description, allowed values, format version that added it."""
+    meta: dict[str, Any] = {"description": description} if description else {}
+    if enum is not None:
+        meta["enum"] = enum
+    if since is not None:
+        meta["since"] = since
+    return meta
+
+
+def _f(default: Any = dataclasses.MISSING, description: str = "", *, enum: tuple | None = None,
+       since: str | None = None, init: bool = True) -> Any:
+    """A dataclass field of an immutable value with its schema metadata (see _meta)."""
+    return field(default=default, init=init, metadata=_meta(description, enum=enum, since=since))
+
+
+def parse_version(text: Any) -> tuple[int, int]:
+    """(major, minor) of a "major[.minor]" version string; raises InputError when malformed."""
+    parts = str(text).strip().split(".")
+    if not 1 <= len(parts) <= 2 or not all(p.isdigit() for p in parts):
+        raise InputError(f"malformed message format version {str(text)[:40]!r}")
+    return int(parts[0]), int(parts[1]) if len(parts) == 2 else 0
+
+
+def check_readable(text: Any) -> tuple[int, int]:
+    """The parsed version of a log/message format, if this code reads it; else InputError."""
+    version = parse_version(text)
+    ours = parse_version(MESSAGE_FORMAT_VERSION)
+    if version[0] > ours[0]:
+        raise InputError(
+            f"message format {text} is newer than this aefabmap reads ({ours[0]}.x): upgrade aefabmap"
+        )
+    return version
+
+
+_SCHEMAS: dict[type, dict] = {}
+
+
+class _Message:
+    """JSON, schema and validating parser of a message dataclass (see the module docstring)."""
+
+    TITLE = ""
+    DESCRIPTION = ""
+
+    @classmethod
+    def json_schema(cls) -> dict:
+        """The channel's JSON schema, generated from the fields (a fresh copy)."""
+        if cls not in _SCHEMAS:
+            _SCHEMAS[cls] = schema_for_dataclass(cls, title=cls.TITLE, description=cls.DESCRIPTION)
+        return json.loads(json.dumps(_SCHEMAS[cls]))
+
+    @classmethod
+    def fields_since(cls, version: tuple[int, int]) -> tuple[str, ...]:
+        """Fields added after format ``version`` (a log of that version cannot hold them)."""
+        return tuple(f.name for f in dataclasses.fields(cls)
+                     if "since" in f.metadata and parse_version(f.metadata["since"]) > version)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json_bytes(self) -> bytes:
+        """Compact UTF-8 JSON (NaN allowed, as Python writes it): the bytes sent and logged."""
+        return json.dumps(self.to_dict(), separators=(",", ":"), allow_nan=True).encode()
+
+    @classmethod
+    def from_json(cls, data: bytes | bytearray | memoryview | str | dict) -> Self:
+        """Parse and validate one message (JSON text/bytes or an already decoded dict)."""
+        if isinstance(data, dict):
+            doc = data
+        else:
+            try:
+                doc = json.loads(bytes(data) if isinstance(data, memoryview) else data)
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise InputError(f"{cls.TITLE} message is not JSON: {str(exc)[:80]}") from exc
+        schema = _SCHEMAS.get(cls) or cls.json_schema()
+        if (err := validate(doc, schema)) is not None:
+            raise InputError(f"{cls.TITLE} message: {err}"[:300])
+        return _build(cls, doc)
+
+
+def _build(cls: type, doc: dict) -> Any:
+    """A dataclass from a validated dict: known init fields only, floats as float."""
+    hints = _hints(cls)
+    kwargs = {f.name: _coerce(hints[f.name], doc[f.name]) for f in dataclasses.fields(cls)
+              if f.init and f.name in doc}
+    return cls(**kwargs)
+
+
+_HINTS: dict[type, dict] = {}
+
+
+def _hints(cls: type) -> dict:
+    if cls not in _HINTS:
+        import typing
+
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def _coerce(hint: Any, value: Any) -> Any:
+    import typing
+
+    if value is None:
+        return None
+    args = typing.get_args(hint)
+    origin = typing.get_origin(hint)
+    if args and type(None) in args:  # X | None
+        return _coerce(next(a for a in args if a is not type(None)), value)
+    if hint is float:
+        return float(value)
+    if origin is dict:
+        return {k: _coerce(args[1], v) for k, v in value.items()}
+    if origin is list:
+        return [_coerce(args[0], v) for v in value]
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, value)
+    return value
+
+
+# ============================================================================ results
+
+
+@dataclass
+class FrameResult(_Message):
+    """What the detector says about one frame (+ the transport fields of a live run).
+
+    The per-field descriptions are the schema's; see runtime/core/detector.py for how the
+    detector fills them.
+    """
+
+    TITLE = "aefabmap.LcdResult"
+    DESCRIPTION = ("loop-closure result of one frame: the detector's record, plus frame_seq, latency_ms "
+                   "and age_ms on live runs")
+
+    sequence: int = _f(description="0-based index of the processed frame in the stream")
+    stamp_ns: int = _f(description="capture time of the frame, ns since the Unix epoch")
+    n_keypoints: int = _f(description="keypoints extracted")
+    n_words: int = _f(description="distinct visual words among them")
+    best_place: int | None = _f(description="best candidate place id (null: the map is empty)")
+    best_frame: int | None = _f(description="sequence of the frame that made best_place")
+    score: float = _f(description=(
+        "score of best_place; what it holds is named by score_kind: the FAB-MAP posterior P "
+        "('probability'), the log-likelihood ratio against the new-place model in nats ('llr'; "
+        "DetectorConfig.fabmap_score), or the BoW cosine similarity ('similarity'); 0 when the map is empty"))
+    p_new: float | None = _f(description="FAB-MAP new-place probability (null with the BoW scorer)")
+    loop: bool = _f(description="loop closure accepted: verified (verification on) or score >= loop_threshold")
+    probability: float | None = _f(None, "FAB-MAP posterior P of best_place")
+    llr: float | None = _f(None, "log-likelihood ratio of best_place against the new place, nats")
+    inserted_frame: int | None = _f(None, "frame that entered the map during this step (delayed insertion)")
+    inserted_place: int | None = _f(None, "place id of inserted_frame")
+    evicted_place: int | None = _f(None, "place evicted to respect max_places / memory_mb")
+    n_places: int = _f(0, "places in the map after this step")
+    timings_ms: dict[str, float] = field(default_factory=dict, metadata=_meta("detector time per stage, ms"))
+    verified: bool = _f(False, "a candidate passed geometric (+ temporal) verification")
+    verified_place: int | None = _f(None, "place id of the verified candidate")
+    verified_frame: int | None = _f(None, "sequence of the frame that made verified_place")
+    inliers: int = _f(0, "inliers of the accepted geometry (or of the best attempt)")
+    matches: int = _f(0, "putative keypoint matches behind inliers")
+    geometry_model: str | None = _f(None, "F: fundamental matrix, H: homography", enum=("F", "H"))
+    geometry: list[list[float]] | None = field(default=None, metadata=_meta(
+        "3x3 row-major matrix mapping the place image to the query image, original pixels; null unless verified"))
+    candidates_tried: int = _f(0, "places verified for this frame")
+    geometry_ok: bool = _f(False, "geometric check passed (before the temporal check)")
+    temporal_ok: bool | None = _f(None, "temporal check passed (null: the check is off)")
+    score_kind: str | None = _f(None, "what score holds (null: not told, logs before format 1.1)",
+                                enum=SCORE_KINDS, since="1.1")
+    frame_seq: int | None = _f(None, "publisher sequence number of the frame (live runs only)")
+    latency_ms: float | None = _f(None, "frame taken from the node's ring -> result, ms (live runs only)")
+    age_ms: float | None = _f(None, "capture stamp -> result, ms; meaningful with synchronised clocks (live runs only)")
+
+    def to_dict(self) -> dict:
+        """The JSON object; transport fields appear only when set (live runs)."""
+        d = dataclasses.asdict(self)
+        for name in TRANSPORT_FIELDS:
+            if d[name] is None:
+                del d[name]
+        return d
+
+
+# ============================================================================ stats
+
+
+@dataclass
+class LatencySummary:
+    """Percentiles of the node's latency (ring -> result), ms; null before the first frame."""
+
+    p50: float | None = _f(None, "median, ms")
+    p95: float | None = _f(None, "95th percentile, ms")
+
+
+@dataclass(kw_only=True)
+class StatsMessage(_Message):
+    """Cumulative statistics of a run, sent every stats period and at the end."""
+
+    TITLE = "aefabmap.LcdStats"
+    DESCRIPTION = "periodic statistics of a streaming run (cumulative counters)"
+
+    stamp_ns: int = _f(description="wall-clock time of the message, ns since the Unix epoch")
+    uptime_s: float = _f(description="seconds since the run started")
+    frames_received: int = _f(description="frames taken from the transport (or read from the log)")
+    frames_processed: int = _f(description="frames that gave a result")
+    dropped: int = _f(description="frames lost: sequence gaps (ring overflow or network)")
+    publisher_restarts: int = _f(0, "times a publisher's sequence started again")
+    bad: dict[str, int] = field(metadata=_meta("frames refused, by reason"))
+    bad_total: int = _f(init=False, description="sum of bad")
+    last_bad: str = _f("", "message of the last refused frame ('' when none)")
+    loops: int = _f(description="loop closures so far")
+    rss_mb: float | None = _f(None, "resident memory of the process, MB (null where unknown)")
+    latency_ms: LatencySummary = field(default_factory=LatencySummary,
+                                       metadata=_meta("latency percentiles over the last frames"))
+    fps: float | None = _f(None, "processed frames per second since the previous stats message")
+
+    def __post_init__(self) -> None:
+        self.bad_total = sum(self.bad.values())
+
+
+# ============================================================================ run summary
+
+
+@dataclass(kw_only=True)
+class RunSummary(_Message):
+    """What a streaming run did (the last line `aefabmap run` prints). Latencies in ms
+    (receive -> result), RSS in MB, duration in s."""
+
+    TITLE = "aefabmap.RunSummary"
+    DESCRIPTION = "summary of one `aefabmap run`"
+
+    frames_received: int = _f(description="frames taken from the transport")
+    frames_processed: int = _f(description="frames that gave a result")
+    dropped: int = _f(description="frames lost (sequence gaps)")
+    bad: dict[str, int] = field(metadata=_meta("frames refused, by reason"))
+    loops: int = _f(description="loop closures")
+    duration_s: float = _f(description="run time, s")
+    latency_ms_p50: float | None = _f(description="median latency, ms (null: no frame)")
+    latency_ms_p95: float | None = _f(description="95th percentile latency, ms (null: no frame)")
+    peak_rss_mb: float = _f(description="highest resident memory seen, MB (0 where unknown)")
+    mcap_path: str = _f(description="the MCAP log written")
+    images_logged: int = _f(description="images written to the log")
+    result_key: str = _f(description="Zenoh key of the results")
+    stats_key: str = _f(description="Zenoh key of the stats")
+    bad_total: int = _f(init=False, description="sum of bad")
+
+    def __post_init__(self) -> None:
+        self.bad_total = sum(self.bad.values())
+
+
+__all__ = [
+    "MESSAGE_FORMAT_VERSION",
+    "SCORE_KINDS",
+    "TRANSPORT_FIELDS",
+    "FrameResult",
+    "LatencySummary",
+    "RunSummary",
+    "StatsMessage",
+    "check_readable",
+    "parse_version",
+]
