@@ -42,7 +42,7 @@ class FeatureConfig:
         if self.long_side is not None and (not isinstance(self.long_side, int) or self.long_side < 32):
             raise ConfigError(f"long_side must be None or an integer >= 32, got {self.long_side!r}")
         if self.rootsift and "rootsift" not in spec.options:
-            raise ConfigError("rootsift applies to SIFT features only")
+            raise ConfigError(f"rootsift applies to SIFT features only, not to {self.kind!r}")
 
     @property
     def spec(self) -> FeatureKind:
