@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from aefabmap.errors import ConfigError, InputError
+from aefabmap.runtime.core.feature_kinds import get_kind
 
 SCALINGS = ("minmax", "none")
 
@@ -43,7 +44,7 @@ class AeConfig:
     widths: conv widths of the encoder stages; each stage is a Conv+BN+ReLU pair
         followed by a 2x max-pool, so D must be divisible by 2 ** len(widths).
     scaling: "minmax" (per-row min-max to [0,1]), "none" (input already in [0,1]),
-        or None -> "minmax" for SIFT, "none" for ORB.
+        or None -> the feature kind's `ae_scaling` ("minmax" for SIFT, "none" for ORB bits).
     max_epochs: upper bound on passes over the training split.
     max_descriptors: training vectors are subsampled (seeded) to at most this many.
     batch_size, learning_rate, weight_decay: Adam settings.
@@ -87,15 +88,16 @@ class AeConfig:
 
     def resolved(self, descriptor_length: int, feature_kind: str) -> "AeConfig":
         """Fill the None defaults for a descriptor length / feature kind; checks compatibility."""
-        if feature_kind not in ("orb", "sift"):
-            raise ConfigError(f"feature kind must be 'orb' or 'sift', got {feature_kind!r}")
+        kind = get_kind(feature_kind)  # ConfigError for an unknown kind
+        if descriptor_length != kind.vector_length:
+            raise ConfigError(f"{kind.name} descriptor vectors have length {kind.vector_length}, got {descriptor_length}")
         factor = 2 ** len(self.widths)
         if descriptor_length % factor:
             raise ConfigError(
                 f"descriptor length {descriptor_length} is not divisible by 2**len(widths) = {factor}"
             )
         latent = self.latent_dim if self.latent_dim is not None else descriptor_length // 2
-        scaling = self.scaling if self.scaling is not None else ("none" if feature_kind == "orb" else "minmax")
+        scaling = self.scaling if self.scaling is not None else kind.ae_scaling
         return AeConfig(**{**asdict(self), "latent_dim": latent, "scaling": scaling, "widths": tuple(self.widths)})
 
     def to_dict(self) -> dict:

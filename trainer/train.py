@@ -15,11 +15,8 @@ from aefabmap.errors import ConfigError, DataNotFoundError, InputError
 from aefabmap.export.bundle_writer import write_bundle
 from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
-from aefabmap.runtime.core.features import (
-    FeatureConfig,
-    FeatureExtractor,
-    descriptor_vectors,
-)
+from aefabmap.runtime.core.feature_kinds import FeatureKind
+from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.trainer.chow_liu import fit_chow_liu
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
@@ -75,15 +72,16 @@ def find_training_images(dirs) -> list[Path]:
 
 
 def extract_training_vectors(files: list[Path], features: FeatureConfig, show_progress: bool = True) -> list[np.ndarray]:
-    """Descriptor vectors (n_i, D) float32 of every training image (unreadable images are an error)."""
+    """Raw descriptors (n_i, width) of every training image (unreadable images are an error).
+
+    Kept in the kind's raw form (binary kinds stay packed: 32 bytes for ORB instead of 1 KiB of
+    float bits) and turned into descriptor vectors per use (`FeatureKind.vectors`).
+    """
     extractor = FeatureExtractor(features)
-    out = []
-    for f in tqdm(files, desc="features", disable=not show_progress, mininterval=1.0):
-        feats = extractor.extract(load_image(f))
-        raw = feats.descriptors
-        # ORB stays packed (32 bytes) in memory; unpacked per use.
-        out.append(raw if features.kind == "orb" else descriptor_vectors(raw, "sift"))
-    return out
+    return [
+        extractor.extract(load_image(f)).descriptors
+        for f in tqdm(files, desc="features", disable=not show_progress, mininterval=1.0)
+    ]
 
 
 def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_dir: Path | None, show_progress: bool) -> list[np.ndarray]:
@@ -105,19 +103,14 @@ def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_di
     per_image = extract_training_vectors(files, features, show_progress)
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
     tmp = entry.with_suffix(".tmp.npz")
-    width = 32 if features.kind == "orb" else 128
-    flat = np.concatenate(per_image) if per_image else np.zeros((0, width))
+    flat = np.concatenate(per_image) if per_image else features.spec.empty()
     np.savez(tmp, descriptors=flat, counts=np.array([len(a) for a in per_image]))
     tmp.replace(entry)
     return per_image
 
 
-def _vectors(raw: np.ndarray, kind: str) -> np.ndarray:
-    return descriptor_vectors(raw, kind) if kind == "orb" else raw
-
-
-def sample_vectors(per_image: list[np.ndarray], kind: str, n: int, seed: int) -> np.ndarray:
-    """Up to n descriptor vectors drawn uniformly (seeded) from all training images."""
+def sample_vectors(per_image: list[np.ndarray], kind: FeatureKind, n: int, seed: int) -> np.ndarray:
+    """Up to n descriptor vectors (the kind's vector form) drawn uniformly (seeded) from all training images."""
     counts = np.array([len(a) for a in per_image])
     total = int(counts.sum())
     if total == 0:
@@ -127,7 +120,7 @@ def sample_vectors(per_image: list[np.ndarray], kind: str, n: int, seed: int) ->
     offsets = np.concatenate([[0], np.cumsum(counts)])
     img = np.searchsorted(offsets, pick, side="right") - 1
     rows = [per_image[i][k - offsets[i]] for i, k in zip(img.tolist(), pick.tolist())]
-    return _vectors(np.stack(rows), kind)
+    return kind.vectors(np.stack(rows))
 
 
 @dataclass
@@ -142,7 +135,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
     t_start = time.perf_counter()
     timings = {}
     files = find_training_images(config.images)
-    kind = config.features.kind
+    kind = config.features.spec
     t0 = time.perf_counter()
     per_image = cached_training_vectors(files, config.features, config.cache_dir, config.show_progress)
     timings["features_s"] = time.perf_counter() - t0
@@ -172,7 +165,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                 sample,
                 words=config.words,
                 seed=config.seed,
-                feature_kind=kind,
+                feature_kind=kind.name,
                 out_dir=Path(work),
                 config=AeConfig(
                     max_epochs=config.ae_epochs,
@@ -190,7 +183,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
         timings["vocabulary_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         observations = [
-            np.unique(quantizer.quantize(_vectors(raw, kind))) if len(raw) else np.zeros(0, np.int64)
+            np.unique(quantizer.quantize(kind.vectors(raw))) if len(raw) else np.zeros(0, np.int64)
             for raw in tqdm(per_image, desc="quantise", disable=not config.show_progress, mininterval=1.0)
         ]
         timings["quantise_s"] = time.perf_counter() - t0

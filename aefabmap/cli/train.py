@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from aefabmap.runtime.core.features import FEATURE_KINDS, FeatureConfig
+from aefabmap.runtime.core.feature_kinds import kind_names
+from aefabmap.runtime.core.features import FeatureConfig
 
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a model bundle from image directories")
     p.add_argument("--images", nargs="+", required=True, type=Path, metavar="DIR", help="training image directories (recursive)")
-    p.add_argument("--features", choices=FEATURE_KINDS, default="orb")
+    p.add_argument("--features", choices=kind_names(), default="orb")
     p.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
     p.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
     p.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")

@@ -16,14 +16,10 @@ import numpy as np
 from aefabmap.errors import ConfigError, InputError
 from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.fabmap import FabMap2
-from aefabmap.runtime.core.features import (
-    FeatureConfig,
-    FeatureExtractor,
-    Features,
-    descriptor_vectors,
-)
+from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
 from aefabmap.runtime.core.messages import FrameResult  # the result record lives with the wire messages
+from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Scorer
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.tree import ChowLiuTree
 from aefabmap.runtime.core.verification import (
@@ -55,7 +51,6 @@ class DetectorModel(Protocol):
 
 
 SCORERS = ("fabmap", "bow")
-FABMAP_SCORES = ("probability", "llr")
 
 
 @dataclass(frozen=True)
@@ -75,7 +70,7 @@ class DetectorConfig:
     max_places: hard cap of the map in places (None: unbounded).
     memory_mb: hard cap of the map's memory in MiB, as accounted by `map_bytes()` (None: unbounded).
         When either cap is reached the place least recently inserted or matched as a loop
-        is evicted before a new one is added.
+        is evicted before a new one is added (with either scorer).
     verification: geometric verification of the best candidates (runtime/core/verification.py);
         on by default. When enabled, `loop` means "verified" and loop_threshold is not used:
         the top_k places by FAB-MAP log-likelihood (or BoW similarity) are checked whatever
@@ -114,8 +109,6 @@ class DetectorConfig:
             raise ConfigError(f"memory_mb must be > 0, got {self.memory_mb}")
         if self.fabmap_score not in FABMAP_SCORES:
             raise ConfigError(f"fabmap_score must be one of {FABMAP_SCORES}, got {self.fabmap_score!r}")
-        if (self.max_places is not None or self.memory_mb is not None) and self.scorer != "fabmap":
-            raise ConfigError("max_places / memory_mb are supported with the fabmap scorer only")
         if self.threads < 1:
             raise ConfigError(f"threads must be >= 1, got {self.threads}")
         if not isinstance(self.verification, VerificationConfig):
@@ -135,9 +128,12 @@ class LoopClosureDetector:
         c = self.config
         self.extractor = FeatureExtractor(bundle.features)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
+        self.kind = bundle.features.spec
         det = bundle.detector
+        # The one place that knows which scorer it is (runtime/core/scorer.py).
+        self.scorer: Scorer
         if c.scorer == "fabmap":
-            self.fabmap: FabMap2 | None = FabMap2(
+            fabmap = FabMap2(
                 bundle.tree,
                 bundle.training_observations,
                 pzge=det["pzge"],
@@ -146,16 +142,14 @@ class LoopClosureDetector:
                 naive_bayes=c.naive_bayes,
                 motion_model=c.motion_model,
             )
-            self.bow = None
+            self.scorer = FabMapScorer(fabmap, c.fabmap_score)
         else:
-            self.fabmap = None
-            self.bow = BowIndex(bundle.vocabulary_size, bundle.training_observations)
+            self.scorer = BowScorer(BowIndex(bundle.vocabulary_size, bundle.training_observations))
         self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
         v = c.verification
         self.store: KeypointStore | None = None
         if v.enabled:
-            desc_bytes = 32 if bundle.features.kind == "orb" else 128
-            self.store = KeypointStore(desc_bytes, bundle.vocabulary_size, v.max_keypoints)
+            self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.max_keypoints)
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)
@@ -172,9 +166,8 @@ class LoopClosureDetector:
 
     @property
     def n_places(self) -> int:
-        if self.fabmap is not None:
-            return self.fabmap.places.n_alive
-        return self.bow.n_places
+        """Places in the map now."""
+        return self.scorer.n_alive
 
     def last_scores(self) -> np.ndarray | None:
         """Scores of every place id (probability or similarity) from the last processed frame."""
@@ -188,7 +181,7 @@ class LoopClosureDetector:
         """Word id of every keypoint (N,) int32 (repeats kept)."""
         if len(features) == 0:
             return np.zeros(0, np.int32)
-        return self.quantizer.quantize(descriptor_vectors(features.descriptors, self.bundle.features.kind))
+        return self.quantizer.quantize(self.kind.vectors(features.descriptors))
 
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""
@@ -230,22 +223,9 @@ class LoopClosureDetector:
                 if pending_kps is not None:
                     self.store.put(inserted_place, pending_kps)
         uniq = np.unique(words)
-        probability = llr = None
-        if self.fabmap is not None:
-            loc = self.fabmap.localize(uniq, add=False)
-            best, p_new = loc.best_place, loc.p_new
-            if best is not None:
-                probability = loc.best_probability
-                llr = float(loc.loglik[best] - loc.loglik_new)
-            score = (llr if self.config.fabmap_score == "llr" else probability) if best is not None else 0.0
-            self._last_scores = loc.p_places
-            ranking = loc.loglik
-        else:
-            sims = self.bow.similarity(words)
-            best = int(np.argmax(sims)) if sims.size else None
-            score, p_new = (float(sims[best]) if best is not None else 0.0), None
-            self._last_scores = sims
-            ranking = sims
+        ranked = self.scorer.rank(words)
+        best, score = ranked.best, ranked.score
+        self._last_scores = ranked.scores
         loop = best is not None and score >= self.config.loop_threshold
         check = None
         query_kps = None
@@ -255,12 +235,12 @@ class LoopClosureDetector:
                     raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
                 query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape)
             t0 = time.perf_counter()
-            check = self._verify(features, words, ranking, seq)
+            check = self._verify(features, words, ranked.order, seq)
             check.timing_ms = (time.perf_counter() - t0) * 1e3
             loop = check.verified
         if loop:
             self._last_used[check.place if check is not None else best] = seq
-        self._pending.append((seq, words if self.bow is not None else uniq, query_kps))
+        self._pending.append((seq, words, query_kps))
         res = FrameResult(
             sequence=seq,
             stamp_ns=int(stamp_ns),
@@ -269,15 +249,15 @@ class LoopClosureDetector:
             best_place=best,
             best_frame=int(self._place_frame[best]) if best is not None else None,
             score=float(score),
-            p_new=p_new,
+            p_new=ranked.p_new,
             loop=bool(loop),
-            probability=probability,
-            llr=llr,
+            probability=ranked.probability,
+            llr=ranked.llr,
             inserted_frame=inserted_frame,
             inserted_place=inserted_place,
             evicted_place=evicted,
             n_places=self.n_places,
-            score_kind=self.config.fabmap_score if self.fabmap is not None else "similarity",
+            score_kind=self.config.fabmap_score if self.config.scorer == "fabmap" else "similarity",
         )
         if check is not None:
             check.fill(res, self._place_frame)
@@ -309,7 +289,7 @@ class LoopClosureDetector:
                     return False
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
-                                place.image_shape, v, bruteforce=bruteforce)
+                                place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance)
                 if check.best is None or g.verified or g.inliers > check.best.inliers:
                     check.best, check.best_place, check.source = g, int(pid), source
                 return g.verified
@@ -359,10 +339,10 @@ class LoopClosureDetector:
         return any(attempt(int(p), "island") for p in pids if int(p) != pid)
 
     def _id_range(self) -> int:
-        return self.fabmap.n_places if self.fabmap is not None else self.bow.n_places
+        return self.scorer.n_places
 
     def _insert(self, words: np.ndarray, frame: int) -> int:
-        pid = self.fabmap.add(words) if self.fabmap is not None else self.bow.add(words)
+        pid = self.scorer.add(words)
         if pid >= self._last_used.size:
             grow = max(64, self._last_used.size)
             self._last_used = np.concatenate([self._last_used, np.full(grow, -1, np.int64)])
@@ -377,7 +357,7 @@ class LoopClosureDetector:
         The one place where per-place memory is accounted: whatever else is kept per place
         (e.g. keypoints for verification) must be added here so that memory_mb holds.
         """
-        index = self.fabmap.nbytes() if self.fabmap is not None else 0
+        index = self.scorer.nbytes()
         kps = self.store.nbytes() if self.store is not None else 0
         return index + self._last_used.nbytes + self._place_frame.nbytes + kps
 
@@ -394,11 +374,11 @@ class LoopClosureDetector:
     def _make_room(self) -> int | None:
         """Evict least-recently-used places until one more fits; returns the last evicted id."""
         evicted = None
-        while self.fabmap is not None and self.n_places > 0 and self._over_budget():
-            alive = self.fabmap.places.alive
+        while self.n_places > 0 and self._over_budget():
+            alive = self.scorer.alive
             used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
             evicted = int(np.argmin(used))
-            self.fabmap.remove(evicted)
+            self.scorer.remove(evicted)
             if self.store is not None:
                 self.store.remove(evicted)
         return evicted

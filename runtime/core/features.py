@@ -1,8 +1,9 @@
-"""Local feature extraction (ORB, SIFT, RootSIFT) and the descriptor-vector contract.
+"""Local feature extraction (ORB, SIFT, RootSIFT, any registered kind) and the descriptor-vector contract.
 
 Every quantiser consumes *descriptor vectors*: float32 arrays of shape (N, D) where
 ORB's 32 bytes are unpacked to D = 256 bits in {0, 1} and SIFT gives D = 128 floats
-(L2-normalised, or RootSIFT: L1-normalised then square-rooted, so L2 norm 1).
+(L2-normalised, or RootSIFT: L1-normalised then square-rooted, so L2 norm 1). What each kind
+is (widths, dtype, distance, vector form, extractor) is declared in feature_kinds.py.
 """
 
 from __future__ import annotations
@@ -13,16 +14,15 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError, InputError
-
-FEATURE_KINDS = ("orb", "sift")
-
+from aefabmap.runtime.core.feature_kinds import FeatureKind, get_kind
 
 
 @dataclass(frozen=True)
 class FeatureConfig:
     """Settings of the local feature extractor.
 
-    kind: "orb" (binary, 256 bits) or "sift" (float, 128-D).
+    kind: a registered feature kind (feature_kinds.py): "orb" (binary, 256 bits) or
+        "sift" (float, 128-D) built in.
     max_features: keypoints kept per image (strongest first).
     long_side: the image is resized so that its longer side has this many pixels
         (up or down) before detection, so that datasets of different resolutions
@@ -36,19 +36,23 @@ class FeatureConfig:
     rootsift: bool = False
 
     def __post_init__(self) -> None:
-        if self.kind not in FEATURE_KINDS:
-            raise ConfigError(f"feature kind must be one of {FEATURE_KINDS}, got {self.kind!r}")
+        spec = get_kind(self.kind)
         if not isinstance(self.max_features, int) or self.max_features < 1:
             raise ConfigError(f"max_features must be a positive integer, got {self.max_features!r}")
         if self.long_side is not None and (not isinstance(self.long_side, int) or self.long_side < 32):
             raise ConfigError(f"long_side must be None or an integer >= 32, got {self.long_side!r}")
-        if self.rootsift and self.kind != "sift":
-            raise ConfigError("rootsift applies to SIFT features only")
+        if self.rootsift and "rootsift" not in spec.options:
+            raise ConfigError(f"rootsift applies to SIFT features only, not to {self.kind!r}")
+
+    @property
+    def spec(self) -> FeatureKind:
+        """The registered FeatureKind of `kind`."""
+        return get_kind(self.kind)
 
     @property
     def descriptor_length(self) -> int:
         """Length D of the descriptor vectors the quantiser sees."""
-        return 256 if self.kind == "orb" else 128
+        return self.spec.vector_length
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -66,7 +70,8 @@ class Features:
     keypoints: (N, 2) float32, x, y in pixels of the ORIGINAL image.
     sizes: (N,) float32 keypoint diameters in original pixels.
     angles: (N,) float32 orientations in degrees (-1 when undefined).
-    descriptors: raw descriptors, (N, 32) uint8 for ORB, (N, 128) float32 for SIFT.
+    descriptors: raw descriptors (N, width) of the kind's dtype: (N, 32) uint8 for ORB,
+        (N, 128) float32 for SIFT.
     image_shape: (height, width) of the original image.
     """
 
@@ -96,15 +101,12 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 class FeatureExtractor:
-    """Deterministic ORB/SIFT extractor for one FeatureConfig (not thread-safe)."""
+    """Deterministic extractor (the kind's OpenCV detector) for one FeatureConfig (not thread-safe)."""
 
     def __init__(self, config: FeatureConfig | None = None) -> None:
         self.config = config or FeatureConfig()
-        c = self.config
-        if c.kind == "orb":
-            self._detector = cv2.ORB_create(nfeatures=c.max_features)
-        else:
-            self._detector = cv2.SIFT_create(nfeatures=c.max_features)
+        self.kind = self.config.spec
+        self._detector = self.kind.create(self.config.max_features)
 
     def extract(self, image: np.ndarray) -> Features:
         """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array."""
@@ -127,13 +129,11 @@ class FeatureExtractor:
         c = self.config
         n = 0 if desc is None else len(kps)
         if n == 0:
-            width = 32 if c.kind == "orb" else 128
-            dtype = np.uint8 if c.kind == "orb" else np.float32
             return Features(
                 np.zeros((0, 2), np.float32),
                 np.zeros(0, np.float32),
                 np.zeros(0, np.float32),
-                np.zeros((0, width), dtype),
+                self.kind.empty(),
                 (int(shape[0]), int(shape[1])),
             )
         # Strongest first, ties broken by position: a fixed order for fixed input.
@@ -143,24 +143,10 @@ class FeatureExtractor:
         pts = pts[order] / scale
         sizes = np.array([kps[i].size for i in order], np.float32) / scale
         angles = np.array([kps[i].angle for i in order], np.float32)
-        desc = desc[order]
-        if c.kind == "sift":
-            desc = desc.astype(np.float32)
-            if c.rootsift:
-                desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12))
-            else:
-                desc = desc / np.maximum(np.linalg.norm(desc, axis=1, keepdims=True), 1e-12)
-        return Features(pts, sizes, angles, np.ascontiguousarray(desc), (int(shape[0]), int(shape[1])))
+        desc = self.kind.finish(desc[order], c.rootsift)
+        return Features(pts, sizes, angles, desc, (int(shape[0]), int(shape[1])))
 
 
 def descriptor_vectors(descriptors: np.ndarray, kind: str) -> np.ndarray:
-    """Raw descriptors -> float32 (N, D) vectors: ORB bytes unpacked to bits, SIFT unchanged."""
-    if kind == "orb":
-        if descriptors.dtype != np.uint8 or descriptors.ndim != 2 or descriptors.shape[1] != 32:
-            raise InputError(f"ORB descriptors must be (N, 32) uint8, got {descriptors.shape} {descriptors.dtype}")
-        return np.unpackbits(descriptors, axis=1).astype(np.float32)
-    if kind == "sift":
-        if descriptors.ndim != 2 or descriptors.shape[1] != 128:
-            raise InputError(f"SIFT descriptors must be (N, 128), got {descriptors.shape}")
-        return np.ascontiguousarray(descriptors, dtype=np.float32)
-    raise ConfigError(f"unknown feature kind {kind!r}")
+    """Raw descriptors -> float32 (N, D) vectors in the kind's declared form (ORB: bits)."""
+    return get_kind(kind).vectors(descriptors)

@@ -8,8 +8,9 @@ field     type              meaning
 xy        2 x uint16        position as a fraction of the image's longer side, in
                             units of 1/65535 (0.01 px at 640 px, 0.06 px at 4000 px)
 word      uint16 / int32    visual word id (uint16 when the vocabulary has <= 65536 words)
-desc      32 / 128 x uint8  ORB bytes as extracted; SIFT rescaled per row to uint8
-                            (see verification.compress_descriptors)
+desc      B x uint8         the feature kind's store form (FeatureKind.compress):
+                            ORB's 32 bytes as extracted; SIFT's 128 floats rescaled
+                            per row to uint8
 ========= ================= =========================================================
 
 So an ORB keypoint costs 4 + 2 + 32 = 38 bytes (500 keypoints: 19 000 bytes per place) and a
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core.verification import compress_descriptors
+from aefabmap.runtime.core.feature_kinds import FeatureKind
 
 # numpy array header (~112 B) + PlaceKeypoints object + dict slot + shape tuple, rounded up.
 PLACE_OVERHEAD_BYTES = 256
@@ -69,17 +70,18 @@ class PlaceKeypoints:
 class KeypointStore:
     """place id -> PlaceKeypoints, with a running byte count.
 
-    descriptor_bytes: 32 (ORB) or 128 (SIFT) bytes per stored descriptor.
+    kind: the FeatureKind of the descriptors: their store form and bytes (`store_bytes`).
     vocabulary_size: decides the word-id type (uint16 up to 65536 words, else int32).
     max_keypoints: keep at most this many keypoints per place (the first ones: the extractor
         orders them strongest first); None keeps all.
     """
 
-    def __init__(self, descriptor_bytes: int, vocabulary_size: int, max_keypoints: int | None = None) -> None:
-        if descriptor_bytes not in (32, 128):
-            raise InputError(f"descriptor_bytes must be 32 (ORB) or 128 (SIFT), got {descriptor_bytes}")
+    def __init__(self, kind: FeatureKind, vocabulary_size: int, max_keypoints: int | None = None) -> None:
+        if not isinstance(kind, FeatureKind):
+            raise InputError(f"kind must be a FeatureKind, got {type(kind).__name__}")
+        self.kind = kind
         word_type = np.uint16 if vocabulary_size <= 65536 else np.int32
-        self.dtype = np.dtype([("xy", np.uint16, (2,)), ("word", word_type), ("desc", np.uint8, (descriptor_bytes,))])
+        self.dtype = np.dtype([("xy", np.uint16, (2,)), ("word", word_type), ("desc", np.uint8, (kind.store_bytes,))])
         self.max_keypoints = max_keypoints
         self._places: dict[int, PlaceKeypoints] = {}
         self._nbytes = 0
@@ -92,7 +94,7 @@ class KeypointStore:
         """Build the store form of one frame (not yet stored; see `put`).
 
         keypoints: (N, 2) float positions in original pixels; words: (N,) ids;
-        descriptors: (N, 32) uint8 or (N, 128) float32; image_shape: (height, width).
+        descriptors: (N, width) raw descriptors of the store's kind; image_shape: (height, width).
         """
         n = int(keypoints.shape[0])
         if words.shape[0] != n or descriptors.shape[0] != n:
@@ -105,7 +107,7 @@ class KeypointStore:
             scale = _XY_SCALE / max(max(shape), 1)
             rec["xy"] = np.clip(np.rint(np.asarray(keypoints[:n], np.float64) * scale), 0, _XY_SCALE)
             rec["word"] = words[:n]
-            rec["desc"] = compress_descriptors(descriptors[:n])
+            rec["desc"] = self.kind.compress(descriptors[:n])
         return PlaceKeypoints(rec, shape)
 
     def put(self, place_id: int, place: PlaceKeypoints) -> None:

@@ -37,11 +37,12 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
+from aefabmap.runtime.core.feature_kinds import DISTANCES
 
 GEOMETRY_METHODS = ("magsac", "ransac")
 MODELS = ("F", "H")
 
-# popcount of every byte value: Hamming distance of ORB descriptors via a table look-up.
+# popcount of every byte value: Hamming distance of binary descriptors via a table look-up.
 _POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.uint16)
 
 
@@ -70,8 +71,9 @@ class VerificationConfig:
         brute-force matching: it returns more chance matches than same-word matching, so
         unrelated training pairs reach more chance inliers (see the README) and need their own,
         higher bars.
-    max_hamming: ORB: largest Hamming distance (bits of 256) of a match.
-    max_l2: SIFT: largest L2 distance of (unit-norm) descriptors of a match.
+    max_hamming: binary kinds: largest Hamming distance of a match, in bits per 256 (ORB's
+        length; a binary kind of B bits gets max_hamming * B / 256).
+    max_l2: float kinds (SIFT): largest L2 distance of (unit-norm) descriptors of a match.
     reference_long_side: geometry runs in coordinates where the image's longer side is this
         many units, so thresholds do not depend on the camera resolution.
     method: "magsac" (cv2.USAC_MAGSAC) or "ransac" (cv2.FM_RANSAC / cv2.RANSAC).
@@ -190,7 +192,7 @@ class GeometryResult:
 
 
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distance between rows a[k] and b[k] of two (P, 32) uint8 arrays -> (P,) int32."""
+    """Hamming distance between rows a[k] and b[k] of two (P, B) uint8 arrays -> (P,) int32."""
     return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int32)
 
 
@@ -211,34 +213,45 @@ def _same_word_pairs(q_words: np.ndarray, p_words: np.ndarray) -> tuple[np.ndarr
     return qi, pi.astype(np.int64)
 
 
+def _distance_cap(distance: str, desc: np.ndarray, c: VerificationConfig) -> float:
+    """The match distance cap of one descriptor family (see max_hamming / max_l2)."""
+    if distance not in DISTANCES:
+        raise ConfigError(f"descriptor distance must be one of {DISTANCES}, got {distance!r}")
+    if distance == "hamming":
+        return float(c.max_hamming) * (8 * desc.shape[-1]) / 256.0
+    return float(c.max_l2)
+
+
 def match_keypoints(
     q_words: np.ndarray,
     q_desc: np.ndarray,
     p_words: np.ndarray,
     p_desc: np.ndarray,
     config: VerificationConfig | None = None,
+    *,
+    distance: str,
 ) -> np.ndarray:
     """Putative matches between a query and a place, restricted to shared visual words.
 
-    q_words (N,), p_words (M,): word ids; q_desc (N, 32) uint8 ORB or (N, 128) SIFT (float32,
-    or uint8 as stored, see `compress_descriptors`); p_desc likewise (M, ...).
+    q_words (N,), p_words (M,): word ids; q_desc (N, B) raw descriptors (binary kinds: uint8;
+    float kinds: float32, or uint8 in store form, see FeatureKind.compress); p_desc likewise
+    (M, B). distance: the feature kind's distance, "hamming" or "l2" (FeatureKind.distance).
     Returns (K, 2) int64 rows (query index, place index): mutual nearest neighbours among
     same-word keypoints that pass the distance cap and the ratio test.
     """
     c = config or VerificationConfig()
+    cap = _distance_cap(distance, q_desc, c)
     if q_words.size == 0 or p_words.size == 0:
         return np.zeros((0, 2), np.int64)
     qi, pi = _same_word_pairs(np.asarray(q_words, np.int64), np.asarray(p_words, np.int64))
     if qi.size == 0:
         return np.zeros((0, 2), np.int64)
-    if q_desc.dtype == np.uint8 and q_desc.shape[1] == 32:
+    if distance == "hamming":
         dist = hamming_rows(q_desc[qi], p_desc[pi]).astype(np.float32)
-        cap = float(c.max_hamming)
     else:
         dq = _as_unit_float(q_desc[qi])
         dp = _as_unit_float(p_desc[pi])
         dist = np.sqrt(np.maximum(((dq - dp) ** 2).sum(axis=1), 0.0)).astype(np.float32)
-        cap = float(c.max_l2)
     # Sort pairs by (query, distance): the first pair of each query is its nearest neighbour.
     order = np.lexsort((dist, qi))
     qi, pi, dist = qi[order], pi[order], dist[order]
@@ -260,8 +273,10 @@ def match_keypoints(
     return np.stack([best_q[first], best_p[first]], axis=1)
 
 
-def match_all(q_desc: np.ndarray, p_desc: np.ndarray, config: VerificationConfig | None = None) -> np.ndarray:
-    """Putative matches over all keypoint pairs (no word restriction).
+def match_all(
+    q_desc: np.ndarray, p_desc: np.ndarray, config: VerificationConfig | None = None, *, distance: str
+) -> np.ndarray:
+    """Putative matches over all keypoint pairs (no word restriction); distance as `match_keypoints`.
 
     Each query keypoint's two nearest place keypoints (one OpenCV batchDistance pass), the
     distance cap and the ratio test, then each place keypoint keeps only its closest query
@@ -269,14 +284,13 @@ def match_all(q_desc: np.ndarray, p_desc: np.ndarray, config: VerificationConfig
     mutual check would double the cost). Returns (K, 2) int64 rows (query index, place index).
     """
     c = config or VerificationConfig()
+    cap = _distance_cap(distance, q_desc, c)
     if q_desc.shape[0] == 0 or p_desc.shape[0] < 2:
         return np.zeros((0, 2), np.int64)
-    if q_desc.dtype == np.uint8 and q_desc.shape[1] == 32:
-        a, b, norm, cap = np.ascontiguousarray(q_desc), np.ascontiguousarray(p_desc), cv2.NORM_HAMMING, float(c.max_hamming)
-        dtype = cv2.CV_32S
+    if distance == "hamming":
+        a, b, norm, dtype = np.ascontiguousarray(q_desc), np.ascontiguousarray(p_desc), cv2.NORM_HAMMING, cv2.CV_32S
     else:
-        a, b, norm, cap = _as_unit_float(q_desc), _as_unit_float(p_desc), cv2.NORM_L2, float(c.max_l2)
-        dtype = cv2.CV_32F
+        a, b, norm, dtype = _as_unit_float(q_desc), _as_unit_float(p_desc), cv2.NORM_L2, cv2.CV_32F
     # OpenCV's batchDistance: vectorised popcount / L2, the two nearest per query row.
     d2, i2 = cv2.batchDistance(a, b, dtype, normType=norm, K=2)
     d2 = d2.astype(np.float32)
@@ -296,19 +310,6 @@ def _as_unit_float(desc: np.ndarray) -> np.ndarray:
     """Descriptors (float or stored uint8) -> float32 rows of unit L2 norm."""
     d = desc.astype(np.float32)
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-
-
-def compress_descriptors(desc: np.ndarray) -> np.ndarray:
-    """Store form of descriptors: ORB unchanged (N, 32) uint8; SIFT/RootSIFT (N, 128) float -> uint8.
-
-    Unit-norm float descriptors are scaled so their largest component maps to 255 per row
-    (matching renormalises, so a per-row scale loses nothing but rounding: 128 B instead of 512 B).
-    """
-    if desc.dtype == np.uint8:
-        return np.ascontiguousarray(desc)
-    d = np.asarray(desc, np.float32)
-    peak = np.maximum(d.max(axis=1, keepdims=True), 1e-12)
-    return np.clip(np.rint(d / peak * 255.0), 0, 255).astype(np.uint8)
 
 
 def grid_spread(points: np.ndarray, shape_hw: tuple[float, float], grid: int) -> float:
@@ -449,21 +450,24 @@ def verify_pair(
     shape_p: tuple[int, int],
     config: VerificationConfig | None = None,
     bruteforce: bool = False,
+    *,
+    distance: str,
 ) -> GeometryResult:
     """Match a query with one place and verify the geometry.
 
     q_xy (N, 2) / p_xy (M, 2): keypoint positions in original pixels; *_words: word ids;
-    *_desc: descriptors (see `match_keypoints`); shape_*: (height, width) of each image.
+    *_desc: descriptors and distance: the feature kind's ("hamming" | "l2", see
+    `match_keypoints`); shape_*: (height, width) of each image.
     bruteforce: when same-word matching does not pass, retry with all-pairs matching.
     """
     c = config or VerificationConfig()
-    pairs = match_keypoints(q_words, q_desc, p_words, p_desc, c)
+    pairs = match_keypoints(q_words, q_desc, p_words, p_desc, c, distance=distance)
     res = GeometryResult()
     if pairs.shape[0]:
         res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
     if res.verified or not bruteforce:
         return res
-    pairs = match_all(q_desc, p_desc, c)
+    pairs = match_all(q_desc, p_desc, c, distance=distance)
     if pairs.shape[0] == 0:
         return res
     cb = replace(c, min_inliers=c.min_inliers_bf, min_inliers_h=c.min_inliers_h_bf)

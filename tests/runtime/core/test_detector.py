@@ -50,7 +50,7 @@ def test_max_places_evicts_least_recently_used(synthetic_bundle):
         r = det.process_words(w)
         assert det.n_places <= 5
     assert r.evicted_place is not None
-    assert det.fabmap.n_places == 5  # freed ids are reused: no growth of the id range
+    assert det.scorer.n_places == 5  # freed ids are reused: no growth of the id range
 
 
 def test_memory_cap_holds_over_a_long_run(tmp_path):
@@ -76,8 +76,6 @@ def test_empty_frames_still_get_results(synthetic_bundle):
 def test_bad_config():
     with pytest.raises(ConfigError):
         DetectorConfig(scorer="dbow")
-    with pytest.raises(ConfigError):
-        DetectorConfig(scorer="bow", max_places=3)
     with pytest.raises(ConfigError):
         DetectorConfig(memory_mb=0)
     with pytest.raises(ConfigError):

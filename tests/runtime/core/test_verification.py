@@ -10,12 +10,12 @@ import pytest
 
 from aefabmap import ConfigError
 from aefabmap.runtime.adapters.frames import load_image
+from aefabmap.runtime.core.feature_kinds import get_kind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.keypoint_store import PLACE_OVERHEAD_BYTES, KeypointStore
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.verification import (
     VerificationConfig,
-    compress_descriptors,
     estimate_geometry,
     hamming_rows,
     match_keypoints,
@@ -60,7 +60,7 @@ def test_warped_texture_verifies_and_returns_the_homography(extractor):
     query = cv2.warpPerspective(place, PERSPECTIVE, (place.shape[1], place.shape[0]))
     fp, fq = extractor.extract(place), extractor.extract(query)
     g = verify_pair(fq.keypoints, one_word(fq), fq.descriptors, fq.image_shape,
-                    fp.keypoints, one_word(fp), fp.descriptors, fp.image_shape, VerificationConfig())
+                    fp.keypoints, one_word(fp), fp.descriptors, fp.image_shape, VerificationConfig(), distance="hamming")
     assert g.verified and g.inliers >= 50 and g.model == "H"
     # The matrix maps the place image to the query image in pixels: compare with the warp.
     pts = np.array([[100.0, 100.0, 1.0], [300.0, 200.0, 1.0], [200.0, 300.0, 1.0]])
@@ -75,7 +75,7 @@ def test_unrelated_textures_do_not_verify(extractor):
     for a, b in [(1, 2), (3, 4), (5, 6)]:
         fa, fb = extractor.extract(texture(a)), extractor.extract(texture(b))
         g = verify_pair(fa.keypoints, one_word(fa), fa.descriptors, fa.image_shape,
-                        fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg)
+                        fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg, distance="hamming")
         assert not g.verified and g.inliers < cfg.min_inliers_h
 
 
@@ -103,14 +103,14 @@ def test_matching_is_restricted_to_words_mutual_and_ratio_tested():
     rng = np.random.default_rng(0)
     desc = rng.integers(0, 256, (50, 32), dtype=np.uint8)
     words = np.arange(50) % 5
-    pairs = match_keypoints(words, desc, words, desc.copy(), VerificationConfig())
+    pairs = match_keypoints(words, desc, words, desc.copy(), VerificationConfig(), distance="hamming")
     assert len(pairs) == 50 and np.array_equal(pairs[:, 0], pairs[:, 1])
     # Different words never match, even with identical descriptors.
-    assert len(match_keypoints(words, desc, (words + 1) % 5 + 10, desc, VerificationConfig())) == 0
+    assert len(match_keypoints(words, desc, (words + 1) % 5 + 10, desc, VerificationConfig(), distance="hamming")) == 0
     # Two equally near place descriptors: the ratio test rejects the ambiguous match.
     q = desc[:1]
     p = np.vstack([desc[:1], desc[:1]])
-    assert len(match_keypoints(np.zeros(1), q, np.zeros(2), p, VerificationConfig())) == 0
+    assert len(match_keypoints(np.zeros(1), q, np.zeros(2), p, VerificationConfig(), distance="hamming")) == 0
     assert np.array_equal(hamming_rows(desc[:3], desc[:3]), [0, 0, 0])
 
 
@@ -120,7 +120,7 @@ def test_too_few_matches_and_empty_inputs_do_not_verify():
     assert not g.verified and g.matches == 3
     empty = np.zeros((0, 2), np.float32)
     g = verify_pair(empty, np.zeros(0, np.int64), np.zeros((0, 32), np.uint8), (10, 10),
-                    empty, np.zeros(0, np.int64), np.zeros((0, 32), np.uint8), (10, 10), cfg)
+                    empty, np.zeros(0, np.int64), np.zeros((0, 32), np.uint8), (10, 10), cfg, distance="hamming")
     assert not g.verified
 
 
@@ -134,7 +134,7 @@ def test_config_is_validated():
 
 
 def test_keypoint_store_round_trip_and_bytes():
-    store = KeypointStore(32, vocabulary_size=2000, max_keypoints=300)
+    store = KeypointStore(get_kind("orb"), vocabulary_size=2000, max_keypoints=300)
     rng = np.random.default_rng(0)
     xy = rng.uniform(0, [640, 480], (500, 2)).astype(np.float32)
     words = rng.integers(0, 2000, 500)
@@ -155,9 +155,10 @@ def test_sift_descriptors_are_stored_as_bytes_and_still_match():
     rng = np.random.default_rng(1)
     d = rng.random((40, 128)).astype(np.float32)
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    c = compress_descriptors(d)
+    sift = get_kind("sift")
+    c = sift.compress(d)
     assert c.dtype == np.uint8 and c.shape == (40, 128)
-    pairs = match_keypoints(np.zeros(40), d, np.zeros(40), c, VerificationConfig(ratio=0.95))
+    pairs = match_keypoints(np.zeros(40), d, np.zeros(40), c, VerificationConfig(ratio=0.95), distance=sift.distance)
     assert len(pairs) == 40 and np.array_equal(pairs[:, 0], pairs[:, 1])
 
 
@@ -204,7 +205,7 @@ def test_store_is_in_map_bytes_and_evicted_places_leave_it(tmp_path):
     for s in range(20, 28):
         det.process(texture(s))
     assert len(det.store) == det.n_places == 3
-    assert set(det.store._places) <= set(np.flatnonzero(det.fabmap.places.alive))
+    assert set(det.store._places) <= set(np.flatnonzero(det.scorer.alive))
     assert det.map_bytes() >= base + det.store.nbytes() > base
 
 
@@ -252,7 +253,7 @@ def test_default_thresholds_on_training_street_pairs(train_images):
     def check(a, b):
         fa, fb = ex.extract(load_image(a)), ex.extract(load_image(b))
         return verify_pair(fa.keypoints, one_word(fa), fa.descriptors, fa.image_shape,
-                           fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg)
+                           fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg, distance="hamming")
 
     pos = [check(a, b).verified for a, b in positives]
     neg = [check(a, b) for a, b in negatives]
@@ -349,10 +350,10 @@ def test_bruteforce_retry_has_its_own_bars(extractor):
 
     def run(**kw):
         return verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
-                           fp.image_shape, VerificationConfig(**kw), bruteforce=True)
+                           fp.image_shape, VerificationConfig(**kw), bruteforce=True, distance="hamming")
 
     assert not verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
-                           fp.image_shape, VerificationConfig()).verified
+                           fp.image_shape, VerificationConfig(), distance="hamming").verified
     g = run()
     assert g.verified and g.inliers >= VerificationConfig().min_inliers_h_bf
     # The same matches against bars above their inlier count: rejected, although they clear
