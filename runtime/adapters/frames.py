@@ -26,8 +26,13 @@ import numpy as np
 from aefabmap.errors import ConfigError, ImageDecodeError, InputError
 from aefabmap.runtime.core.features import to_gray
 
-#: Reasons a frame is refused (the keys of the node's "bad" counters).
-BAD_FRAME_REASONS = ("corrupt", "empty", "wrong_encoding", "size_mismatch", "too_large", "not_image", "rejected")
+#: Reasons a frame is refused (the keys of the node's "bad" counters). ``bad_shape``: too
+#: small or too elongated for the feature extractor; ``bad_attachment``: the frame was used,
+#: but its Zenoh attachment (seq, stamp, source) was not (see zenoh_transport.FrameMeta).
+BAD_FRAME_REASONS = (
+    "corrupt", "empty", "wrong_encoding", "size_mismatch", "too_large", "bad_shape", "not_image", "rejected",
+    "bad_attachment",
+)
 
 #: Raw pixel formats: name -> bytes per pixel.
 RAW_FORMATS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4, "8UC4": 4}

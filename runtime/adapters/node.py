@@ -201,6 +201,7 @@ def run_node(
                 fps = (stats.frames_processed - last_stats_n) / max(now - last_stats_t, 1e-9)
                 last_stats_t, last_stats_n = now, stats.frames_processed
                 stats.dropped, stats.publisher_restarts = sub.drops.dropped, sub.drops.restarts
+                stats.bad["bad_attachment"] = sub.bad_attachments  # frames used, their attachment not
                 doc = stats.snapshot(now - t0, fps)
                 pub.publish_stats(doc)
                 log.write_stats(doc)
