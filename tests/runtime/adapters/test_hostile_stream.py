@@ -20,7 +20,13 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     open_session,
 )
 
-from .stream_fakes import FakeDetector, JsonCollector, NodeThread, sample_images, session_pair
+from .stream_fakes import (
+    FakeDetector,
+    JsonCollector,
+    NodeThread,
+    sample_images,
+    session_pair,
+)
 
 pytestmark = pytest.mark.timeout(90)
 KEY = "robot/camera/image"
