@@ -37,6 +37,8 @@ import zenoh
 
 from aefabmap.errors import ConfigError, TransportError
 
+#: Zenoh's customary port; the CLI's loopback default (see cli_session_config).
+DEFAULT_PORT = 7447
 RESULT_CHUNK = "lcd"
 STATS_SUFFIX = "stats"
 _ENDPOINT_RE = re.compile(r"^[a-z0-9\-]+/.+$")
@@ -49,7 +51,12 @@ class SessionConfig:
     connect / listen: endpoints such as ``tcp/127.0.0.1:7447``.
     config_file: a zenoh JSON5 config file loaded first; the fields below override it.
     mode: ``peer`` (default, no router needed), ``client`` or ``router``.
-    multicast_scouting: None = off when any endpoint is given, zenoh's default otherwise.
+    multicast_scouting: None = off, unless a config file is given and no endpoint (then the
+    file decides).
+
+    Exposure: without a config file the session listens on exactly ``listen`` (none: it
+    listens nowhere, where zenoh's own default would be every interface) and does not join
+    multicast scouting. See :func:`cli_session_config` for the CLI's loopback default.
     """
 
     connect: tuple[str, ...] = ()
@@ -112,16 +119,40 @@ def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
         conf.insert_json5("mode", json.dumps(sc.mode))
         if sc.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(sc.connect)))
-        if sc.listen:
+        if sc.listen or not sc.config_file:
             conf.insert_json5("listen/endpoints", json.dumps(list(sc.listen)))
         scouting = sc.multicast_scouting
-        if scouting is None and (sc.connect or sc.listen):
+        if scouting is None and (sc.connect or sc.listen or not sc.config_file):
             scouting = False
         if scouting is not None:
             conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
     except zenoh.ZError as exc:
         raise ConfigError(f"invalid zenoh configuration: {_short(exc)}") from exc
     return conf
+
+
+def cli_session_config(
+    role: str,
+    *,
+    connect=(),
+    listen=(),
+    config_file: str | None = None,
+    default_port: int = DEFAULT_PORT,
+) -> SessionConfig:
+    """The session of ``aefabmap run`` (role ``"listen"``) or ``publish`` (``"connect"``).
+
+    Loopback only by default: with no endpoint and no config file, the node listens on
+    ``tcp/127.0.0.1:<default_port>`` and a publisher connects there, so the two commands find
+    each other on one machine and nothing is reachable from the network; no multicast
+    scouting. Any ``--connect``/``--listen``/``--config`` replaces that default.
+    """
+    if role not in ("listen", "connect"):
+        raise ConfigError(f"session role must be 'listen' or 'connect', got {role!r}")
+    connect, listen = tuple(connect or ()), tuple(listen or ())
+    if not connect and not listen and not config_file:
+        loopback = (f"tcp/127.0.0.1:{default_port}",)
+        return SessionConfig(listen=loopback) if role == "listen" else SessionConfig(connect=loopback)
+    return SessionConfig(connect=connect, listen=listen, config_file=config_file)
 
 
 def open_session(sc: SessionConfig) -> zenoh.Session:
@@ -186,7 +217,7 @@ class FrameMeta:
         return json.dumps({"seq": self.seq, "stamp_ns": self.stamp_ns, "src": self.src}).encode()
 
     @classmethod
-    def from_attachment(cls, data: bytes | None) -> "FrameMeta":
+    def from_attachment(cls, data: bytes | None) -> FrameMeta:
         """Parse an attachment; never raises: every field is untrusted.
 
         No attachment is fine (an unsequenced publisher). Otherwise the attachment must be a

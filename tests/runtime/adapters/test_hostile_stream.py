@@ -4,6 +4,7 @@ reach the MCAP writer, and the node keeps running with a readable log."""
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import pytest
@@ -17,8 +18,11 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     DropCounter,
     FrameMeta,
     FramePublisher,
+    build_zenoh_config,
+    cli_session_config,
     open_session,
 )
+from aefabmap.runtime.tools.node_process import free_tcp_port
 
 from .stream_fakes import (
     FakeDetector,
@@ -138,3 +142,76 @@ def test_node_survives_hostile_attachments_and_falls_back_to_receive_time(tmp_pa
     frames = list(reader.frames())
     assert not reader.status.truncated and len(frames) == n_bad + 1
     assert [f.stamp_ns for f in frames] == [d["stamp_ns"] for d in docs]
+
+
+# --------------------------------------------------------------------------- network exposure
+
+
+def _bound_sockets() -> set[tuple[str, str]]:
+    """(protocol, local address) of the TCP listening and UDP sockets this process holds
+    (Linux /proc; addresses as hex ``IP:PORT``, IPv4 loopback = ``0100007F``)."""
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = set()
+    for proto in ("tcp", "tcp6", "udp", "udp6"):
+        with open(f"/proc/net/{proto}") as f:
+            for line in f.readlines()[1:]:
+                cols = line.split()
+                local, state, inode = cols[1], cols[3], cols[9]
+                if inode in inodes and (proto.startswith("udp") or state == "0A"):
+                    found.add((proto, local))
+    return found
+
+
+def _is_loopback(proto: str, local: str) -> bool:
+    ip = local.rsplit(":", 1)[0]
+    if proto.endswith("6"):
+        return ip in ("00000000000000000000000001000000", "0000000000000000FFFF00000100007F")
+    return ip.endswith("7F") and len(ip) == 8  # 127.x.x.x, little-endian hex
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs Linux /proc")
+@pytest.mark.parametrize("role", ["listen", "connect"])
+def test_cli_default_session_is_loopback_only_without_multicast(role):
+    port = free_tcp_port()
+    sc = cli_session_config(role, connect=(), listen=(), config_file=None, default_port=port)
+    assert (sc.listen if role == "listen" else sc.connect) == (f"tcp/127.0.0.1:{port}",)
+    conf = build_zenoh_config(sc)
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    if role == "connect":
+        assert json.loads(conf.get_json("listen/endpoints")) == []  # a publisher listens nowhere
+        return
+    before = _bound_sockets()
+    with open_session(sc):
+        opened = _bound_sockets() - before
+    assert opened, "the node should listen on loopback"
+    assert all(_is_loopback(p, a) for p, a in opened), opened
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="needs Linux /proc")
+def test_explicit_connect_adds_no_listener():
+    listen, connect = session_pair()
+    with open_session(listen):
+        before = _bound_sockets()
+        sc = cli_session_config("listen", connect=connect.connect, listen=(), config_file=None)
+        assert sc.listen == () and sc.connect == connect.connect
+        with open_session(sc):
+            assert _bound_sockets() - before == set()
+
+
+def test_explicit_options_and_config_file_are_kept(tmp_path):
+    sc = cli_session_config("listen", connect=(), listen=("tcp/0.0.0.0:7447",), config_file=None)
+    assert sc.listen == ("tcp/0.0.0.0:7447",) and sc.connect == ()
+    conf_file = tmp_path / "z.json5"
+    conf_file.write_text("{ listen: { endpoints: ['tcp/127.0.0.1:0'] }, scouting: { multicast: { enabled: true } } }")
+    sc = cli_session_config("listen", connect=(), listen=(), config_file=str(conf_file))
+    assert sc.listen == () and sc.config_file == str(conf_file)
+    conf = build_zenoh_config(sc)
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]  # the file decides
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is True
