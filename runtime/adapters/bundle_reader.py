@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap.errors import BundleError, ConfigError, InputError
+from aefabmap.runtime.adapters.npy_file import load_npy
 from aefabmap.runtime.core.features import FeatureConfig
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -242,42 +243,9 @@ def _open_bundle_file(path: Path, name: str):
 
 
 def _load_array(path: Path, name: str, *, kinds: str = "biuf", shape: tuple | None = None) -> np.ndarray:
-    """Load ``path / name`` (.npy) after checking its header, before allocating anything.
+    """Load ``path / name`` (.npy), a regular file of the bundle, after checking its header.
 
-    kinds: accepted numpy dtype kinds (e.g. "iu" for integers, "f" for floats).
-    shape: expected shape, None entries match any length (e.g. ``(None,)``: any 1-D array).
-    The header's shape times the item size must equal the bytes stored after it, so a header
-    claiming a huge shape cannot make the loader allocate more than the file holds.
+    kinds / shape: see :func:`npy_file.load_npy` (None entries of shape match any length).
     """
     with _open_bundle_file(path, name) as fh:
-        try:
-            version = np.lib.format.read_magic(fh)
-            if version == (1, 0):
-                got_shape, _fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-            elif version == (2, 0):
-                got_shape, _fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-            else:
-                raise ValueError(f".npy format version {version} is not supported")
-            data_bytes = os.fstat(fh.fileno()).st_size - fh.tell()
-        except (OSError, ValueError, SyntaxError) as exc:
-            raise BundleError(f"{path}: cannot read array {name}: {exc}") from None
-        if dtype.hasobject or dtype.kind not in kinds:
-            raise BundleError(f"{path}: array {name} has dtype {dtype}, expected kind {kinds!r}")
-        if shape is not None and (
-            len(got_shape) != len(shape) or any(e is not None and g != e for g, e in zip(got_shape, shape))
-        ):
-            expected = "(" + ", ".join("N" if e is None else str(e) for e in shape) + ("," if len(shape) == 1 else "") + ")"
-            raise BundleError(f"{path}: array {name} has shape {got_shape}, expected {expected}")
-        n_bytes = dtype.itemsize
-        for d in got_shape:
-            n_bytes *= d
-        if n_bytes != data_bytes:
-            raise BundleError(
-                f"{path}: array {name} header says shape {got_shape} ({n_bytes} bytes) but the file holds "
-                f"{data_bytes} bytes after it"
-            )
-        fh.seek(0)
-        try:
-            return np.load(fh, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise BundleError(f"{path}: cannot read array {name}: {exc}") from exc
+        return load_npy(fh, f"{path}: array {name}", kinds=kinds, shape=shape, error=BundleError)

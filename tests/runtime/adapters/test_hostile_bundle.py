@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from aefabmap.errors import BundleError
+from aefabmap.errors import BundleError, InputError
 from aefabmap.runtime.adapters.bundle_reader import load_bundle, sha256_file
 from aefabmap.runtime.adapters.mcap_log import McapLogWriter
 
@@ -210,3 +210,44 @@ def test_cli_reports_a_hostile_bundle_in_one_line_with_exit_code_3(synthetic_bun
     assert proc.returncode == 3, proc.stderr
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert "etc/passwd" in proc.stderr and "not a plain file name" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        _npy_with_header((10**6, 10**6), "|b1"),  # claims a TB
+        _npy_with_header((3, 3), "|b1", payload=b"\x01" * 9),  # fits the file, not the sequence
+        _npy_with_header((2, 2), "<c8", payload=b"\x00" * 32),
+        b"\x93NUMPY\x03\x00" + b"\x00" * 60,  # unsupported format version
+        b"\x93NUMPY\x01\x00\xff",  # truncated header
+        b"not an npy file at all",
+    ],
+)
+def test_ground_truth_header_is_checked_before_loading(tmp_path, content):
+    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+
+    path = tmp_path / "gt.npy"
+    path.write_bytes(content)
+    with pytest.raises(InputError, match="ground truth"):
+        load_ground_truth(path, 2)
+
+
+def test_ground_truth_that_fits_loads(tmp_path):
+    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+
+    np.save(tmp_path / "gt.npy", np.eye(3, dtype=np.uint8))
+    assert load_ground_truth(tmp_path / "gt.npy", 3).dtype == bool
+
+
+def test_cli_eval_with_a_lying_ground_truth_header_exits_4_in_one_line(synthetic_bundle, tmp_path):
+    import cv2
+
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "0000.png"), np.zeros((48, 64), np.uint8))
+    (tmp_path / "gt.npy").write_bytes(_npy_with_header((10**6, 10**6), "|b1"))
+    proc = _cli("eval", "--model", str(synthetic_bundle), "--images", str(images), "--gt", str(tmp_path / "gt.npy"),
+                "--no-progress")
+    assert proc.returncode == 4, proc.stderr
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    assert "gt.npy" in proc.stderr
