@@ -171,3 +171,20 @@ def test_cli_replay_counts_a_bad_shape_and_exits_cleanly(tmp_path):
     assert "Traceback" not in proc.stderr
     doc = json.loads(proc.stdout.strip().splitlines()[-1])
     assert doc["frames_processed"] == 2 and doc["bad"]["bad_shape"] == 1
+
+
+@pytest.mark.parametrize("run_config", [{"max_places": "abc"}, {"memory_mb": [1]}, {"max_places": True},
+                                        {"memory_mb": float("nan")}])
+def test_cli_replay_of_a_log_with_hostile_run_config_exits_2_in_one_line(tmp_path, run_config):
+    from tests.conftest import make_synthetic_bundle
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    log_path = tmp_path / "cfg.mcap"
+    with McapLogWriter(log_path, run_config=run_config):
+        pass
+    proc = subprocess.run(
+        [sys.executable, "-m", "aefabmap.cli.main", "replay", str(log_path), "--model", str(bundle)],
+        check=False, capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
