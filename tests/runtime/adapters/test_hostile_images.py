@@ -28,7 +28,7 @@ from aefabmap.runtime.core.features import (
 )
 
 #: Cases of the decoder + extractor fuzz (seeded: the same cases on every run).
-FUZZ_CASES = 400
+FUZZ_CASES = 600
 
 
 def _png(shape, dtype=np.uint8) -> bytes:
