@@ -90,7 +90,7 @@ def run(args) -> int:
             session.close()
         summary = stop_node(node)
     print(f"runtime summary: {json.dumps(summary.to_dict())}" if summary else "runtime gave no summary")
-    _report(_logged_results(mcap_path), gt_path)
+    _report(_logged_results(mcap_path), gt_path, n_frames)
     return _replay_check(model, mcap_path)
 
 
@@ -138,12 +138,14 @@ def _logged_results(mcap_path: Path) -> list[FrameResult]:
     return reader.results
 
 
-def _report(received: list[FrameResult], gt_path: Path | None) -> None:
+def _report(received: list[FrameResult], gt_path: Path | None, n_frames: int) -> None:
     loops = [r for r in received if r.loop]
     print(f"frames processed: {len(received)}, loop closures: {len(loops)}")
     if gt_path is None or not gt_path.is_file() or not received:
         return
-    gt = np.load(gt_path, allow_pickle=False)
+    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+
+    gt = load_ground_truth(gt_path, n_frames)  # InputError when it does not fit the frames
     ok = sum(bool(gt[r.sequence, max(0, _match_frame(r) - 10): _match_frame(r) + 11].any()) for r in loops)
     revisits = int(np.tril(gt, -1).any(axis=1).sum())
     print(f"against ground truth: {ok}/{len(loops)} loop closures correct (10-frame tolerance); "

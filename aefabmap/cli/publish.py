@@ -38,7 +38,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.node import stop_on_signals
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
     from aefabmap.runtime.tools.publisher import (
         camera_source,
         images_dir_source,
@@ -48,7 +48,7 @@ def main(args: argparse.Namespace) -> int:
 
     stop = threading.Event()
     try:
-        session = SessionConfig(connect=tuple(args.connect), listen=tuple(args.listen))
+        session = cli_session_config("connect", connect=args.connect, listen=args.listen)
         if args.images is not None:
             source = images_dir_source(args.images)
         elif args.video is not None:

@@ -21,10 +21,13 @@ def add_zenoh_options(p: argparse.ArgumentParser, *, config: bool = True) -> Non
     p.add_argument("--connect", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
     p.add_argument("--listen", action="append", metavar="EP", default=[],
-                   help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+                   help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; exposes the node "
+                   "to that network)")
     if config:
         p.add_argument("--config", metavar="zenoh.json5", default=None,
                        help="zenoh JSON5 configuration file (--connect/--listen override it)")
+    p.epilog = ("Network: with none of --connect/--listen/--config, `run` listens on tcp/127.0.0.1:7447 only and "
+                "`publish` connects there; no multicast scouting.")
 
 
 def register(subparsers) -> argparse.ArgumentParser:
@@ -51,12 +54,12 @@ def register(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
     from aefabmap.runtime.core.detector import DetectorConfig
 
     stop = threading.Event()
     try:
-        session = SessionConfig(connect=tuple(args.connect), listen=tuple(args.listen), config_file=args.config)
+        session = cli_session_config("listen", connect=args.connect, listen=args.listen, config_file=args.config)
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
 

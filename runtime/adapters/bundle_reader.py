@@ -11,18 +11,25 @@ A bundle is a directory:
                                    ae: quantizer_fp32.onnx, quantizer_int8.onnx
 Arrays load with allow_pickle=False. Every file is listed in manifest["files"] with its sha256;
 the runtime refuses a bundle whose version, shapes or checksums do not match.
+
+A bundle is untrusted input: only plain files directly inside the bundle directory are read
+(no path separators, no "..", no symlinks, no devices or FIFOs), refused before they are
+opened; .npy headers are checked (dtype, shape, size on disk) before any array is allocated.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from aefabmap.errors import BundleError, ConfigError, InputError
+from aefabmap.runtime.adapters.npy_file import load_npy
 from aefabmap.runtime.core.features import FeatureConfig
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -37,9 +44,13 @@ QUANTIZER_TYPES = ("kmeans", "ae")
 def sha256_file(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
+        _update_hash(h, fh)
     return h.hexdigest()
+
+
+def _update_hash(h, fh) -> None:
+    for block in iter(lambda: fh.read(1 << 20), b""):
+        h.update(block)
 
 
 @dataclass
@@ -78,12 +89,12 @@ class ModelBundle:
         if self.quantizer_type == "kmeans":
             from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
 
-            centroids = _load_array(self.path, files["centroids"])
-            if centroids.shape != (self.vocabulary_size, self.descriptor_length):
-                raise BundleError(
-                    f"{self.path}: vocabulary has shape {centroids.shape}, manifest says "
-                    f"({self.vocabulary_size}, {self.descriptor_length})"
-                )
+            name = files["centroids"]
+            centroids = _load_array(
+                self.path, name, kinds="f", shape=(self.vocabulary_size, self.descriptor_length)
+            )
+            if not np.isfinite(centroids).all():
+                raise BundleError(f"{self.path}: {name} holds NaN or infinite centroids")
             return NearestCentroidQuantizer(centroids)
         if variant not in files:
             raise ConfigError(f"bundle {self.path} has no {variant!r} quantiser; it has {sorted(files)}")
@@ -104,14 +115,19 @@ def load_bundle(path: str | Path, verify_checksums: bool = True) -> ModelBundle:
         raise BundleError(f"model bundle {path} does not exist or is not a directory")
     manifest = read_manifest(path)
     files = manifest["files"]
+    for name in files:
+        _check_file_name(path, name)
     for name, digest in files.items():
-        f = path / name
-        if not f.is_file():
-            raise BundleError(f"{path}: file {name} listed in the manifest is missing")
-        if verify_checksums and sha256_file(f) != digest:
-            raise BundleError(f"{path}: checksum mismatch for {name} (file corrupt or modified)")
+        with _open_bundle_file(path, name) as fh:
+            if verify_checksums:
+                h = hashlib.sha256()
+                _update_hash(h, fh)
+                if h.hexdigest() != digest:
+                    raise BundleError(f"{path}: checksum mismatch for {name} (file corrupt or modified)")
     v = manifest["vocabulary_size"]
     try:
+        if not isinstance(manifest["features"], dict):
+            raise ConfigError("'features' must be an object")
         features = FeatureConfig.from_dict(manifest["features"])
     except (ConfigError, TypeError) as exc:
         raise BundleError(f"{path}: invalid feature settings in manifest: {exc}") from exc
@@ -120,20 +136,21 @@ def load_bundle(path: str | Path, verify_checksums: bool = True) -> ModelBundle:
             f"{path}: descriptor_length {manifest['descriptor_length']} does not match "
             f"{features.kind} features ({features.descriptor_length})"
         )
-    tree_arrays = {k: _load_array(path, n) for k, n in TREE_FILES.items()}
-    for k, arr in tree_arrays.items():
-        if arr.shape != (v,):
-            raise BundleError(f"{path}: tree array {TREE_FILES[k]} has shape {arr.shape}, expected ({v},)")
+    tree_arrays = {
+        k: _load_array(path, n, kinds="iu" if k == "parent" else "f", shape=(v,)) for k, n in TREE_FILES.items()
+    }
     try:
         tree = ChowLiuTree(tree_arrays["parent"], tree_arrays["p"], tree_arrays["a"], tree_arrays["b"])
     except InputError as exc:
         raise BundleError(f"{path}: invalid Chow-Liu tree: {exc}") from exc
-    indptr = _load_array(path, OBS_FILES["indptr"])
-    indices = _load_array(path, OBS_FILES["indices"])
-    if indptr.ndim != 1 or indptr.size < 2 or indptr[0] != 0 or indptr[-1] != indices.size or np.any(np.diff(indptr) < 0):
+    indptr = _load_array(path, OBS_FILES["indptr"], kinds="iu", shape=(None,))
+    indices = _load_array(path, OBS_FILES["indices"], kinds="iu", shape=(None,))
+    if indptr.size < 2 or indptr[0] != 0 or indptr[-1] != indices.size or np.any(np.diff(indptr) < 0):
         raise BundleError(f"{path}: training observations index ({OBS_FILES['indptr']}) is inconsistent")
-    if indices.size and int(indices.max()) >= v:
-        raise BundleError(f"{path}: training observations hold word ids >= vocabulary size {v}")
+    if indices.size and (int(indices.min()) < 0 or int(indices.max()) >= v):
+        raise BundleError(
+            f"{path}: {OBS_FILES['indices']} holds word ids outside [0, {v}) (vocabulary size {v})"
+        )
     indices = indices.astype(np.int64)
     observations = [indices[a:b] for a, b in zip(indptr[:-1], indptr[1:])]
     return ModelBundle(path, manifest, features, tree, observations)
@@ -150,12 +167,14 @@ def load_detector(path: str | Path, config=None):
 
 
 def read_manifest(path: Path) -> dict:
-    mpath = path / MANIFEST_NAME
+    if not (path / MANIFEST_NAME).exists() and not (path / MANIFEST_NAME).is_symlink():
+        raise BundleError(f"{path}: no {MANIFEST_NAME}; not a model bundle")
     try:
-        manifest = json.loads(mpath.read_text())
-    except FileNotFoundError as exc:
-        raise BundleError(f"{path}: no {MANIFEST_NAME}; not a model bundle") from exc
-    except (OSError, ValueError) as exc:
+        with _open_bundle_file(path, MANIFEST_NAME) as fh:
+            if os.fstat(fh.fileno()).st_size > MAX_MANIFEST_BYTES:
+                raise BundleError(f"{path}: {MANIFEST_NAME} is larger than {MAX_MANIFEST_BYTES} bytes")
+            manifest = json.loads(fh.read())
+    except (OSError, ValueError, RecursionError) as exc:
         raise BundleError(f"{path}: {MANIFEST_NAME} is unreadable or not JSON: {exc}") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != BUNDLE_FORMAT:
         raise BundleError(f"{path}: {MANIFEST_NAME} is not an {BUNDLE_FORMAT} manifest")
@@ -165,8 +184,17 @@ def read_manifest(path: Path) -> dict:
     for key in ("features", "descriptor_length", "vocabulary_size", "quantizer", "files"):
         if key not in manifest:
             raise BundleError(f"{path}: manifest lacks required key {key!r}")
+    if not isinstance(manifest["files"], dict) or not all(
+        isinstance(k, str) and isinstance(d, str) for k, d in manifest["files"].items()
+    ):
+        raise BundleError(f"{path}: manifest files must map file names to sha256 strings")
     q = manifest["quantizer"]
-    if not isinstance(q, dict) or q.get("type") not in QUANTIZER_TYPES or not isinstance(q.get("files"), dict):
+    if (
+        not isinstance(q, dict)
+        or q.get("type") not in QUANTIZER_TYPES
+        or not isinstance(q.get("files"), dict)
+        or not all(isinstance(n, str) for n in q["files"].values())
+    ):
         raise BundleError(f"{path}: manifest quantizer must name a type in {QUANTIZER_TYPES} and its files")
     needed = list(TREE_FILES.values()) + list(OBS_FILES.values()) + list(q["files"].values())
     for name in needed:
@@ -177,8 +205,47 @@ def read_manifest(path: Path) -> dict:
     return manifest
 
 
-def _load_array(path: Path, name: str) -> np.ndarray:
+#: A manifest is a few kB; refuse to parse anything much larger.
+MAX_MANIFEST_BYTES = 1 << 20
+
+
+def _check_file_name(path: Path, name) -> None:
+    """Refuse a manifest file name that is not a plain name of a file inside the bundle.
+
+    Checked on the name alone, before any file-system access, so a refusal says nothing
+    about what exists outside the bundle.
+    """
+    plain = (
+        isinstance(name, str)
+        and name not in ("", ".", "..")
+        and not any(c in name for c in ("/", "\\", "\x00"))
+        and os.path.basename(name) == name
+    )
+    if not plain:
+        raise BundleError(f"{path}: manifest names {str(name)[:100]!r}, which is not a plain file name inside the bundle")
+
+
+def _open_bundle_file(path: Path, name: str):
+    """Open ``path / name`` for reading in binary mode; it must be a regular file (no symlink,
+    FIFO or device: O_NOFOLLOW | O_NONBLOCK, then fstat), else BundleError."""
+    _check_file_name(path, name)
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0)
     try:
-        return np.load(path / name, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise BundleError(f"{path}: cannot read array {name}: {exc}") from exc
+        fd = os.open(path / name, flags)
+    except FileNotFoundError:
+        raise BundleError(f"{path}: file {name} listed in the manifest is missing") from None
+    except OSError as exc:  # ELOOP: a symlink under O_NOFOLLOW
+        raise BundleError(f"{path}: {name} is not a regular file of the bundle ({exc.strerror})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise BundleError(f"{path}: {name} is not a regular file of the bundle")
+    return os.fdopen(fd, "rb")
+
+
+def _load_array(path: Path, name: str, *, kinds: str = "biuf", shape: tuple | None = None) -> np.ndarray:
+    """Load ``path / name`` (.npy), a regular file of the bundle, after checking its header.
+
+    kinds / shape: see :func:`npy_file.load_npy` (None entries of shape match any length).
+    """
+    with _open_bundle_file(path, name) as fh:
+        return load_npy(fh, f"{path}: array {name}", kinds=kinds, shape=shape, error=BundleError)

@@ -24,10 +24,15 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError, ImageDecodeError, InputError
-from aefabmap.runtime.core.features import to_gray
+from aefabmap.runtime.core.features import MAX_ASPECT_RATIO, to_gray
 
-#: Reasons a frame is refused (the keys of the node's "bad" counters).
-BAD_FRAME_REASONS = ("corrupt", "empty", "wrong_encoding", "size_mismatch", "too_large", "not_image", "rejected")
+#: Reasons a frame is refused (the keys of the node's "bad" counters). ``bad_shape``: too
+#: small or too elongated for the feature extractor; ``bad_attachment``: the frame was used,
+#: but its Zenoh attachment (seq, stamp, source) was not (see zenoh_transport.FrameMeta).
+BAD_FRAME_REASONS = (
+    "corrupt", "empty", "wrong_encoding", "size_mismatch", "too_large", "bad_shape", "not_image", "rejected",
+    "bad_attachment",
+)
 
 #: Raw pixel formats: name -> bytes per pixel.
 RAW_FORMATS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4, "8UC4": 4}
@@ -45,33 +50,44 @@ _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 MAX_IMAGE_PIXELS = 40_000_000
 
 
+class FrameError(ImageDecodeError):
+    """A frame payload was refused; ``reason`` is one of BAD_FRAME_REASONS."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 def decode_image(payload: bytes | bytearray | memoryview) -> np.ndarray:
     """Decode a JPEG/PNG payload to a grayscale uint8 image (H, W).
 
-    Raises ImageDecodeError for empty, corrupt or oversized payloads.
+    Raises ImageDecodeError for empty, corrupt payloads; FrameError (an ImageDecodeError)
+    ``too_large`` / ``bad_shape`` for sizes refused from the header, before decoding.
     """
     buf = np.frombuffer(payload, dtype=np.uint8)
     if buf.size == 0:
         raise ImageDecodeError("empty image payload (0 bytes)")
-    # Read the header first: refuse huge images before allocating their pixels.
-    header_ok = _check_encoded_size(bytes(buf[:65536]))
-    if header_ok is not None:
-        raise ImageDecodeError(header_ok)
+    # Read the header first: refuse huge or unusable images before allocating their pixels.
+    size = _png_size(bytes(buf[:24])) or _jpeg_size(bytes(buf[:65536]))
+    if size is not None and min(size) > 0:  # a zero side is a corrupt header: imdecode refuses it
+        check_frame_size(*size)
     image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     if image is None or image.size == 0:
         raise ImageDecodeError(f"payload of {buf.size} bytes is not a decodable JPEG/PNG image")
+    check_frame_size(image.shape[1], image.shape[0])  # the header we parsed may have lied
     return image
 
 
-def _check_encoded_size(head: bytes) -> str | None:
-    """Return an error message when a PNG/JPEG header declares more than MAX_IMAGE_PIXELS."""
-    size = _png_size(head) or _jpeg_size(head)
-    if size is None:
-        return None
-    w, h = size
-    if w * h > MAX_IMAGE_PIXELS:
-        return f"image of {w}x{h} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels"
-    return None
+def check_frame_size(width: int, height: int) -> None:
+    """Refuse a frame size: FrameError ``too_large`` over MAX_IMAGE_PIXELS, ``bad_shape`` when a
+    side is 0 or the aspect ratio exceeds features.MAX_ASPECT_RATIO (no extractor can use it;
+    OpenCV's ORB asserts on such images). Too-small frames are left to the detector."""
+    if width * height > MAX_IMAGE_PIXELS:
+        raise FrameError("too_large", f"image of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels")
+    if min(width, height) < 1 or max(width, height) > MAX_ASPECT_RATIO * min(width, height):
+        raise FrameError(
+            "bad_shape", f"image of {width}x{height} pixels is not usable (aspect ratio over {MAX_ASPECT_RATIO}:1)"
+        )
 
 
 def _png_size(head: bytes) -> tuple[int, int] | None:
@@ -115,14 +131,6 @@ def load_image(path: str | Path) -> np.ndarray:
 
 
 
-class FrameError(ImageDecodeError):
-    """A frame payload was refused; ``reason`` is one of BAD_FRAME_REASONS."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
-
-
 @dataclass(frozen=True)
 class RawSchema:
     """Parsed raw-frame schema: pixel format, width and height in pixels."""
@@ -161,10 +169,7 @@ def parse_raw_schema(schema: str) -> RawSchema:
         raise FrameError("wrong_encoding", f"raw frame size must look like '640x480', got {size!r}") from None
     if width < 1 or height < 1:
         raise FrameError("wrong_encoding", f"raw frame size must be positive, got {width}x{height}")
-    if width * height > MAX_IMAGE_PIXELS:
-        raise FrameError(
-            "too_large", f"raw frame of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS} pixels"
-        )
+    check_frame_size(width, height)
     return RawSchema(fmt, width, height)
 
 
@@ -224,9 +229,10 @@ def decode_frame(payload: bytes | bytearray | memoryview, encoding: str) -> np.n
         )
     try:
         return decode_image(buf)
+    except FrameError:
+        raise
     except ImageDecodeError as exc:
-        reason = "too_large" if "exceeds the limit" in str(exc) else "corrupt"
-        raise FrameError(reason, str(exc)) from exc
+        raise FrameError("corrupt", str(exc)) from exc
 
 
 def encode_frame(image: np.ndarray, fmt: str = "jpeg", *, jpeg_quality: int = 90) -> tuple[bytes, str]:
@@ -288,8 +294,7 @@ def pack_raw_rows(data: bytes, fmt: str, width: int, height: int, step: int) -> 
         raise FrameError("wrong_encoding", f"unsupported sensor_msgs/Image encoding {fmt!r}")
     channels = RAW_FORMATS[fmt]
     row = width * channels
-    if width * height > MAX_IMAGE_PIXELS:
-        raise FrameError("too_large", f"image of {width}x{height} pixels exceeds the limit of {MAX_IMAGE_PIXELS}")
+    check_frame_size(width, height)
     if step < row or len(data) < step * (height - 1) + row:
         raise FrameError(
             "size_mismatch",

@@ -135,6 +135,19 @@ class _UnbufferedFile:
         self._f.close()
 
 
+#: MCAP stores times as unsigned 64-bit ns; protobuf timestamps are signed 64-bit.
+_MAX_TIME_NS = 2**63 - 1
+
+
+def _checked_time_ns(value, what: str) -> int:
+    """``value`` as an int in [0, 2**63) ns, else LogError: refused before any byte of the
+    message reaches the chunk (an out-of-range time used to abort the writer mid-chunk)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 0 <= int(value) <= _MAX_TIME_NS:
+        text = repr(value)
+        raise LogError(f"{what} time must be an integer number of ns in [0, 2**63), got {text[:40]}")
+    return int(value)
+
+
 def _json_bytes(doc: dict) -> bytes:
     return json.dumps(doc, separators=(",", ":"), allow_nan=True).encode()
 
@@ -241,6 +254,7 @@ class McapLogWriter:
         stored as lossless gray PNG (pass ``gray``, the decoded (H, W) uint8 image, to
         avoid decoding twice). stamp_ns: capture time (ns since the Unix epoch).
         """
+        stamp_ns = _checked_time_ns(stamp_ns, "image stamp")
         every = self.config.image_every
         self.images_seen += 1
         if every == 0 or (self.images_seen - 1) % every != 0:
@@ -253,8 +267,8 @@ class McapLogWriter:
         else:
             fmt = kind
         msg = CompressedImage(frame_id=self.config.frame_id, data=bytes(payload), format=fmt)
-        msg.timestamp.FromNanoseconds(int(stamp_ns))
-        self._add(self._image_channel, msg.SerializeToString(), log_time_ns, int(stamp_ns), sequence)
+        msg.timestamp.FromNanoseconds(stamp_ns)
+        self._add(self._image_channel, msg.SerializeToString(), log_time_ns, stamp_ns, sequence)
         self.images_written += 1
         return True
 
@@ -290,8 +304,8 @@ class McapLogWriter:
         if self._closed:
             raise LogError(f"MCAP log {self.path} is already closed")
         now = time.time_ns()
-        log_time = int(log_time_ns) if log_time_ns is not None else now
-        publish_time = int(publish_time_ns) if publish_time_ns is not None else log_time
+        log_time = _checked_time_ns(log_time_ns, "log") if log_time_ns is not None else now
+        publish_time = _checked_time_ns(publish_time_ns, "publish") if publish_time_ns is not None else log_time
         if sequence is None:
             sequence = self._seq[channel]
         self._seq[channel] = sequence + 1

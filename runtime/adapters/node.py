@@ -253,6 +253,8 @@ def run_node(
         while not stop_event.is_set() and (options.max_frames is None or loop.processed < options.max_frames):
             frame = io.sub.receive(emitter.tick(), stop_event)
             if frame is not None:
+                if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)
+                    loop.bad.count("bad_attachment", frame.meta.problem)
                 output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
         emitter.emit()
     latency = stats.latency()

@@ -15,9 +15,12 @@ stats keys so the node never eats its own output.
 
 Sequence numbers: ``publish`` attaches a small JSON attachment to every frame,
 ``{"seq": <int, from 0>, "stamp_ns": <capture time, ns since the Unix epoch>, "src": <id>}``.
-``RingChannel(n)`` drops old frames silently; the subscriber counts gaps in ``seq`` per
-``src`` to report how many frames were dropped (in the ring, in the network, or by a
-publisher restart, which resets ``seq`` and is not counted as a drop).
+Attachments are untrusted: one that is not such a JSON object, or a field out of range,
+is counted (``FrameSubscriber.bad_attachments``) and ignored, the frame keeping its receive
+time (see :meth:`FrameMeta.from_attachment`). ``RingChannel(n)`` drops old frames
+silently; the subscriber counts gaps in ``seq`` per ``src`` to report how many frames were
+dropped (in the ring, in the network, or by a publisher restart, which resets ``seq`` and is
+not counted as a drop).
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ import zenoh
 
 from aefabmap.errors import ConfigError, TransportError
 
+#: Zenoh's customary port; the CLI's loopback default (see cli_session_config).
+DEFAULT_PORT = 7447
 RESULT_CHUNK = "lcd"
 STATS_SUFFIX = "stats"
 _ENDPOINT_RE = re.compile(r"^[a-z0-9\-]+/.+$")
@@ -46,7 +51,12 @@ class SessionConfig:
     connect / listen: endpoints such as ``tcp/127.0.0.1:7447``.
     config_file: a zenoh JSON5 config file loaded first; the fields below override it.
     mode: ``peer`` (default, no router needed), ``client`` or ``router``.
-    multicast_scouting: None = off when any endpoint is given, zenoh's default otherwise.
+    multicast_scouting: None = off, unless a config file is given and no endpoint (then the
+    file decides).
+
+    Exposure: without a config file the session listens on exactly ``listen`` (none: it
+    listens nowhere, where zenoh's own default would be every interface) and does not join
+    multicast scouting. See :func:`cli_session_config` for the CLI's loopback default.
     """
 
     connect: tuple[str, ...] = ()
@@ -109,16 +119,40 @@ def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
         conf.insert_json5("mode", json.dumps(sc.mode))
         if sc.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(sc.connect)))
-        if sc.listen:
+        if sc.listen or not sc.config_file:
             conf.insert_json5("listen/endpoints", json.dumps(list(sc.listen)))
         scouting = sc.multicast_scouting
-        if scouting is None and (sc.connect or sc.listen):
+        if scouting is None and (sc.connect or sc.listen or not sc.config_file):
             scouting = False
         if scouting is not None:
             conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
     except zenoh.ZError as exc:
         raise ConfigError(f"invalid zenoh configuration: {_short(exc)}") from exc
     return conf
+
+
+def cli_session_config(
+    role: str,
+    *,
+    connect=(),
+    listen=(),
+    config_file: str | None = None,
+    default_port: int = DEFAULT_PORT,
+) -> SessionConfig:
+    """The session of ``aefabmap run`` (role ``"listen"``) or ``publish`` (``"connect"``).
+
+    Loopback only by default: with no endpoint and no config file, the node listens on
+    ``tcp/127.0.0.1:<default_port>`` and a publisher connects there, so the two commands find
+    each other on one machine and nothing is reachable from the network; no multicast
+    scouting. Any ``--connect``/``--listen``/``--config`` replaces that default.
+    """
+    if role not in ("listen", "connect"):
+        raise ConfigError(f"session role must be 'listen' or 'connect', got {role!r}")
+    connect, listen = tuple(connect or ()), tuple(listen or ())
+    if not connect and not listen and not config_file:
+        loopback = (f"tcp/127.0.0.1:{default_port}",)
+        return SessionConfig(listen=loopback) if role == "listen" else SessionConfig(connect=loopback)
+    return SessionConfig(connect=connect, listen=listen, config_file=config_file)
 
 
 def open_session(sc: SessionConfig) -> zenoh.Session:
@@ -157,33 +191,76 @@ def stats_key_for(result_key: str) -> str:
 # --------------------------------------------------------------------------- frame meta
 
 
+#: Largest attachment parsed (bytes): ours is ~80 bytes; a bigger one is refused unread.
+MAX_ATTACHMENT_BYTES = 1024
+#: Longest source id kept (characters); ours are 12 hex digits.
+MAX_SRC_CHARS = 64
+#: Sequence numbers and stamps must fit a signed 64-bit integer (stamps: ns since the Unix
+#: epoch, i.e. up to the year 2262); the MCAP log stores times as unsigned 64-bit.
+_INT64_LIMIT = 2**63
+
+
 @dataclass(frozen=True)
 class FrameMeta:
-    """What the publisher attached: sequence number, capture stamp (ns, Unix epoch), source id."""
+    """What the publisher attached: sequence number, capture stamp (ns, Unix epoch), source id.
+
+    problem: why (part of) the attachment was refused ("" when it was fine or absent); the
+    refused fields are None / "" so the frame falls back to its receive time. Not compared.
+    """
 
     seq: int | None = None
     stamp_ns: int | None = None
     src: str = ""
+    problem: str = field(default="", compare=False)
 
     def to_attachment(self) -> bytes:
         return json.dumps({"seq": self.seq, "stamp_ns": self.stamp_ns, "src": self.src}).encode()
 
     @classmethod
-    def from_attachment(cls, data: bytes | None) -> "FrameMeta":
-        """Parse an attachment; anything unparsable yields an empty FrameMeta (never raises)."""
+    def from_attachment(cls, data: bytes | None) -> FrameMeta:
+        """Parse an attachment; never raises: every field is untrusted.
+
+        No attachment is fine (an unsequenced publisher). Otherwise the attachment must be a
+        JSON object of at most MAX_ATTACHMENT_BYTES; ``seq`` and ``stamp_ns`` must be null or
+        integers in [0, 2**63); ``src`` a string of at most MAX_SRC_CHARS. A field that breaks
+        these rules is dropped and ``problem`` says why; unknown keys are ignored.
+        """
         if not data:
             return cls()
+        if len(data) > MAX_ATTACHMENT_BYTES:
+            return cls(problem=f"attachment of {len(data)} bytes exceeds {MAX_ATTACHMENT_BYTES} bytes")
         try:
             obj = json.loads(data)
-            seq = obj.get("seq")
-            stamp = obj.get("stamp_ns")
-            return cls(
-                seq=int(seq) if isinstance(seq, int) else None,
-                stamp_ns=int(stamp) if isinstance(stamp, int) else None,
-                src=str(obj.get("src", "")),
-            )
-        except (ValueError, AttributeError, TypeError):
-            return cls()
+        except (ValueError, RecursionError):  # not UTF-8 / not JSON / too deeply nested
+            return cls(problem="attachment is not JSON")
+        if not isinstance(obj, dict):
+            return cls(problem=f"attachment is a JSON {type(obj).__name__}, not an object")
+        problems: list[str] = []
+        seq = _int64_field(obj, "seq", problems)
+        stamp = _int64_field(obj, "stamp_ns", problems)
+        src = obj.get("src", "")
+        if src is None:
+            src = ""
+        elif not isinstance(src, str) or len(src) > MAX_SRC_CHARS:
+            problems.append(f"src must be a string of at most {MAX_SRC_CHARS} characters")
+            src = ""
+        return cls(seq=seq, stamp_ns=stamp, src=src, problem="; ".join(problems))
+
+
+def _int64_field(obj: dict, name: str, problems: list[str]) -> int | None:
+    """obj[name] when it is an integer in [0, 2**63) (not a bool), None otherwise (noted)."""
+    value = obj.get(name)
+    if value is None:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value < _INT64_LIMIT:
+        return value
+    problems.append(f"{name} must be an integer in [0, 2**63), got {_clip_repr(value)}")
+    return None
+
+
+def _clip_repr(value, limit: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 @dataclass
@@ -215,7 +292,11 @@ class DropCounter:
     dropped: frames skipped (gaps in seq, counted from the first frame received from a
     source: frames published before the subscriber saw that source are not drops); restarts: seq went backwards (publisher restart);
     unsequenced: frames without a seq (their drops cannot be counted).
+    At most MAX_SOURCES sources are tracked (the least recently seen is forgotten), so a
+    peer inventing source ids cannot grow the table without bound.
     """
+
+    MAX_SOURCES = 256
 
     dropped: int = 0
     restarts: int = 0
@@ -227,8 +308,10 @@ class DropCounter:
         if meta.seq is None:
             self.unsequenced += 1
             return 0
-        last = self._last.get(meta.src)
-        self._last[meta.src] = meta.seq
+        last = self._last.pop(meta.src, None)
+        self._last[meta.src] = meta.seq  # re-inserted: dict order = least recently seen first
+        if len(self._last) > self.MAX_SOURCES:
+            del self._last[next(iter(self._last))]
         if last is None:
             return 0
         if meta.seq <= last:
@@ -264,6 +347,8 @@ class FrameSubscriber:
         self.drops = DropCounter()
         self.received = 0
         self.ignored = 0
+        self.bad_attachments = 0
+        self.last_bad_attachment = ""
         self._wake = threading.Event()
         try:
             self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(queue_size))
@@ -295,6 +380,9 @@ class FrameSubscriber:
     def _to_frame(self, sample: zenoh.Sample, key: str) -> ReceivedFrame:
         att = sample.attachment
         meta = FrameMeta.from_attachment(att.to_bytes() if att is not None else None)
+        if meta.problem:
+            self.bad_attachments += 1
+            self.last_bad_attachment = meta.problem
         self.drops.update(meta)
         self.received += 1
         return ReceivedFrame(

@@ -6,6 +6,7 @@ It does no I/O: it takes decoded images and returns FrameResult records.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -103,10 +104,16 @@ class DetectorConfig:
             raise ConfigError(f"scorer must be one of {SCORERS}, got {self.scorer!r}")
         if self.exclude < 0:
             raise ConfigError(f"exclude must be >= 0 frames, got {self.exclude}")
-        if self.max_places is not None and self.max_places < 1:
-            raise ConfigError(f"max_places must be >= 1, got {self.max_places}")
-        if self.memory_mb is not None and self.memory_mb <= 0:
-            raise ConfigError(f"memory_mb must be > 0, got {self.memory_mb}")
+        # Also read back from logs (replay), so the types are checked, not assumed.
+        if self.max_places is not None and (
+            not isinstance(self.max_places, int) or isinstance(self.max_places, bool) or self.max_places < 1
+        ):
+            raise ConfigError(f"max_places must be an integer >= 1, got {str(self.max_places)[:40]}")
+        if self.memory_mb is not None and (
+            not isinstance(self.memory_mb, (int, float)) or isinstance(self.memory_mb, bool)
+            or not math.isfinite(self.memory_mb) or self.memory_mb <= 0
+        ):
+            raise ConfigError(f"memory_mb must be a finite number > 0, got {str(self.memory_mb)[:40]}")
         if self.fabmap_score not in FABMAP_SCORES:
             raise ConfigError(f"fabmap_score must be one of {FABMAP_SCORES}, got {self.fabmap_score!r}")
         if self.threads < 1:

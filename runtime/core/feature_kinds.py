@@ -193,7 +193,7 @@ def get_kind(name: str) -> FeatureKind:
     try:
         return _REGISTRY[name]
     except (KeyError, TypeError):
-        raise ConfigError(f"feature kind must be one of {kind_names()}, got {name!r}") from None
+        raise ConfigError(f"feature kind must be one of {kind_names()}, got {repr(name)[:40]}") from None
 
 
 def kind_names() -> tuple[str, ...]:

@@ -16,6 +16,51 @@ import numpy as np
 from aefabmap.errors import ConfigError, InputError
 from aefabmap.runtime.core.feature_kinds import FeatureKind, get_kind
 
+#: Shortest image side (px) the extractor works on, before and after resizing: OpenCV's
+#: ORB pyramid shrinks each level by 1.2 and asserts when a level reaches 0 px.
+MIN_IMAGE_SIDE = 8
+#: Most elongated image (long side / short side) accepted. Principle: at the default 640-px
+#: long side, a 10:1 image keeps a 64-px short side, just over ORB's two 31-px borders where
+#: no keypoint can be described; anything more elongated yields (almost) no features.
+#: Cameras deliver 4:3 to 21:9 (2.3:1), stereo pairs side by side about 3.6:1.
+MAX_ASPECT_RATIO = 10
+
+
+#: Bounds of FeatureConfig (OpenCV takes C ints; a board never wants more): 100 000
+#: keypoints is 20x the largest vocabulary-training setting; 8192 px covers 8K sensors.
+MAX_FEATURES = 100_000
+MIN_LONG_SIDE = 32
+MAX_LONG_SIDE = 8192
+
+
+def _int_in(value, low: int, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+
+
+def _clip(value, limit: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def image_shape_problem(height: int, width: int, long_side: int | None = None) -> str | None:
+    """Why an image of ``height`` x ``width`` px cannot be used, or None when it can.
+
+    Too small (a side under MIN_IMAGE_SIDE), too elongated (over MAX_ASPECT_RATIO), or too
+    small once resized to ``long_side`` px (None: no resizing). Pure arithmetic, so callers
+    can refuse an image from its header before decoding it.
+    """
+    short, long_ = min(height, width), max(height, width)
+    if short < MIN_IMAGE_SIDE:
+        return f"image of {width}x{height} pixels is too small (sides under {MIN_IMAGE_SIDE} px)"
+    if long_ > MAX_ASPECT_RATIO * short:
+        return f"image of {width}x{height} pixels is too elongated (more than {MAX_ASPECT_RATIO}:1)"
+    if long_side is not None and round(short * long_side / long_) < MIN_IMAGE_SIDE:
+        return (
+            f"image of {width}x{height} pixels resized to a {long_side}-px long side would have a short side "
+            f"under {MIN_IMAGE_SIDE} px"
+        )
+    return None
+
 
 @dataclass(frozen=True)
 class FeatureConfig:
@@ -36,11 +81,17 @@ class FeatureConfig:
     rootsift: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.kind, str):
+            raise ConfigError(f"feature kind must be a string, got {_clip(self.kind)}")
         spec = get_kind(self.kind)
-        if not isinstance(self.max_features, int) or self.max_features < 1:
-            raise ConfigError(f"max_features must be a positive integer, got {self.max_features!r}")
-        if self.long_side is not None and (not isinstance(self.long_side, int) or self.long_side < 32):
-            raise ConfigError(f"long_side must be None or an integer >= 32, got {self.long_side!r}")
+        if not _int_in(self.max_features, 1, MAX_FEATURES):
+            raise ConfigError(f"max_features must be an integer in [1, {MAX_FEATURES}], got {_clip(self.max_features)}")
+        if self.long_side is not None and not _int_in(self.long_side, MIN_LONG_SIDE, MAX_LONG_SIDE):
+            raise ConfigError(
+                f"long_side must be None or an integer in [{MIN_LONG_SIDE}, {MAX_LONG_SIDE}], got {_clip(self.long_side)}"
+            )
+        if not isinstance(self.rootsift, bool):
+            raise ConfigError(f"rootsift must be true or false, got {_clip(self.rootsift)}")
         if self.rootsift and "rootsift" not in spec.options:
             raise ConfigError(f"rootsift applies to SIFT features only, not to {self.kind!r}")
 
@@ -109,10 +160,17 @@ class FeatureExtractor:
         self._detector = self.kind.create(self.config.max_features)
 
     def extract(self, image: np.ndarray) -> Features:
-        """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array."""
+        """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array.
+
+        Raises InputError for anything else, and for shapes it cannot use
+        (see :func:`image_shape_problem`), before any OpenCV call.
+        """
+        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
+            raise InputError(f"image must be an (H, W) or (H, W, C) array, got {getattr(image, 'shape', type(image))}")
+        problem = image_shape_problem(image.shape[0], image.shape[1], self.config.long_side)
+        if problem is not None:
+            raise InputError(problem)
         gray = to_gray(image)
-        if gray.shape[0] < 8 or gray.shape[1] < 8:
-            raise InputError(f"image of {gray.shape[1]}x{gray.shape[0]} pixels is too small")
         scale = 1.0
         work = gray
         if self.config.long_side is not None:

@@ -103,8 +103,7 @@ class OnnxQuantizer:
         x = check_vectors(vectors, self.descriptor_length)
         if x.shape[0] == 0:
             return np.zeros(0, np.int32)
-        words = self._run([WORDS_NAME], x)[0]
-        return np.asarray(words, dtype=np.int32).reshape(-1)
+        return self._checked_words(self._run([WORDS_NAME], x)[0], x.shape[0])
 
     def encode(self, vectors: np.ndarray) -> np.ndarray:
         """Latent codes (N, latent_dim) float32 of descriptor vectors (N, D); N may be 0."""
@@ -119,7 +118,20 @@ class OnnxQuantizer:
         if x.shape[0] == 0:
             return np.zeros(0, np.int32), self._empty_codes.copy()
         words, codes = self._run([WORDS_NAME, CODES_NAME], x)
-        return np.asarray(words, dtype=np.int32).reshape(-1), np.asarray(codes, dtype=np.float32)
+        return self._checked_words(words, x.shape[0]), np.asarray(codes, dtype=np.float32)
+
+    def _checked_words(self, words: np.ndarray, n: int) -> np.ndarray:
+        """The graph's word ids as int32 (n,); BundleError when it gives a wrong count or ids
+        outside [0, K): a hostile or broken model must not index outside the vocabulary."""
+        w = np.asarray(words).reshape(-1)
+        if w.shape[0] != n:
+            raise BundleError(f"{self.model_path}: model returned {w.shape[0]} word ids for {n} descriptors")
+        if n and (int(w.min()) < 0 or int(w.max()) >= self.vocabulary_size):
+            raise BundleError(
+                f"{self.model_path}: model returned word ids outside [0, {self.vocabulary_size}) "
+                f"(min {int(w.min())}, max {int(w.max())})"
+            )
+        return w.astype(np.int32)
 
     def _run(self, names: list[str], x: np.ndarray) -> list[np.ndarray]:
         if not np.isfinite(x).all():

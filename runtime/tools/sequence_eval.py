@@ -19,6 +19,7 @@ from aefabmap.errors import InputError
 from aefabmap.runtime.adapters.bundle_reader import load_detector
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.image_folder import list_images
+from aefabmap.runtime.adapters.npy_file import load_npy
 from aefabmap.runtime.core.detector import (
     DetectorConfig,
     FrameResult,
@@ -28,13 +29,16 @@ from aefabmap.runtime.tools.pr_metrics import evaluate_predictions
 
 
 def load_ground_truth(path: str | Path, n_frames: int) -> np.ndarray:
-    """Load a bool (N, N) ground-truth matrix (.npy, no pickles) and check it fits the sequence."""
+    """Load a bool (N, N) ground-truth matrix (.npy, no pickles) and check it fits the sequence.
+
+    The header is checked before loading (see npy_file.load_npy): a shape other than
+    (n_frames, n_frames) is refused without reading the data.
+    """
     try:
-        gt = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read ground truth {path}: {exc}") from exc
-    if gt.ndim != 2 or gt.shape != (n_frames, n_frames):
-        raise InputError(f"ground truth {path} has shape {gt.shape}, but the sequence has {n_frames} frames")
+        with open(path, "rb") as fh:
+            gt = load_npy(fh, f"ground truth {path}", kinds="biuf", shape=(n_frames, n_frames))
+    except OSError as exc:
+        raise InputError(f"cannot read ground truth {path}: {exc.strerror or exc}") from exc
     return gt.astype(bool)
 
 

@@ -142,3 +142,43 @@ def test_runtime_path_imports_neither_torch_nor_onnx(model):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip().endswith("ok")
+
+
+def _hostile_model(path: Path, offset: int) -> Path:
+    """A valid-looking quantiser graph whose word ids are ``round(sum(x)) + offset``."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph(
+        [
+            helper.make_node("ReduceSum", ["descriptors", "axes"], ["s"], keepdims=0),
+            helper.make_node("Cast", ["s"], ["si"], to=TensorProto.INT64),
+            helper.make_node("Add", ["si", "offset"], ["words"]),
+            helper.make_node("Identity", ["descriptors"], ["codes"]),
+        ],
+        "hostile",
+        [helper.make_tensor_value_info("descriptors", TensorProto.FLOAT, ["batch", 128])],
+        [
+            helper.make_tensor_value_info("words", TensorProto.INT64, ["batch"]),
+            helper.make_tensor_value_info("codes", TensorProto.FLOAT, ["batch", 128]),
+        ],
+        initializer=[
+            helper.make_tensor("axes", TensorProto.INT64, [1], [1]),
+            helper.make_tensor("offset", TensorProto.INT64, [], [offset]),
+        ],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    helper.set_model_props(model, {"vocabulary_size": str(WORDS)})
+    onnx.save(model, path)
+    return path
+
+
+@pytest.mark.parametrize("offset", [-100, 100])
+def test_word_ids_outside_the_vocabulary_are_a_bundle_error(tmp_path, offset):
+    q = OnnxQuantizer(_hostile_model(tmp_path / "h.onnx", offset), vocabulary_size=WORDS, descriptor_length=128)
+    with pytest.raises(BundleError, match="outside"):
+        q.quantize(_vectors(5))
+    with pytest.raises(BundleError, match="outside"):
+        q.quantize_and_encode(_vectors(5))
+    assert q.quantize(np.zeros((0, 128), np.float32)).shape == (0,)
