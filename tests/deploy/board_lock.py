@@ -16,6 +16,8 @@ from pathlib import Path
 
 _PIN = re.compile(r"^([A-Za-z0-9._-]+)==(\S+)")
 _NOT_FOUND = re.compile(r"No matching distribution found for ([A-Za-z0-9._-]+)==")
+# pip also says "No matching distribution" when it could not reach the index: these mean the network.
+_NETWORK_TROUBLE = re.compile(r"Retrying \(Retry\(|NewConnectionError|Max retries exceeded|Could not fetch URL|Read timed out")
 
 
 def read_lock(path: Path) -> dict[str, str]:
@@ -60,6 +62,7 @@ def resolve_level(lock: dict[str, str], glibc_minor: int, python: str = "3.11", 
             requirements.write_text("\n".join(todo.values()) + "\n")
             cmd = [
                 sys.executable, "-m", "pip", "download", "--quiet", "--disable-pip-version-check",
+                "--retries", "2", "--timeout", "30",
                 "--only-binary=:all:", "--no-deps", "--require-hashes", "-r", str(requirements),
                 "--python-version", python, "--implementation", "cp", "--abi", abi, "-d", str(Path(tmp) / "wheels"),
             ]
@@ -70,20 +73,28 @@ def resolve_level(lock: dict[str, str], glibc_minor: int, python: str = "3.11", 
             if out.returncode == 0:
                 break
             match = _NOT_FOUND.search(out.stderr)
-            if not match or match.group(1) not in todo:
+            if not match or match.group(1) not in todo or _NETWORK_TROUBLE.search(out.stderr):
                 raise RuntimeError(f"pip download failed at glibc 2.{glibc_minor}: {out.stderr.strip()[-2000:]}")
             missing.append(match.group(1))
             del todo[match.group(1)]
     return LevelResult(glibc_minor, tuple(sorted(missing)), runs)
 
 
-def pypi_reachable(timeout_s: float = 30) -> tuple[bool, str]:
-    """Whether pip can fetch one small wheel from the index within timeout_s (the reason if not)."""
-    with tempfile.TemporaryDirectory(prefix="pypi-probe-") as tmp:
-        cmd = [sys.executable, "-m", "pip", "download", "--quiet", "--disable-pip-version-check",
-               "--no-deps", "--only-binary=:all:", "--retries", "0", "--timeout", "10", "-d", tmp, "tqdm"]
-        try:
-            out = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            return False, f"pip download did not answer within {timeout_s:.0f} s"
-        return out.returncode == 0, out.stderr.strip()[-300:]
+def index_reachable(package: str, version: str, glibc_minor: int = 28, timeout_s: float = 30) -> tuple[bool, str]:
+    """Whether pip's index lists `package==version` for aarch64 (the reason if not).
+
+    Reads only the project's index page. --no-cache-dir: pip's HTTP cache answers for pages
+    fetched in the last minutes, and a local mirror may hold pure-Python or x86-64 wheels only,
+    either of which would make an offline machine look online.
+    """
+    cmd = [sys.executable, "-m", "pip", "index", "versions", package, "--disable-pip-version-check", "--no-cache-dir",
+           "--retries", "0", "--timeout", "10", "--only-binary=:all:", "--python-version", "3.11",
+           "--implementation", "cp", "--abi", "cp311", "--platform", f"manylinux_2_{glibc_minor}_aarch64"]
+    try:
+        out = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return False, f"pip index did not answer within {timeout_s:.0f} s"
+    listed = re.search(r"Available versions: (.*)", out.stdout)
+    if listed and version in [v.strip() for v in listed.group(1).split(",")]:
+        return True, ""
+    return False, f"{package}=={version} for aarch64 not listed by the index: {(out.stdout + out.stderr).strip()[-300:]}"

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from tests.deploy.board_lock import (
+    index_reachable,
     manylinux_tags,
-    pypi_reachable,
     read_lock,
     resolve_level,
 )
@@ -68,7 +68,8 @@ def test_manylinux_tags_include_the_legacy_2014_name():
 
 @pytest.fixture(scope="module")
 def pypi():
-    ok, why = pypi_reachable()
+    pins = _pins(LOCK_PATH.read_text())
+    ok, why = index_reachable("onnxruntime", pins["onnxruntime"])
     if not ok:
         pytest.skip(f"PyPI unreachable: {why}")
 
