@@ -8,38 +8,22 @@ same seccomp filters the unit asks systemd for, and the runtime's work runs unde
 
 from __future__ import annotations
 
-import ctypes.util
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import pytest
 
-from tests.deploy.unit_file import read_unit
+from tests.deploy.unit_file import REPO, read_unit, sandbox_available, sandbox_prefix
 
-REPO = Path(__file__).resolve().parents[2]
-SANDBOX = Path(__file__).with_name("unit_sandbox.py")
-
-pytestmark = pytest.mark.skipif(
-    not sys.platform.startswith("linux") or shutil.which("systemd-analyze") is None
-    or ctypes.util.find_library("seccomp") is None,
-    reason="needs Linux, libseccomp and systemd-analyze (for the system-call groups)",
-)
+pytestmark = pytest.mark.skipif(not sandbox_available(), reason="needs Linux, libseccomp and systemd-analyze")
 
 
 def _sandboxed(argv: list[str], timeout_s: float) -> subprocess.CompletedProcess:
     """Run argv under the unit's seccomp filters, with this checkout importable."""
-    service = read_unit(REPO / "deploy" / "aefabmap.service")["Service"]
-    assert service["MemoryDenyWriteExecute"] == ["yes"]
-    filters: list[str] = []
-    for value in service["SystemCallFilter"]:
-        for group in value.split():
-            filters += ["--deny", group[1:]] if group.startswith("~") else ["--allow", group]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
-    return subprocess.run([sys.executable, str(SANDBOX), *filters, "--", *argv], check=False,
+    return subprocess.run([*sandbox_prefix(read_unit()["Service"]), *argv], check=False,
                           capture_output=True, text=True, timeout=timeout_s, env=env)
 
 

@@ -18,12 +18,13 @@ import pytest
 
 from aefabmap.cli.demo import default_bundle
 from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
-from tests.deploy.test_memory_deny_write_execute import pytestmark as sandbox_skip
-from tests.deploy.test_service_unit import UNIT_PATH, _run_argv
-from tests.deploy.unit_file import read_unit
-
-REPO = Path(__file__).resolve().parents[2]
-SANDBOX = Path(__file__).with_name("unit_sandbox.py")
+from tests.deploy.unit_file import (
+    REPO,
+    read_unit,
+    run_argv,
+    sandbox_available,
+    sandbox_prefix,
+)
 
 
 def _free_port() -> int:
@@ -34,22 +35,14 @@ def _free_port() -> int:
 
 def _unit_argv(model: Path, mcap: Path, router_port: int) -> list[str]:
     """ExecStart's `aefabmap run` arguments with the board's paths and router port replaced."""
-    argv = _run_argv(read_unit(UNIT_PATH)["Service"])
+    argv = run_argv(read_unit()["Service"])
     replace = {"--model": str(model), "--mcap": str(mcap), "--connect": f"tcp/127.0.0.1:{router_port}"}
     return [replace.get(argv[i - 1], a) if i else a for i, a in enumerate(argv)]
 
 
-def _sandbox_prefix() -> list[str]:
-    flags: list[str] = []
-    for value in read_unit(UNIT_PATH)["Service"]["SystemCallFilter"]:
-        for group in value.split():
-            flags += ["--deny", group[1:]] if group.startswith("~") else ["--allow", group]
-    return [sys.executable, str(SANDBOX), *flags, "--"]
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(300)
-@sandbox_skip
+@pytest.mark.skipif(not sandbox_available(), reason="needs Linux, libseccomp and systemd-analyze")
 def test_unit_command_runs_against_a_local_router(tmp_path):
     frames = tmp_path / "frames"
     make_demo_sequence(frames, n_frames=30, seed=3, size=(320, 240))
@@ -58,7 +51,7 @@ def test_unit_command_runs_against_a_local_router(tmp_path):
            "OMP_NUM_THREADS": "1"}
     mcap = tmp_path / "lcd.mcap"
     runtime = subprocess.Popen(
-        [*_sandbox_prefix(), sys.executable, "-m", "aefabmap.cli.main",
+        [*sandbox_prefix(read_unit()["Service"]), sys.executable, "-m", "aefabmap.cli.main",
          *_unit_argv(default_bundle(), mcap, port)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
     )

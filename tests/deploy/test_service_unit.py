@@ -4,7 +4,6 @@ hardened, and `systemd-analyze security` rates its exposure <= 4.0."""
 from __future__ import annotations
 
 import re
-import shlex
 import shutil
 import subprocess
 from pathlib import Path
@@ -13,16 +12,14 @@ import pytest
 
 from aefabmap.cli.main import build_parser
 from aefabmap.errors import BundleError, ConfigError
-from tests.deploy.unit_file import read_unit
+from tests.deploy.unit_file import UNIT_PATH, read_unit, run_argv
 
-REPO = Path(__file__).resolve().parents[2]
-UNIT_PATH = REPO / "deploy" / "aefabmap.service"
 MAX_EXPOSURE = 4.0
 
 
 @pytest.fixture(scope="module")
 def service() -> dict[str, list[str]]:
-    return read_unit(UNIT_PATH)["Service"]
+    return read_unit()["Service"]
 
 
 def _one(service: dict[str, list[str]], key: str) -> str:
@@ -31,21 +28,9 @@ def _one(service: dict[str, list[str]], key: str) -> str:
     return values[-1]
 
 
-def _run_argv(service: dict[str, list[str]]) -> list[str]:
-    """The `aefabmap run ...` arguments of ExecStart (a `/bin/sh -c 'exec ...'` wrapper)."""
-    exec_start = shlex.split(_one(service, "ExecStart"))
-    assert exec_start[:2] == ["/bin/sh", "-c"], exec_start
-    # systemd turns %% into %; the shell then expands $(date ...): stand a fixed name in for it.
-    script = exec_start[2].replace("%%", "%")
-    script = re.sub(r"\$\(date [^)]*\)", "20260101T000000Z", script)
-    words = shlex.split(script)
-    assert words[0] == "exec" and words[1].endswith("/aefabmap") and words[2] == "run", words
-    return words[2:]
-
-
 def test_exec_start_is_accepted_by_the_cli(service):
     # argparse exits (SystemExit 2) on an unknown option, e.g. a --state the CLI does not have yet.
-    args = build_parser().parse_args(_run_argv(service))
+    args = build_parser().parse_args(run_argv(service))
     assert args.command == "run"
     assert args.mcap.startswith("/var/log/aefabmap/"), "the log must go to LogsDirectory="
     assert args.image_every == 30, "one image a second from a 30 Hz camera"
