@@ -62,13 +62,13 @@ class SessionConfig:
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     config_file: str | None = None
-    mode: str = "peer"
+    mode: str | None = None  # None: the config file's mode, else "peer"
     multicast_scouting: bool | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "connect", _split_endpoints(self.connect, "connect"))
         object.__setattr__(self, "listen", _split_endpoints(self.listen, "listen"))
-        if self.mode not in ("peer", "client", "router"):
+        if self.mode is not None and self.mode not in ("peer", "client", "router"):
             raise ConfigError(f"zenoh mode must be peer, client or router, got {self.mode!r}")
 
     def to_dict(self) -> dict:
@@ -116,7 +116,8 @@ def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
     except zenoh.ZError as exc:
         raise ConfigError(f"cannot load zenoh config {sc.config_file}: {_short(exc)}") from exc
     try:
-        conf.insert_json5("mode", json.dumps(sc.mode))
+        if sc.mode is not None or not sc.config_file:  # never override the file's own mode silently
+            conf.insert_json5("mode", json.dumps(sc.mode or "peer"))
         if sc.connect:
             conf.insert_json5("connect/endpoints", json.dumps(list(sc.connect)))
         if sc.listen or not sc.config_file:

@@ -57,7 +57,8 @@ def test_bad_mode_and_config_file(tmp_path):
     good = tmp_path / "good.json5"
     good.write_text("{ mode: 'client', }")
     conf = build_zenoh_config(SessionConfig(config_file=str(good), listen=("tcp/127.0.0.1:0",)))
-    assert json.loads(conf.get_json("mode")) == "peer"  # the explicit option overrides the file
+    assert json.loads(conf.get_json("mode")) == "client"  # no mode option given: the file's mode stands
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]  # explicit options override
 
 
 def test_session_that_cannot_open_is_transport_error():
@@ -162,3 +163,16 @@ def test_receive_returns_on_stop_event():
         with pytest.raises(ConfigError):
             FrameSubscriber(a, "x", queue_size=0)
         sub.close()
+
+
+def test_config_file_mode_is_kept_unless_given(tmp_path):
+    """A --config file saying `mode: "client"` is honoured; an explicit mode still wins."""
+    import json
+
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
+
+    cfg = tmp_path / "zenoh.json5"
+    cfg.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7447"] } }')
+    assert json.loads(build_zenoh_config(SessionConfig(config_file=str(cfg))).get_json("mode")) == "client"
+    assert json.loads(build_zenoh_config(SessionConfig(config_file=str(cfg), mode="peer")).get_json("mode")) == "peer"
+    assert json.loads(build_zenoh_config(SessionConfig()).get_json("mode")) == "peer"
