@@ -90,3 +90,17 @@ def test_every_module_resolves_statically_from_the_repo_root():
         assert static.is_file(), f"{dotted} does not resolve to {static}"
     pyproject = (REPO / "pyproject.toml").read_text()
     assert '"aefabmap.runtime" = "runtime"' not in pyproject, "package-dir remapping is back"
+
+
+def test_offline_replay_does_not_import_zenoh():
+    """replay/eval run on a laptop without a network stack: loading a detector and replaying a log
+    must not import the transport (it used to, through node.py)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import aefabmap.cli.replay, aefabmap.cli.eval; "
+            "from aefabmap.runtime.adapters import replay, bundle_reader; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('zenoh', 'torch', 'onnx')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
