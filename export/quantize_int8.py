@@ -15,7 +15,9 @@ QDQ arithmetic wherever two neighbouring activations are large -- always so for 
 whose 0/1 bits quantise to 0/255 (measured on an AVX2 machine: latent codes off by 11 %,
 only 59 % of ORB words equal to fp32; 97.6 % for SIFT). 7-bit weights moved agreement in
 exact QDQ arithmetic by 0.25 points either way (ORB up, SIFT down, 3-epoch test models)
-and make the int8 kernels compute what the graph says, on every CPU.
+and make the int8 kernels compute what the graph says, on every CPU. On K=2000 models
+(2 epochs, 20k descriptors) words equal to fp32 on held-out scene15 descriptors went from
+85.8 to 98.9 % (ORB) and 96.1 to 98.0 % (SIFT), at the same speed.
 """
 
 from __future__ import annotations
