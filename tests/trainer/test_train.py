@@ -56,4 +56,7 @@ def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     v = np.random.default_rng(0).integers(0, 2, (300, 256)).astype(np.float32)
     w32, w8 = q32.quantize(v), q8.quantize(v)
     assert w32.shape == (300,) and w32.max() < 32
-    assert np.mean(w32 == w8) > 0.8  # a tiny model; trained models agree on >= 99 % (export tests)
+    # A 3-epoch toy on 16 synthetic frames still agrees on > 99 % (random bits are off its
+    # training distribution, hence the margin); int8 kernels saturating int16 gave 0.18.
+    assert np.mean(w32 == w8) >= 0.97
+    assert b.manifest["quantizer"]["int8_agreement"] >= 0.99  # measured on its training descriptors
