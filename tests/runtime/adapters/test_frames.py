@@ -77,7 +77,7 @@ def test_zero_length_payload():
 
 def test_wrong_encoding(image):
     payload, _ = encode_frame(image, "jpeg")
-    for enc in ("text/plain", "application/json", "", "image/gif", "video/raw", "yuv422;64x48", "mono8;64by48"):
+    for enc in ("text/plain", "application/json", "", "image/gif", "video/raw", "yuv420;64x48", "mono8;64by48"):
         assert _reason(payload, enc) == "wrong_encoding", enc
 
 
@@ -126,7 +126,7 @@ def test_pack_raw_rows_removes_row_padding(image):
         pack_raw_rows(b"\x00" * 10, "mono8", w, h, w)
     assert info.value.reason == "size_mismatch"
     with pytest.raises(FrameError):
-        pack_raw_rows(b"\x00" * 10, "yuv422", 2, 2, 4)
+        pack_raw_rows(b"\x00" * 10, "yuv420", 2, 2, 4)
 
 
 def test_compressed_format_mapping():
