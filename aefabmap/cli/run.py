@@ -12,7 +12,7 @@ import json
 import logging
 import threading
 
-from aefabmap.errors import AefabmapError
+from aefabmap.errors import AefabmapError, ConfigError
 
 log = logging.getLogger("aefabmap.run")
 
@@ -66,19 +66,19 @@ def register(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
+    from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
     from aefabmap.runtime.core.detector import DetectorConfig
 
-    from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
-
     stop = threading.Event()
     try:
-        if (args.key is None) == (args.ros_topic is None):
+        ros_topic = getattr(args, "ros_topic", None)
+        if (args.key is None) == (ros_topic is None):
             raise ConfigError("give exactly one of --key (zenoh image key) and --ros-topic (ROS 2 image topic)")
         ros = None
-        if args.ros_topic is not None:
-            ros = RosOptions(topic=args.ros_topic, domain=args.ros_domain, distro=args.ros_distro)
+        if ros_topic is not None:
+            ros = RosOptions(topic=ros_topic, domain=getattr(args, "ros_domain", 0),
+                             distro=getattr(args, "ros_distro", "humble"))
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
                                      listen=args.listen, config_file=args.config)
@@ -90,7 +90,7 @@ def main(args: argparse.Namespace) -> int:
 
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
                               queue_size=args.queue, stats_period_s=5.0, image_log_every=args.image_every,
-                              run_config=run_config, result_key=args.results_key, ros=ros)
+                              run_config=run_config, result_key=getattr(args, "results_key", None), ros=ros)
 
         def on_stats(msg) -> None:
             log.info(

@@ -36,7 +36,11 @@ import numpy as np
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
-from aefabmap.runtime.adapters.rmw_zenoh import RosFrameSubscriber, RosOptions, RosResultPublisher
+from aefabmap.runtime.adapters.rmw_zenoh import (
+    RosFrameSubscriber,
+    RosOptions,
+    RosResultPublisher,
+)
 from aefabmap.runtime.adapters.zenoh_transport import (
     FrameSubscriber,
     ReceivedFrame,

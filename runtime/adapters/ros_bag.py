@@ -19,7 +19,12 @@ from pathlib import Path
 
 from aefabmap.errors import LogError
 from aefabmap.runtime.adapters.frames import FrameError
-from aefabmap.runtime.adapters.mcap_log import LOG_METADATA, LoggedImage, ReadStatus, read_log_metadata
+from aefabmap.runtime.adapters.mcap_log import (
+    LOG_METADATA,
+    LoggedImage,
+    ReadStatus,
+    read_log_metadata,
+)
 from aefabmap.runtime.adapters.ros_cdr import (
     COMPRESSED_IMAGE_TYPE,
     DECODERS,
@@ -102,7 +107,7 @@ class RosBagReader:
                                   int(log_time), self.status.messages_read - 1)
         except LogError:
             raise
-        except Exception as exc:  # a storage error mid-bag: stop there, like a truncated log
+        except Exception as exc:  # noqa: BLE001 - a storage error mid-bag: stop there, like a truncated log
             self.status.truncated = True
             self.status.reason = f"{type(exc).__name__}: {exc}"[:200]
         finally:
@@ -143,7 +148,7 @@ class RosBagReader:
             self.status.invalid_messages += 1
             self.status.last_invalid = f"{exc.reason}: {exc}"[:200]
             return None
-        except Exception as exc:  # ROS 1 deserializer on malformed bytes
+        except Exception as exc:  # noqa: BLE001 - ROS 1 deserializer on malformed bytes
             self.status.undecodable_messages += 1
             self.status.invalid_messages += 1
             self.status.last_invalid = f"{type(exc).__name__}: {exc}"[:200]

@@ -122,28 +122,29 @@ def _publish_and_collect(tmp_path, typestore, frames, expect: int):
     """frames: (key, payload, seq) tuples; returns (summary, results, graph tokens, ros results)."""
     router = Router()
     try:
-        with NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
-                        mcap_path=tmp_path / "ros.mcap", queue_size=16, stats_period_s=0.2,
-                        ros=RosOptions(topic=TOPIC)) as node:
-            with zenoh.open(build_zenoh_config(router.ros_peer())) as camera:
-                results = RosResults(camera, typestore)
-                tokens = [str(r.result.key_expr) for r in camera.liveliness().get("@ros2_lv/0/**")
-                          if r.ok is not None]
-                pubs = {key: camera.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-                        for key in {k for k, _, _ in frames}}
-                for pub in pubs.values():  # wait until the node's subscription is routed to us
-                    deadline = threading.Event()
-                    for _ in range(200):
-                        if pub.matching_status.matching:
-                            break
-                        deadline.wait(0.05)
-                    assert pub.matching_status.matching
-                for key, payload, seq in frames:
-                    pubs[key].put(payload, attachment=rmw_attachment(seq, STAMP0 + seq))
-                docs = results.wait_for(expect, timeout_s=20)
-                summary = node.finish()
-                results.sub.undeclare()
-                return summary, docs, tokens, results.attachments
+        with (
+            NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
+                       mcap_path=tmp_path / "ros.mcap", queue_size=16, stats_period_s=0.2,
+                       ros=RosOptions(topic=TOPIC)) as node,
+            zenoh.open(build_zenoh_config(router.ros_peer())) as camera,
+        ):
+            results = RosResults(camera, typestore)
+            tokens = [str(r.result.key_expr) for r in camera.liveliness().get("@ros2_lv/0/**") if r.ok is not None]
+            pubs = {key: camera.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                    for key in {k for k, _, _ in frames}}
+            pause = threading.Event()
+            for pub in pubs.values():  # wait (bounded) until the node's subscription is routed to us
+                for _ in range(200):
+                    if pub.matching_status.matching:
+                        break
+                    pause.wait(0.05)
+                assert pub.matching_status.matching
+            for key, payload, seq in frames:
+                pubs[key].put(payload, attachment=rmw_attachment(seq, STAMP0 + seq))
+            docs = results.wait_for(expect, timeout_s=20)
+            summary = node.finish()
+            results.sub.undeclare()
+            return summary, docs, tokens, results.attachments
     finally:
         router.close()
 

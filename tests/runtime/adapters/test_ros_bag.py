@@ -18,15 +18,19 @@ import pytest
 from aefabmap.errors import LogError
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.adapters.replay import NONDETERMINISTIC_FIELDS, compare_results, replay
+from aefabmap.runtime.adapters.replay import (
+    NONDETERMINISTIC_FIELDS,
+    compare_results,
+    replay,
+)
 from aefabmap.runtime.adapters.ros_bag import INSTALL_HINT, RosBagReader
 
 from .stream_fakes import FakeDetector, sample_images
 
 pytest.importorskip("rosbags.rosbag2")
-from rosbags.rosbag1 import Writer as Ros1Writer  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin, Writer  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from rosbags.rosbag1 import Writer as Ros1Writer
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
 
 STAMP0 = 1_700_000_000_000_000_000
 COLOUR = "/camera/color/image_raw"
@@ -142,8 +146,8 @@ def test_ros1_bag_replays(tmp_path):
 
 
 def test_unusable_bags_fail_with_a_reason(tmp_path, monkeypatch, capsys):
-    from aefabmap.cli import replay as cli_replay
     import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    from aefabmap.cli import replay as cli_replay
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     only_text = tmp_path / "text"
