@@ -53,6 +53,8 @@ ADMIN_SPACE = "@ros2_lv"
 HUMBLE_TYPE_HASH = "TypeHashNotSupported"
 #: RIHS01 hash of std_msgs/msg/String (Iron and later; checked against rosbags in the tests).
 STRING_RIHS01 = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+#: RIHS01 hash of sensor_msgs/msg/Image (for this node's subscription token on Iron and later).
+IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
 #: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
 DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
@@ -342,10 +344,10 @@ class RosGraph:
         self.zid = str(session.info.zid())
         self.options = options
         o = options
-        image_hash = HUMBLE_TYPE_HASH if o.distro == "humble" else "*"
-        tokens = [liveliness_token(o.domain, self.zid, 0, 0, "NN", o.node)]
-        if image_hash != "*":  # a token must be a concrete key: only Humble's hash is known in advance
-            tokens.append(liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, IMAGE_TYPE, image_hash))
+        image_hash = HUMBLE_TYPE_HASH if o.distro == "humble" else IMAGE_RIHS01
+        # The subscription is listed as sensor_msgs/msg/Image; it takes CompressedImage too.
+        tokens = [liveliness_token(o.domain, self.zid, 0, 0, "NN", o.node),
+                  liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, IMAGE_TYPE, image_hash)]
         try:
             self._tokens = [session.liveliness().declare_token(t) for t in tokens]
         except zenoh.ZError as exc:

@@ -19,6 +19,7 @@ from zenoh.ext import Int64, z_serialize
 
 from aefabmap.runtime.adapters.frames import FrameError, decode_frame
 from aefabmap.runtime.adapters.rmw_zenoh import (
+    IMAGE_RIHS01,
     STRING_RIHS01,
     RosOptions,
     liveliness_token,
@@ -221,6 +222,7 @@ def test_attachment_layouts_and_hostile_attachments():
 def test_graph_names_and_string_type_hash(typestore):
     jazzy = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
     assert jazzy.hash_rihs01("std_msgs/msg/String") == STRING_RIHS01
+    assert jazzy.hash_rihs01("sensor_msgs/msg/Image") == IMAGE_RIHS01
     token = liveliness_token(0, "abc", 0, 2, "MP", "aefabmap", "/lcd/result", "std_msgs/msg/String",
                              "TypeHashNotSupported")
     assert token == ("@ros2_lv/0/abc/0/2/MP/%/%/aefabmap/%lcd%result/std_msgs::msg::dds_::String_/"
