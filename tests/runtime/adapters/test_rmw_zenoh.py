@@ -171,13 +171,30 @@ def test_rmw_zenoh_image_samples_give_one_result_each(tmp_path, typestore):
     assert any("/MS/%/%/aefabmap/%camera%image_raw/sensor_msgs::msg::dds_::Image_/" in t for t in tokens)
 
 
-def test_rmw_zenoh_dropped_sequence_number_is_counted(tmp_path, typestore):
+def test_rmw_zenoh_dropped_sequence_number_and_hostile_samples_are_counted(tmp_path, typestore):
     images = sample_images(3, size=(160, 120))
-    frames = [(IMAGE_KEY, ros_image(typestore, img, "mono8", STAMP0 + i + 1), seq)
-              for i, (img, seq) in enumerate(zip(images, (1, 2, 4)))]
+    good = [ros_image(typestore, img, "mono8", STAMP0 + i + 1) for i, img in enumerate(images)]
+    text = bytes(typestore.serialize_cdr(typestore.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
+    frames = [
+        (IMAGE_KEY, good[0], 1),
+        (IMAGE_KEY, good[1][: len(good[1]) // 2], 2),  # truncated CDR: corrupt
+        ("0/camera/image_raw/std_msgs::msg::dds_::String_/TypeHashNotSupported", text, 3),  # wrong type
+        (IMAGE_KEY, good[1], 4),
+        (IMAGE_KEY, good[2], 6),  # sequence number 5 never arrives: one drop
+    ]
     summary, docs, _, _ = _publish_and_collect(tmp_path, typestore, frames, expect=3)
     assert summary.frames_processed == 3 and summary.dropped == 1
-    assert [d["frame_seq"] for d in docs] == [1, 2, 4]
+    assert {k: v for k, v in summary.bad.items() if v} == {"corrupt": 1, "wrong_encoding": 1}
+    assert [d["frame_seq"] for d in docs] == [1, 4, 6]
+
+
+def test_cli_run_takes_a_key_or_a_ros_topic(tmp_path):
+    from aefabmap.cli.main import main
+
+    base = ["run", "--model", str(tmp_path / "none"), "--mcap", str(tmp_path / "x.mcap")]
+    assert main([*base, "--key", "robot/camera/image", "--ros-topic", "/camera/image_raw"]) == 2
+    assert main(base) == 2
+    assert main([*base, "--ros-topic", "/camera/image raw"]) == 2  # not a ROS name
 
 
 def test_cdr_reader_matches_rosbags_and_refuses_every_truncation(typestore):
