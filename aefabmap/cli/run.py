@@ -82,7 +82,7 @@ def main(args: argparse.Namespace) -> int:
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
                                      listen=args.listen, config_file=args.config)
-        if ros is not None and not args.config:
+        if ros is not None and not args.config and not args.listen:
             # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
             session = dataclasses.replace(session, mode="client")
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))

@@ -246,3 +246,63 @@ def test_graph_names_and_string_type_hash(typestore):
                      "TypeHashNotSupported/::,:,:,:,,")
     assert RosOptions(topic="/camera/image_raw").image_key == "0/camera/image_raw/*/*"
     assert RosOptions(topic="/camera/image_raw").default_results_key == "camera/lcd"
+
+
+def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, capsys):
+    """`aefabmap run --ros-topic ... --connect <router> --results-key robot/lcd` end to end."""
+    import argparse
+    import os
+    import signal
+
+    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    from aefabmap.cli import run
+    from aefabmap.runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogReader
+
+    from .stream_fakes import JsonCollector
+
+    monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
+    router = Router()
+    log_path = tmp_path / "cli_ros.mcap"
+    args = argparse.Namespace(model="fake", key=None, ros_topic=TOPIC, ros_domain=0, ros_distro="humble",
+                              results_key="robot/lcd", connect=[router.endpoint], listen=[], config=None,
+                              mcap=str(log_path), max_places=None, memory_mb=None, queue=4, image_every=1)
+    errors: list[BaseException] = []
+    got = threading.Event()
+
+    def drive() -> None:
+        try:
+            with zenoh.open(build_zenoh_config(router.ros_peer())) as camera:
+                plain = JsonCollector(camera, "robot/lcd")
+                ros = RosResults(camera, typestore)
+                pub = camera.declare_publisher(IMAGE_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
+                pause = threading.Event()
+                for _ in range(400):
+                    if pub.matching_status.matching:
+                        break
+                    pause.wait(0.05)
+                for i, img in enumerate(sample_images(2, size=(96, 72))):
+                    pub.put(ros_image(typestore, img, "mono8", STAMP0 + i), attachment=rmw_attachment(i + 1, STAMP0))
+                plain.wait_for(lambda d: d["sequence"] == 1, timeout_s=20)
+                assert [d["sequence"] for d in ros.wait_for(2, timeout_s=20)] == [0, 1]
+                plain.close()
+                ros.sub.undeclare()
+            got.set()
+        except BaseException as exc:  # reported to the test
+            errors.append(exc)
+        finally:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    driver = threading.Thread(target=drive, daemon=True)
+    driver.start()
+    try:
+        code = run.main(args)
+        driver.join(10)
+    finally:
+        router.close()
+    assert not errors and got.is_set()
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["frames_processed"] == 2 and summary["result_key"] == "robot/lcd"
+    reader = McapLogReader(log_path)
+    assert len(list(reader.frames())) == 2
+    assert reader.metadata[RUN_CONFIG_METADATA]["ros"]["topic"] == TOPIC
