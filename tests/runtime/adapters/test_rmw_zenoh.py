@@ -287,7 +287,7 @@ def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, ca
                 plain.close()
                 ros.sub.undeclare()
             got.set()
-        except BaseException as exc:  # reported to the test
+        except BaseException as exc:  # noqa: BLE001 - reported to the test
             errors.append(exc)
         finally:
             os.kill(os.getpid(), signal.SIGINT)
@@ -306,3 +306,25 @@ def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, ca
     reader = McapLogReader(log_path)
     assert len(list(reader.frames())) == 2
     assert reader.metadata[RUN_CONFIG_METADATA]["ros"]["topic"] == TOPIC
+
+
+def test_fuzzed_cdr_raises_only_frame_errors(typestore):
+    """Flipped bytes anywhere (lengths included) in Image/CompressedImage CDR: FrameError or a frame."""
+    rng = np.random.default_rng(20261122)
+    gray = sample_images(1, size=(48, 32))[0]
+    seeds = [(decode_image_cdr, ros_image(typestore, gray, "mono8", STAMP0)),
+             (decode_image_cdr, ros_image(typestore, gray, "bgr8", STAMP0)),
+             (decode_compressed_cdr, ros_compressed(typestore, gray, STAMP0))]
+    refused = 0
+    for i in range(600):
+        decode, data = seeds[i % len(seeds)]
+        buf = bytearray(data)
+        head = min(len(buf), 96)  # mostly the header and length fields, where parsing decides
+        for pos in rng.integers(0, head, int(rng.integers(1, 4))):
+            buf[int(pos)] = int(rng.integers(0, 256))
+        try:
+            img = decode(bytes(buf))
+            decode_frame(img.payload, img.encoding)
+        except FrameError:
+            refused += 1
+    assert refused > 100  # the fuzz reaches the checks
