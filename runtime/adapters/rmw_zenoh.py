@@ -8,9 +8,10 @@ what this module relies on:
   ``TypeHashNotSupported`` as the hash, so the subscriber takes any hash (``*``);
 - payload: the message in CDR (runtime/adapters/ros_cdr.py);
 - attachment (zenoh-ext serialization): int64 sequence number, int64 source timestamp
-  (ns), then the 16-byte publisher gid as a sequence (LEB128 length 16, then the bytes),
-  all little-endian: 33 bytes. Older releases prefixed each field with its name as a string
-  (``sequence_number``, ``source_timestamp``, ``source_gid``); both are parsed;
+  (ns), then the publisher gid as a sequence (LEB128 length, then the bytes), all
+  little-endian. The gid is ``RMW_GID_STORAGE_SIZE`` bytes: 16 since Iron, 24 on Humble.
+  Older releases prefixed each field with its name as a string (``sequence_number``,
+  ``source_timestamp``, ``source_gid``), some append the session id as a string; all are parsed;
 - graph: liveliness tokens ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<kind>/<enclave>/<ns>/
   <node>[/<topic>/<type>/<hash>/<qos>]`` with kind ``NN`` (node), ``MP`` (publisher), ``MS``
   (subscription); names have ``/`` replaced by ``%``; ``::,:,:,:,,`` is the default QoS.
@@ -58,6 +59,8 @@ IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb958
 #: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
 DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
+#: RMW_GID_STORAGE_SIZE of each distribution (the gid length in the attachment).
+GID_STORAGE_BYTES = {"humble": 24, "jazzy": 16}
 RESULT_TOPIC = "/lcd/result"
 STATS_TOPIC = "/lcd/stats"
 _INT64_MAX = 2**63 - 1
@@ -123,14 +126,14 @@ def liveliness_token(domain: int, zid: str, node_id: int, entity_id: int, kind: 
 
 @dataclass(frozen=True)
 class RmwAttachment:
-    """rmw_zenoh's per-sample attachment: sequence number, source timestamp (ns), gid (16 bytes)."""
+    """rmw_zenoh's per-sample attachment: sequence number, source timestamp (ns), gid (16 or 24 bytes)."""
 
     sequence_number: int
     source_timestamp: int
     gid: bytes
 
     def to_bytes(self) -> bytes:
-        return struct.pack("<qqB", self.sequence_number, self.source_timestamp, GID_BYTES) + self.gid
+        return struct.pack("<qqB", self.sequence_number, self.source_timestamp, len(self.gid)) + self.gid
 
 
 def _varint(buf: bytes, pos: int) -> tuple[int, int]:
@@ -146,7 +149,8 @@ def _varint(buf: bytes, pos: int) -> tuple[int, int]:
 
 
 def parse_attachment(data: bytes) -> RmwAttachment:
-    """Parse an rmw_zenoh attachment (current or keyed layout); ValueError when malformed."""
+    """Parse an rmw_zenoh attachment (current, keyed or with a trailing session id);
+    ValueError when malformed."""
     if len(data) > 256:
         raise ValueError(f"attachment of {len(data)} bytes is not rmw_zenoh's")
     pos, fields = 0, []
@@ -164,10 +168,14 @@ def parse_attachment(data: bytes) -> RmwAttachment:
             pos += 8
         else:
             n, pos = _varint(data, pos)
-            if n != GID_BYTES or pos + n != len(data):
-                raise ValueError(f"attachment gid must be the last {GID_BYTES} bytes")
+            if n not in GID_STORAGE_BYTES.values() or pos + n > len(data):
+                raise ValueError(f"attachment gid of {n} bytes (expected 16 or 24)")
             fields.append(bytes(data[pos : pos + n]))
             pos += n
+    if pos < len(data):  # a trailing session id string, in some releases
+        n, after = _varint(data, pos)
+        if after + n != len(data):
+            raise ValueError(f"{len(data) - pos} unexpected bytes after the attachment gid")
     return RmwAttachment(*fields)
 
 
@@ -275,10 +283,11 @@ class RosStringPublisher:
     its liveliness token (so ``ros2 topic list`` shows the topic)."""
 
     def __init__(self, session: zenoh.Session, domain: int, topic: str, type_hash: str, zid: str,
-                 node_id: int, entity_id: int, node: str) -> None:
+                 node_id: int, entity_id: int, node: str, gid_bytes: int = GID_BYTES) -> None:
         self.key = data_key(domain, topic, STRING_TYPE, type_hash)
         token = liveliness_token(domain, zid, node_id, entity_id, "MP", node, topic, STRING_TYPE, type_hash)
-        self.gid = hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest()
+        # A hash of the token, as rmw_zenoh derives its gids; Humble's gid storage is zero-padded to 24 bytes.
+        self.gid = hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest().ljust(gid_bytes, b"\x00")
         self.seq = 0
         try:
             self._pub = session.declare_publisher(self.key, congestion_control=zenoh.CongestionControl.DROP)
@@ -374,10 +383,11 @@ class RosResultPublisher:
         self.result_key, self.stats_key = self.plain.result_key, self.plain.stats_key
         o = options
         try:
+            gid_bytes = GID_STORAGE_BYTES[o.distro]
             self.ros_results = RosStringPublisher(session, o.domain, RESULT_TOPIC, o.string_hash, self.graph.zid,
-                                                  0, 2, o.node)
+                                                  0, 2, o.node, gid_bytes)
             self.ros_stats = RosStringPublisher(session, o.domain, STATS_TOPIC, o.string_hash, self.graph.zid,
-                                                0, 3, o.node)
+                                                0, 3, o.node, gid_bytes)
         except BaseException:
             self.plain.close()
             self.graph.close()

@@ -165,6 +165,7 @@ def test_rmw_zenoh_image_samples_give_one_result_each(tmp_path, typestore):
     assert [d["frame_seq"] for d in docs] == [1, 2, 3]
     # Our results carry rmw_zenoh's attachment (numbered from 1) and the node is in the graph.
     assert [parse_attachment(a).sequence_number for a in atts] == [1, 2, 3]
+    assert all(len(parse_attachment(a).gid) == 24 for a in atts)  # Humble's gid storage
     assert any("/NN/%/%/aefabmap" in t for t in tokens)
     assert any(t.endswith("/MP/%/%/aefabmap/%lcd%result/std_msgs::msg::dds_::String_/TypeHashNotSupported/::,:,:,:,,")
                for t in tokens)
@@ -230,9 +231,15 @@ def test_attachment_layouts_and_hostile_attachments():
     assert parse_attachment(current).sequence_number == 7 and parse_attachment(current).gid == GID
     keyed = z_serialize(("sequence_number", Int64(7), "source_timestamp", Int64(99), "source_gid", GID)).to_bytes()
     assert parse_attachment(keyed) == parse_attachment(current)
+    humble_gid = GID + bytes(8)  # RMW_GID_STORAGE_SIZE is 24 on Humble
+    humble = z_serialize((Int64(7), Int64(99), humble_gid)).to_bytes()
+    assert parse_attachment(humble).gid == humble_gid
+    with_zid = z_serialize((Int64(7), Int64(99), GID, "3f2a")).to_bytes()
+    assert parse_attachment(with_zid) == parse_attachment(current)
     meta = meta_from_attachment(current)
     assert (meta.seq, meta.stamp_ns, meta.src, meta.problem) == (7, 99, GID.hex(), "")
-    for bad in (b"", current[:-1], current + b"\x00", b'{"seq": 1}', current[:16] + b"\x11" + GID + b"x"):
+    for bad in (b"", current[:-1], current + b"\x00\x00", b'{"seq": 1}', current[:16] + b"\x11" + GID + b"x",
+                current[:16] + b"\x08" + GID[:8], current + b"\x05ab"):
         assert meta_from_attachment(bad).problem
 
 
