@@ -10,7 +10,7 @@ import argparse
 import json
 import logging
 
-from aefabmap.errors import AefabmapError
+from aefabmap.errors import AefabmapError, LogError
 
 log = logging.getLogger("aefabmap.replay")
 
@@ -22,7 +22,11 @@ def register(subparsers) -> argparse.ArgumentParser:
         description="Run the detector over the logged images; optionally write a new log (--out) and "
         "compare with the logged results (--check; deterministic fields only, not timings).",
     )
-    p.add_argument("log", metavar="LOG.mcap", help="aefabmap MCAP log or ROS 2 bag (.mcap)")
+    p.add_argument("log", metavar="LOG",
+                   help="aefabmap MCAP log, or a ROS bag: rosbag2 directory (metadata.yaml), .db3 or .mcap file, "
+                   "ROS 1 .bag (needs aefabmap[ros], except ROS 2 .mcap)")
+    p.add_argument("--topic", default=None, metavar="TOPIC",
+                   help="image topic to replay (required when the bag has several image topics)")
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
     p.add_argument("--check", action="store_true", help="compare with the results in the log")
@@ -37,15 +41,17 @@ def main(args: argparse.Namespace) -> int:
         read_log_metadata,
     )
     from aefabmap.runtime.adapters.replay import replay
+    from aefabmap.runtime.adapters.ros_bag import is_ros_bag
     from aefabmap.runtime.core.detector import DetectorConfig
 
     try:
         # Replay with the detector options of the logged run (max places, memory budget).
-        logged = read_log_metadata(args.log).get(RUN_CONFIG_METADATA) or {}
+        logged = {} if is_ros_bag(args.log) else read_log_metadata(args.log).get(RUN_CONFIG_METADATA) or {}
         detector = load_detector(
             args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
         )
-        summary = replay(detector, args.log, out_path=args.out, check=args.check)
+        summary = replay(detector, args.log, out_path=args.out, check=args.check,
+                         image_topic=getattr(args, "topic", None))
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code
@@ -54,6 +60,12 @@ def main(args: argparse.Namespace) -> int:
         log.warning("%s", summary.status.describe())
     doc = summary.to_dict()
     print(json.dumps(doc, default=str))
+    if summary.frames_processed == 0:
+        status = summary.status
+        why = status.last_invalid or (f"{summary.frames_read} frames read, none usable" if summary.frames_read
+                                      else "no image messages")
+        log.error("%s: nothing replayed on %s: %s", args.log, status.image_topic or "any topic", why)
+        return LogError.exit_code
     if summary.check is not None:
         (log.info if summary.check.ok else log.error)("%s", summary.check.describe())
         return 0 if summary.check.ok else 1

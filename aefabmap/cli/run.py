@@ -7,11 +7,12 @@ Results go to the sibling key ``lcd`` of the image key (``robot/camera/image`` -
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import threading
 
-from aefabmap.errors import AefabmapError
+from aefabmap.errors import AefabmapError, ConfigError
 
 log = logging.getLogger("aefabmap.run")
 
@@ -38,7 +39,18 @@ def register(subparsers) -> argparse.ArgumentParser:
         "on the sibling key 'lcd' and log images, results and stats to MCAP. Stop with Ctrl-C/SIGTERM.",
     )
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
-    p.add_argument("--key", required=True, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
+    p.add_argument("--key", default=None, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
+    p.add_argument("--ros-topic", default=None, metavar="TOPIC",
+                   help="instead of --key: ROS 2 image topic (sensor_msgs Image or CompressedImage) read over "
+                   "rmw_zenoh, e.g. /camera/image_raw; results also go to the ROS 2 topic /lcd/result "
+                   "(std_msgs/String JSON). Connects to the rmw_zenoh router tcp/127.0.0.1:7447 by default")
+    p.add_argument("--ros-domain", type=int, default=0, metavar="ID", help="ROS 2 domain id (default 0)")
+    p.add_argument("--ros-distro", choices=("humble", "jazzy"), default="humble",
+                   help="type hashes of the published ROS 2 topics: humble (none) or jazzy (RIHS01; also iron, "
+                   "kilted, rolling). Default humble")
+    p.add_argument("--results-key", default=None, metavar="KEYEXPR",
+                   help="zenoh key of the JSON results (stats on <key>/stats); default: the sibling 'lcd' of "
+                   "the image key or topic")
     add_zenoh_options(p)
     p.add_argument("--mcap", required=True, metavar="LOG.mcap", help="MCAP log to write")
     p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
@@ -54,17 +66,31 @@ def register(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
+    from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
     from aefabmap.runtime.core.detector import DetectorConfig
 
     stop = threading.Event()
     try:
-        session = cli_session_config("listen", connect=args.connect, listen=args.listen, config_file=args.config)
+        ros_topic = getattr(args, "ros_topic", None)
+        if (args.key is None) == (ros_topic is None):
+            raise ConfigError("give exactly one of --key (zenoh image key) and --ros-topic (ROS 2 image topic)")
+        ros = None
+        if ros_topic is not None:
+            ros = RosOptions(topic=ros_topic, domain=getattr(args, "ros_domain", 0),
+                             distro=getattr(args, "ros_distro", "humble"))
+        # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
+        session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
+                                     listen=args.listen, config_file=args.config)
+        if ros is not None and not args.config and not args.listen:
+            # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
+            session = dataclasses.replace(session, mode="client")
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
 
-        options = NodeOptions(key=args.key, mcap_path=args.mcap, session=session, queue_size=args.queue,
-                              stats_period_s=5.0, image_log_every=args.image_every, run_config=run_config)
+        options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
+                              queue_size=args.queue, stats_period_s=5.0, image_log_every=args.image_every,
+                              run_config=run_config, result_key=getattr(args, "results_key", None), ros=ros)
 
         def on_stats(msg) -> None:
             log.info(

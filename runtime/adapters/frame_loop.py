@@ -101,6 +101,11 @@ class FrameLoop:
             return self._refuse(exc, "corrupt")
         return self._detect(gray, stamp_ns, (time.perf_counter() - t0) * 1e3)
 
+    def refuse(self, error: FrameError) -> FrameOutcome:
+        """Count a frame its transport could not unwrap (e.g. broken ROS 2 CDR) as bad."""
+        self.frames_in += 1
+        return self._refuse(error, error.reason)
+
     def step_image(self, gray: np.ndarray, stamp_ns: int) -> FrameOutcome:
         """Detect on an already decoded grayscale (H, W) uint8 image."""
         self.frames_in += 1

@@ -7,8 +7,11 @@ Pure functions, no I/O. A frame travels as ``(payload bytes, encoding string)``:
 - raw pixels with a schema string ``<format>;<W>x<H>``, either bare (``mono8;640x480``)
   or behind a raw MIME type (``video/raw;mono8;640x480``,
   ``application/octet-stream;bgr8;640x480``). Formats: ``mono8`` (1 byte/pixel),
-  ``bgr8``/``rgb8`` (3), ``bgra8``/``rgba8`` (4); rows are tightly packed, so the payload
-  must be exactly ``W * H * bytes_per_pixel`` bytes.
+  ``bgr8``/``rgb8`` (3), ``bgra8``/``rgba8`` (4), ``mono16`` (2, little-endian; the top
+  8 bits are used), ``yuv422_yuy2``/``yuyv`` and ``yuv422``/``uyvy`` (2, even width; the luma
+  is the gray image), the 8-bit Bayer mosaics ``bayer_rggb8``/``bggr8``/``gbrg8``/``grbg8``
+  (1; demosaiced to gray). These are the ``sensor_msgs/Image`` encoding names. Rows are
+  tightly packed, so the payload must be exactly ``W * H * bytes_per_pixel`` bytes.
 
 Every refusal raises :class:`FrameError` (an ``ImageDecodeError``, hence an ``InputError``)
 whose ``reason`` is one of :data:`BAD_FRAME_REASONS`, so a streaming loop can count bad
@@ -35,7 +38,20 @@ BAD_FRAME_REASONS = (
 )
 
 #: Raw pixel formats: name -> bytes per pixel.
-RAW_FORMATS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4, "8UC4": 4}
+RAW_FORMATS = {
+    "mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4, "8UC4": 4,
+    "mono16": 2, "16UC1": 2,
+    "yuv422_yuy2": 2, "yuyv": 2, "yuv422": 2, "uyvy": 2,
+    "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1, "bayer_grbg8": 1,
+}
+#: Packed 4:2:2 formats: name -> offset of the first luma byte in each 2-byte pixel.
+_YUV422_LUMA_OFFSET = {"yuv422_yuy2": 0, "yuyv": 0, "yuv422": 1, "uyvy": 1}
+#: Bayer mosaics (ROS names) -> OpenCV conversion; OpenCV names a pattern by the second row's
+#: first two pixels, hence RGGB -> BayerBG (cv_bridge's mapping).
+_BAYER_TO_GRAY = {
+    "bayer_rggb8": cv2.COLOR_BayerBG2GRAY, "bayer_bggr8": cv2.COLOR_BayerRG2GRAY,
+    "bayer_gbrg8": cv2.COLOR_BayerGR2GRAY, "bayer_grbg8": cv2.COLOR_BayerGB2GRAY,
+}
 
 ENCODING_JPEG = "image/jpeg"
 ENCODING_PNG = "image/png"
@@ -170,6 +186,10 @@ def parse_raw_schema(schema: str) -> RawSchema:
     if width < 1 or height < 1:
         raise FrameError("wrong_encoding", f"raw frame size must be positive, got {width}x{height}")
     check_frame_size(width, height)
+    if fmt in _YUV422_LUMA_OFFSET and width % 2:
+        raise FrameError("bad_shape", f"{fmt} needs an even width (pixel pairs share chroma), got {width}")
+    if fmt in _BAYER_TO_GRAY and min(width, height) < 2:
+        raise FrameError("bad_shape", f"{fmt} needs at least 2x2 pixels, got {width}x{height}")
     return RawSchema(fmt, width, height)
 
 
@@ -215,6 +235,13 @@ def decode_frame(payload: bytes | bytearray | memoryview, encoding: str) -> np.n
                 f"raw frame {schema}: expected {schema.nbytes} bytes, got {len(buf)} bytes",
             )
         arr = np.frombuffer(buf, dtype=np.uint8)
+        if schema.fmt in _BAYER_TO_GRAY:
+            return cv2.cvtColor(arr.reshape(schema.height, schema.width), _BAYER_TO_GRAY[schema.fmt])
+        if schema.fmt in _YUV422_LUMA_OFFSET:
+            pairs = arr.reshape(schema.height, schema.width, 2)
+            return np.ascontiguousarray(pairs[:, :, _YUV422_LUMA_OFFSET[schema.fmt]])
+        if schema.channels == 2:  # mono16, little-endian: keep the high byte
+            return np.ascontiguousarray(arr.reshape(schema.height, schema.width, 2)[:, :, 1])
         if schema.channels == 1:
             return arr.reshape(schema.height, schema.width).copy()
         img = arr.reshape(schema.height, schema.width, schema.channels)
@@ -284,9 +311,11 @@ def encoding_to_compressed_format(encoding: str) -> str:
     return kind
 
 
-def pack_raw_rows(data: bytes, fmt: str, width: int, height: int, step: int) -> tuple[bytes, str]:
+def pack_raw_rows(data: bytes, fmt: str, width: int, height: int, step: int,
+                  *, big_endian: bool = False) -> tuple[bytes, str]:
     """Repack a ROS ``sensor_msgs/Image`` buffer (rows of ``step`` bytes) to tight rows.
 
+    big_endian: the message's ``is_bigendian`` (16-bit formats are swapped to little-endian).
     Returns ``(payload, "fmt;WxH")``. Raises FrameError when the buffer is too short or the
     format unknown.
     """
@@ -294,6 +323,8 @@ def pack_raw_rows(data: bytes, fmt: str, width: int, height: int, step: int) -> 
         raise FrameError("wrong_encoding", f"unsupported sensor_msgs/Image encoding {fmt!r}")
     channels = RAW_FORMATS[fmt]
     row = width * channels
+    if width < 1 or height < 1:
+        raise FrameError("bad_shape", f"sensor_msgs/Image of {width}x{height} pixels is empty")
     check_frame_size(width, height)
     if step < row or len(data) < step * (height - 1) + row:
         raise FrameError(
@@ -306,4 +337,6 @@ def pack_raw_rows(data: bytes, fmt: str, width: int, height: int, step: int) -> 
         arr = np.frombuffer(data, dtype=np.uint8, count=step * (height - 1) + row)
         rows = np.lib.stride_tricks.as_strided(arr, shape=(height, row), strides=(step, 1))
         payload = np.ascontiguousarray(rows).tobytes()
+    if big_endian and fmt in ("mono16", "16UC1"):
+        payload = np.frombuffer(payload, dtype=">u2").astype("<u2").tobytes()
     return payload, f"{fmt};{width}x{height}"

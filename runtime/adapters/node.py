@@ -36,6 +36,11 @@ import numpy as np
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
+from aefabmap.runtime.adapters.rmw_zenoh import (
+    RosFrameSubscriber,
+    RosOptions,
+    RosResultPublisher,
+)
 from aefabmap.runtime.adapters.zenoh_transport import (
     FrameSubscriber,
     ReceivedFrame,
@@ -77,6 +82,8 @@ class NodeOptions:
     n-th image (0 = none; 1 keeps the log replayable exactly). log_config: the MCAP writer's
     other settings. run_config: extra JSON-able settings stored in the log metadata.
     max_frames: stop after this many processed frames (None: run until stopped).
+    ros: subscribe to this ROS 2 image topic over rmw_zenoh instead of ``key`` (which is then
+    only recorded), and also publish results as ROS 2 messages (runtime/adapters/rmw_zenoh.py).
     """
 
     key: str
@@ -89,6 +96,7 @@ class NodeOptions:
     log_config: McapLogConfig | None = None
     run_config: dict | None = None
     max_frames: int | None = None
+    ros: RosOptions | None = None
 
     def __post_init__(self) -> None:
         if not self.stats_period_s > 0:
@@ -96,7 +104,9 @@ class NodeOptions:
 
     @property
     def results_key(self) -> str:
-        return self.result_key or result_key_for(self.key)
+        if self.result_key:
+            return self.result_key
+        return self.ros.default_results_key if self.ros is not None else result_key_for(self.key)
 
     @property
     def stats_key(self) -> str:
@@ -115,6 +125,7 @@ class NodeOptions:
             "queue_size": self.queue_size,
             "stats_period_s": self.stats_period_s,
             "image_log_every": self.image_log_every,
+            **({"ros": self.ros.to_dict()} if self.ros is not None else {}),
             "started_ns": time.time_ns(),
             **(self.run_config or {}),
         }
@@ -204,12 +215,17 @@ class _Transport:
 
     def __init__(self, options: NodeOptions) -> None:
         self.session = open_session(options.session)
-        self.sub: FrameSubscriber | None = None
-        self.pub: ResultPublisher | None = None
+        self.sub: FrameSubscriber | RosFrameSubscriber | None = None
+        self.pub: ResultPublisher | RosResultPublisher | None = None
         try:
-            self.sub = FrameSubscriber(self.session, options.key, queue_size=options.queue_size,
-                                       ignore_keys=(options.results_key, options.stats_key))
-            self.pub = ResultPublisher(self.session, options.results_key)
+            if options.ros is not None:  # the one place where ROS 2 (rmw_zenoh) replaces plain keys
+                self.sub = RosFrameSubscriber(self.session, options.ros.domain, options.ros.topic,
+                                              queue_size=options.queue_size)
+                self.pub = RosResultPublisher(self.session, options.results_key, options.ros)
+            else:
+                self.sub = FrameSubscriber(self.session, options.key, queue_size=options.queue_size,
+                                           ignore_keys=(options.results_key, options.stats_key))
+                self.pub = ResultPublisher(self.session, options.results_key)
         except BaseException:
             self.__exit__()
             raise
@@ -255,7 +271,10 @@ def run_node(
             if frame is not None:
                 if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)
                     loop.bad.count("bad_attachment", frame.meta.problem)
-                output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
+                if frame.error is not None:
+                    output.send(frame, loop.refuse(frame.error))
+                else:
+                    output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
         emitter.emit()
     latency = stats.latency()
     return RunSummary(

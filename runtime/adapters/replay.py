@@ -20,10 +20,10 @@ from pathlib import Path
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.mcap_log import (
     McapLogConfig,
-    McapLogReader,
     McapLogWriter,
     ReadStatus,
 )
+from aefabmap.runtime.adapters.ros_bag import open_image_source
 from aefabmap.runtime.core.messages import FrameResult
 
 #: Result fields that vary from run to run (wall-clock timings, transport data); --check
@@ -186,7 +186,8 @@ def replay(
     log_config: McapLogConfig | None = None,
     on_result: Callable[[dict], None] | None = None,
 ) -> ReplaySummary:
-    """Run ``detector`` (see frame_loop.Detector) over the images of ``mcap_path``.
+    """Run ``detector`` (see frame_loop.Detector) over the images of ``mcap_path``: an aefabmap
+    log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/adapters/ros_bag.py).
 
     out_path: write a new log (images, replayed results, final stats, manifest metadata).
     check: compare the replayed results with the ones logged (all but NONDETERMINISTIC_FIELDS,
@@ -196,7 +197,7 @@ def replay(
     Raises LogError when the source cannot be read (or is of a newer format) or the output
     not written.
     """
-    reader = McapLogReader(mcap_path, image_topic=image_topic)
+    reader = open_image_source(mcap_path, image_topic=image_topic)
     replayed: list[FrameResult] = []
     loop = FrameLoop(detector)
     writer = None

@@ -270,7 +270,9 @@ class ReceivedFrame:
 
     payload: the raw bytes; encoding: the zenoh encoding string; key: the sample key;
     meta: the publisher's attachment; recv_ns: time.time_ns() when taken from the ring;
-    recv_mono_ns: time.monotonic_ns() at the same moment (for latency).
+    recv_mono_ns: time.monotonic_ns() at the same moment (for latency); error: set by a
+    subscriber that had to unwrap the frame (ROS 2 CDR) and could not (a FrameError: the
+    frame is counted as bad under its reason).
     """
 
     payload: bytes
@@ -279,6 +281,7 @@ class ReceivedFrame:
     meta: FrameMeta
     recv_ns: int
     recv_mono_ns: int
+    error: Exception | None = None
 
     @property
     def stamp_ns(self) -> int:

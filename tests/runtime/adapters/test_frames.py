@@ -77,7 +77,7 @@ def test_zero_length_payload():
 
 def test_wrong_encoding(image):
     payload, _ = encode_frame(image, "jpeg")
-    for enc in ("text/plain", "application/json", "", "image/gif", "video/raw", "yuv422;64x48", "mono8;64by48"):
+    for enc in ("text/plain", "application/json", "", "image/gif", "video/raw", "yuv420;64x48", "mono8;64by48"):
         assert _reason(payload, enc) == "wrong_encoding", enc
 
 
@@ -126,7 +126,7 @@ def test_pack_raw_rows_removes_row_padding(image):
         pack_raw_rows(b"\x00" * 10, "mono8", w, h, w)
     assert info.value.reason == "size_mismatch"
     with pytest.raises(FrameError):
-        pack_raw_rows(b"\x00" * 10, "yuv422", 2, 2, 4)
+        pack_raw_rows(b"\x00" * 10, "yuv420", 2, 2, 4)
 
 
 def test_compressed_format_mapping():
@@ -134,3 +134,38 @@ def test_compressed_format_mapping():
     assert compressed_format_to_encoding("bgr8; jpeg compressed bgr8") == "image/jpeg"
     assert compressed_format_to_encoding("PNG") == "image/png"
     assert compressed_format_to_encoding("webp").startswith("unknown/")
+
+
+def test_ros_image_encodings_decode_to_their_gray():
+    rng = np.random.default_rng(3)
+    gray = rng.integers(0, 256, (12, 16), dtype=np.uint8)
+    h, w = gray.shape
+    chroma = rng.integers(0, 256, (h, w), dtype=np.uint8)
+    yuyv = np.stack([gray, chroma], axis=2)  # Y U Y V ...: luma first in each pixel pair
+    uyvy = np.stack([chroma, gray], axis=2)
+    assert np.array_equal(decode_frame(yuyv.tobytes(), f"yuv422_yuy2;{w}x{h}"), gray)
+    assert np.array_equal(decode_frame(uyvy.tobytes(), f"yuv422;{w}x{h}"), gray)
+    assert np.array_equal(decode_frame(uyvy.tobytes(), f"uyvy;{w}x{h}"), gray)
+    wide = (gray.astype(np.uint16) << 8) | 0x7F
+    assert np.array_equal(decode_frame(wide.astype("<u2").tobytes(), f"mono16;{w}x{h}"), gray)
+    payload, enc = pack_raw_rows(wide.astype(">u2").tobytes(), "mono16", w, h, 2 * w, big_endian=True)
+    assert np.array_equal(decode_frame(payload, enc), gray)
+    flat = np.full((h, w), 90, np.uint8)  # a uniform mosaic demosaics to the same level
+    for pattern in ("rggb", "bggr", "gbrg", "grbg"):
+        out = decode_frame(flat.tobytes(), f"bayer_{pattern}8;{w}x{h}")
+        assert out.shape == (h, w) and np.all(np.abs(out.astype(int) - 90) <= 1)
+    with pytest.raises(FrameError) as info:
+        decode_frame(b"\x00" * 30, "yuyv;15x1")
+    assert info.value.reason == "bad_shape"
+
+
+def test_bayer_patterns_are_told_apart():
+    """A mosaic with only red pixels lit: each pattern puts red elsewhere, so the gray differs."""
+    h, w = 8, 8
+    red_at = {"rggb": (0, 0), "bggr": (1, 1), "gbrg": (1, 0), "grbg": (0, 1)}
+    for pattern, (r, c) in red_at.items():
+        mosaic = np.zeros((h, w), np.uint8)
+        mosaic[r::2, c::2] = 255
+        bgr = cv2.cvtColor(decode_frame(mosaic.tobytes(), f"bayer_{pattern}8;{w}x{h}"), cv2.COLOR_GRAY2BGR)
+        # Gray of pure red is ~0.299 * 255 = 76: only the matching pattern sees the lit pixels as red.
+        assert 60 <= int(np.median(bgr[2:-2, 2:-2, 0])) <= 90, pattern

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from aefabmap.errors import LogError
 from aefabmap.runtime.adapters.mcap_log import (
     McapLogConfig,
     McapLogReader,
@@ -18,6 +19,7 @@ from aefabmap.runtime.adapters.replay import (
     compare_results,
     replay,
 )
+from aefabmap.runtime.adapters.ros_bag import rosbags_available
 from aefabmap.runtime.adapters.zenoh_transport import open_session
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
@@ -137,8 +139,11 @@ def test_ros2_bag_replays(tmp_path):
     images = sample_images(10, size=(96, 72))
     bag = tmp_path / "ros2.mcap"
     stamps = write_ros2_bag(bag, images)
+    if rosbags_available():  # without rosbags a ROS 2 .mcap goes to the MCAP reader (first topic)
+        with pytest.raises(LogError, match="several image topics.*/cam/compressed, /cam/raw"):
+            replay(FakeDetector(), bag)  # two image topics and none chosen: listed, not guessed
     seen = []
-    summary = replay(FakeDetector(), bag, on_result=seen.append)
+    summary = replay(FakeDetector(), bag, image_topic="/cam/compressed", on_result=seen.append)
     assert summary.frames_processed == 10 and summary.status.image_topic == "/cam/compressed"
     assert [d["stamp_ns"] for d in seen] == stamps
     raw = replay(FakeDetector(), bag, image_topic="/cam/raw", out_path=tmp_path / "from_raw.mcap")
@@ -148,7 +153,7 @@ def test_ros2_bag_replays(tmp_path):
     assert len(out_frames) == 10 and out_frames[0].encoding == "image/png"
     assert all(np.array_equal(f.decode(), img) for f, img in zip(out_frames, images))
     # no results in a bag: --check has nothing to compare
-    checked = replay(FakeDetector(), bag, check=True)
+    checked = replay(FakeDetector(), bag, check=True, image_topic="/cam/raw")
     assert not checked.check.ok and any("no /lcd/result" in n for n in checked.check.notes)
 
 

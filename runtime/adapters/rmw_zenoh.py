@@ -1,0 +1,414 @@
+"""ROS 2 over Zenoh without a bridge: speak rmw_zenoh's wire format directly.
+
+What rmw_zenoh (ros2/rmw_zenoh, docs/design.md and its sources) puts on the wire, and
+what this module relies on:
+
+- data key ``<domain>/<topic without leading slash>/<type, DDS-mangled>/<type hash>``, e.g.
+  ``0/camera/image_raw/sensor_msgs::msg::dds_::Image_/RIHS01_<64 hex>``; Humble sends
+  ``TypeHashNotSupported`` as the hash, so the subscriber takes any hash (``*``);
+- payload: the message in CDR (runtime/adapters/ros_cdr.py);
+- attachment (zenoh-ext serialization): int64 sequence number, int64 source timestamp
+  (ns), then the publisher gid as a sequence (LEB128 length, then the bytes), all
+  little-endian. The gid is ``RMW_GID_STORAGE_SIZE`` bytes: 16 since Iron, 24 on Humble.
+  Older releases prefixed each field with its name as a string (``sequence_number``,
+  ``source_timestamp``, ``source_gid``), some append the session id as a string; all are parsed;
+- graph: liveliness tokens ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<kind>/<enclave>/<ns>/
+  <node>[/<topic>/<type>/<hash>/<qos>]`` with kind ``NN`` (node), ``MP`` (publisher), ``MS``
+  (subscription); names have ``/`` replaced by ``%``; ``::,:,:,:,,`` is the default QoS.
+
+The subscriber hands the node :class:`~zenoh_transport.ReceivedFrame` objects, like the
+plain-Zenoh FrameSubscriber, so the node's loop does not care which one it runs: the CDR is
+decoded here (a message that cannot be used carries its FrameError in ``error``), the frame
+stamp is the header stamp (else the attachment's source timestamp), and drops are counted
+from the sequence numbers per publisher gid.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import struct
+import threading
+import time
+from dataclasses import dataclass
+
+import zenoh
+
+from aefabmap.errors import ConfigError, TransportError
+from aefabmap.runtime.adapters.frames import FrameError
+from aefabmap.runtime.adapters.ros_cdr import (
+    COMPRESSED_IMAGE_TYPE,
+    DECODERS,
+    IMAGE_TYPE,
+    STRING_TYPE,
+    encode_string_cdr,
+)
+from aefabmap.runtime.adapters.zenoh_transport import (
+    DropCounter,
+    FrameMeta,
+    ReceivedFrame,
+    result_key_for,
+)
+
+ADMIN_SPACE = "@ros2_lv"
+#: Hash chunk of Humble, which has no type hashes.
+HUMBLE_TYPE_HASH = "TypeHashNotSupported"
+#: RIHS01 hash of std_msgs/msg/String (Iron and later; checked against rosbags in the tests).
+STRING_RIHS01 = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+#: RIHS01 hash of sensor_msgs/msg/Image (for this node's subscription token on Iron and later).
+IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
+#: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
+DEFAULT_QOS_CHUNK = "::,:,:,:,,"
+GID_BYTES = 16
+#: RMW_GID_STORAGE_SIZE of each distribution (the gid length in the attachment).
+GID_STORAGE_BYTES = {"humble": 24, "jazzy": 16}
+RESULT_TOPIC = "/lcd/result"
+STATS_TOPIC = "/lcd/stats"
+_INT64_MAX = 2**63 - 1
+
+
+def mangle_type(ros_type: str) -> str:
+    """``sensor_msgs/msg/Image`` -> ``sensor_msgs::msg::dds_::Image_`` (rmw's DDS type name)."""
+    parts = ros_type.split("/")
+    if len(parts) != 3 or not all(parts):
+        raise ConfigError(f"ROS type must look like pkg/msg/Name, got {ros_type!r}")
+    return f"{parts[0]}::{parts[1]}::dds_::{parts[2]}_"
+
+
+def check_topic(topic: str) -> str:
+    """A fully qualified ROS topic name (``/camera/image_raw``), returned without the leading slash."""
+    name = (topic or "").strip()
+    if not name.startswith("/"):
+        name = "/" + name
+    body = name.strip("/")
+    if not body or any(not part or not all(c.isalnum() or c == "_" for c in part) for part in body.split("/")):
+        raise ConfigError(f"ROS topic must be a name such as /camera/image_raw, got {topic!r}")
+    return body
+
+
+def check_domain(domain: int) -> int:
+    if not isinstance(domain, int) or isinstance(domain, bool) or not 0 <= domain <= 232:
+        raise ConfigError(f"ROS domain id must be an integer in 0..232, got {domain!r}")
+    return domain
+
+
+def data_key(domain: int, topic: str, ros_type: str, type_hash: str = "*") -> str:
+    """rmw_zenoh's data key of a topic (``type_hash="*"``: any distribution's hash)."""
+    return f"{check_domain(domain)}/{check_topic(topic)}/{mangle_type(ros_type)}/{type_hash}"
+
+
+def image_key(domain: int, topic: str) -> str:
+    """Subscription key for both image types of a topic: ``<domain>/<topic>/*/*``.
+
+    The type chunk is checked per sample (Image_ or CompressedImage_, anything else is
+    counted as ``wrong_encoding``).
+    """
+    return f"{check_domain(domain)}/{check_topic(topic)}/*/*"
+
+
+def _mangle_name(name: str) -> str:
+    return name.replace("/", "%") or "%"
+
+
+def liveliness_token(domain: int, zid: str, node_id: int, entity_id: int, kind: str, node: str,
+                     topic: str | None = None, ros_type: str | None = None, type_hash: str | None = None,
+                     namespace: str = "/", enclave: str = "/") -> str:
+    """The liveliness key expression rmw_zenoh declares for a node (NN) or a topic endpoint (MP/MS)."""
+    parts = [ADMIN_SPACE, str(check_domain(domain)), zid, str(node_id), str(entity_id), kind,
+             _mangle_name(enclave), _mangle_name(namespace), _mangle_name(node)]
+    if topic is not None:
+        parts += [_mangle_name("/" + check_topic(topic)), mangle_type(ros_type or ""), type_hash or HUMBLE_TYPE_HASH,
+                  DEFAULT_QOS_CHUNK]
+    return "/".join(parts)
+
+
+# --------------------------------------------------------------------------- attachment
+
+
+@dataclass(frozen=True)
+class RmwAttachment:
+    """rmw_zenoh's per-sample attachment: sequence number, source timestamp (ns), gid (16 or 24 bytes)."""
+
+    sequence_number: int
+    source_timestamp: int
+    gid: bytes
+
+    def to_bytes(self) -> bytes:
+        return struct.pack("<qqB", self.sequence_number, self.source_timestamp, len(self.gid)) + self.gid
+
+
+def _varint(buf: bytes, pos: int) -> tuple[int, int]:
+    value, shift = 0, 0
+    while pos < len(buf) and shift <= 63:
+        b = buf[pos]
+        pos += 1
+        value |= (b & 0x7F) << shift
+        if not b & 0x80:
+            return value, pos
+        shift += 7
+    raise ValueError("truncated length")
+
+
+def parse_attachment(data: bytes) -> RmwAttachment:
+    """Parse an rmw_zenoh attachment (current, keyed or with a trailing session id);
+    ValueError when malformed."""
+    if len(data) > 256:
+        raise ValueError(f"attachment of {len(data)} bytes is not rmw_zenoh's")
+    pos, fields = 0, []
+    keyed = data[:1] == b"\x0f" and data[1:16] == b"sequence_number"
+    for name, kind in (("sequence_number", "q"), ("source_timestamp", "q"), ("source_gid", "gid")):
+        if keyed:
+            n, pos = _varint(data, pos)
+            if data[pos : pos + n] != name.encode():
+                raise ValueError(f"attachment field {name} missing")
+            pos += n
+        if kind == "q":
+            if pos + 8 > len(data):
+                raise ValueError(f"attachment too short for {name}")
+            fields.append(struct.unpack_from("<q", data, pos)[0])
+            pos += 8
+        else:
+            n, pos = _varint(data, pos)
+            if n not in GID_STORAGE_BYTES.values() or pos + n > len(data):
+                raise ValueError(f"attachment gid of {n} bytes (expected 16 or 24)")
+            fields.append(bytes(data[pos : pos + n]))
+            pos += n
+    if pos < len(data):  # a trailing session id string, in some releases
+        n, after = _varint(data, pos)
+        if after + n != len(data):
+            raise ValueError(f"{len(data) - pos} unexpected bytes after the attachment gid")
+    return RmwAttachment(*fields)
+
+
+def meta_from_attachment(data: bytes | None) -> FrameMeta:
+    """FrameMeta (seq, source stamp, src = gid hex) of an rmw_zenoh attachment; never raises."""
+    if not data:
+        return FrameMeta(problem="no rmw_zenoh attachment")
+    try:
+        att = parse_attachment(data)
+    except ValueError as exc:
+        return FrameMeta(problem=f"rmw_zenoh attachment: {exc}")
+    problems = []
+    seq = att.sequence_number if att.sequence_number >= 0 else None
+    if seq is None:
+        problems.append(f"sequence number {att.sequence_number} is negative")
+    stamp = att.source_timestamp if att.source_timestamp > 0 else None
+    return FrameMeta(seq=seq, stamp_ns=stamp, src=att.gid.hex(), problem="; ".join(problems))
+
+
+# --------------------------------------------------------------------------- subscriber
+
+
+class RosFrameSubscriber:
+    """Subscribes to a ROS 2 image topic's rmw_zenoh keys; same interface as FrameSubscriber.
+
+    ``receive`` returns a ReceivedFrame whose payload/encoding follow the frames contract
+    (decoded from CDR here) and whose ``error`` is the FrameError of a message that could
+    not be used (the node counts it). ``meta.stamp_ns`` is the header stamp, else the
+    attachment's source timestamp; ``meta.src`` the publisher gid (drops are per gid).
+    """
+
+    def __init__(self, session: zenoh.Session, domain: int, topic: str, *, queue_size: int = 2,
+                 poll_s: float = 0.002) -> None:
+        if not isinstance(queue_size, int) or queue_size < 1:
+            raise ConfigError(f"queue size must be a positive integer, got {queue_size!r}")
+        self.key = image_key(domain, topic)
+        self.poll_s = poll_s
+        self.drops = DropCounter()
+        self.received = 0
+        self.ignored = 0
+        self.bad_attachments = 0
+        self.last_bad_attachment = ""
+        self._types = {mangle_type(t): t for t in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)}
+        self._wake = threading.Event()
+        try:
+            self._sub = session.declare_subscriber(self.key, zenoh.handlers.RingChannel(queue_size))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot subscribe to {self.key!r}: {exc}") from exc
+
+    def receive(self, timeout_s: float, stop_event: threading.Event | None = None) -> ReceivedFrame | None:
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        wait = 0.0002
+        waiter = stop_event if stop_event is not None else self._wake
+        while True:
+            try:
+                sample = self._sub.try_recv()
+            except zenoh.ZError as exc:
+                raise TransportError(f"subscriber on {self.key!r} failed: {exc}") from exc
+            if sample is not None:
+                return self._to_frame(sample)
+            now = time.monotonic()
+            if now >= deadline or (stop_event is not None and stop_event.is_set()):
+                return None
+            waiter.wait(min(wait, deadline - now))
+            wait = min(wait * 2, self.poll_s)
+
+    def _to_frame(self, sample: zenoh.Sample) -> ReceivedFrame:
+        key = str(sample.key_expr)
+        att = sample.attachment
+        meta = meta_from_attachment(att.to_bytes() if att is not None else None)
+        if meta.problem:
+            self.bad_attachments += 1
+            self.last_bad_attachment = meta.problem
+        self.drops.update(meta)
+        self.received += 1
+        recv_ns, recv_mono = time.time_ns(), time.monotonic_ns()
+        data = sample.payload.to_bytes()
+        ros_type = self._types.get(key.split("/")[-2])
+        error, payload, encoding = None, data, "application/cdr"
+        if ros_type is None:
+            error = FrameError("wrong_encoding", f"{key}: not a sensor_msgs Image or CompressedImage")
+        else:
+            try:
+                image = DECODERS[ros_type](data)
+                payload, encoding = image.payload, image.encoding
+                if image.stamp_ns > 0:
+                    meta = FrameMeta(seq=meta.seq, stamp_ns=image.stamp_ns, src=meta.src, problem=meta.problem)
+            except FrameError as exc:
+                error = exc
+        return ReceivedFrame(payload=payload, encoding=encoding, key=key, meta=meta, recv_ns=recv_ns,
+                             recv_mono_ns=recv_mono, error=error)
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass
+
+
+# --------------------------------------------------------------------------- publisher
+
+
+class RosStringPublisher:
+    """A ROS 2 ``std_msgs/msg/String`` publisher on rmw_zenoh's key, with its attachment and
+    its liveliness token (so ``ros2 topic list`` shows the topic)."""
+
+    def __init__(self, session: zenoh.Session, domain: int, topic: str, type_hash: str, zid: str,
+                 node_id: int, entity_id: int, node: str, gid_bytes: int = GID_BYTES) -> None:
+        self.key = data_key(domain, topic, STRING_TYPE, type_hash)
+        token = liveliness_token(domain, zid, node_id, entity_id, "MP", node, topic, STRING_TYPE, type_hash)
+        # A hash of the token, as rmw_zenoh derives its gids; Humble's gid storage is zero-padded to 24 bytes.
+        self.gid = hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest().ljust(gid_bytes, b"\x00")
+        self.seq = 0
+        try:
+            self._pub = session.declare_publisher(self.key, congestion_control=zenoh.CongestionControl.DROP)
+            self._token = session.liveliness().declare_token(token)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare ROS publisher on {self.key!r}: {exc}") from exc
+
+    def put(self, text: str) -> None:
+        self.seq += 1  # rmw_zenoh numbers messages from 1
+        att = RmwAttachment(self.seq, min(time.time_ns(), _INT64_MAX), self.gid).to_bytes()
+        try:
+            self._pub.put(encode_string_cdr(text), attachment=att)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {self.key!r}: {exc}") from exc
+
+    def close(self) -> None:
+        for entity in (self._token, self._pub):
+            try:
+                entity.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+@dataclass(frozen=True)
+class RosOptions:
+    """The ROS 2 side of a run: image topic, domain id, node name, and the distribution whose
+    type hash the result topics carry (``humble``: TypeHashNotSupported; ``jazzy``: RIHS01,
+    also Iron, Kilted and Rolling)."""
+
+    topic: str
+    domain: int = 0
+    node: str = "aefabmap"
+    distro: str = "humble"
+
+    def __post_init__(self) -> None:
+        check_topic(self.topic)
+        check_domain(self.domain)
+        check_topic(self.node)
+        if self.distro not in ("humble", "jazzy"):
+            raise ConfigError(f"ROS distribution must be humble or jazzy, got {self.distro!r}")
+
+    @property
+    def image_key(self) -> str:
+        return image_key(self.domain, self.topic)
+
+    @property
+    def default_results_key(self) -> str:
+        """Plain-Zenoh JSON results key: the ``lcd`` sibling of the topic (``camera/lcd``)."""
+        return result_key_for(check_topic(self.topic))
+
+    @property
+    def string_hash(self) -> str:
+        return HUMBLE_TYPE_HASH if self.distro == "humble" else STRING_RIHS01
+
+    def to_dict(self) -> dict:
+        return {"topic": self.topic, "domain": self.domain, "node": self.node, "distro": self.distro}
+
+
+class RosGraph:
+    """This run's presence in the ROS 2 graph: the node token and the image subscription token."""
+
+    def __init__(self, session: zenoh.Session, options: RosOptions) -> None:
+        self.zid = str(session.info.zid())
+        self.options = options
+        o = options
+        image_hash = HUMBLE_TYPE_HASH if o.distro == "humble" else IMAGE_RIHS01
+        # The subscription is listed as sensor_msgs/msg/Image; it takes CompressedImage too.
+        tokens = [liveliness_token(o.domain, self.zid, 0, 0, "NN", o.node),
+                  liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, IMAGE_TYPE, image_hash)]
+        try:
+            self._tokens = [session.liveliness().declare_token(t) for t in tokens]
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare ROS liveliness tokens: {exc}") from exc
+
+    def close(self) -> None:
+        for token in self._tokens:
+            try:
+                token.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+class RosResultPublisher:
+    """ResultPublisher's interface, for a ROS 2 run: the JSON results and stats on their
+    plain Zenoh keys (as without ROS), and also as std_msgs/String on ``/lcd/result`` and
+    ``/lcd/stats`` for ROS 2 nodes."""
+
+    def __init__(self, session: zenoh.Session, result_key: str, options: RosOptions) -> None:
+        from aefabmap.runtime.adapters.zenoh_transport import ResultPublisher
+
+        self.graph = RosGraph(session, options)
+        self.plain = ResultPublisher(session, result_key)
+        self.result_key, self.stats_key = self.plain.result_key, self.plain.stats_key
+        o = options
+        try:
+            gid_bytes = GID_STORAGE_BYTES[o.distro]
+            self.ros_results = RosStringPublisher(session, o.domain, RESULT_TOPIC, o.string_hash, self.graph.zid,
+                                                  0, 2, o.node, gid_bytes)
+            self.ros_stats = RosStringPublisher(session, o.domain, STATS_TOPIC, o.string_hash, self.graph.zid,
+                                                0, 3, o.node, gid_bytes)
+        except BaseException:
+            self.plain.close()
+            self.graph.close()
+            raise
+
+    def publish_result(self, result: dict | bytes) -> None:
+        self.plain.publish_result(result)
+        self.ros_results.put(_text(result))
+
+    def publish_stats(self, stats: dict | bytes) -> None:
+        self.plain.publish_stats(stats)
+        self.ros_stats.put(_text(stats))
+
+    def close(self) -> None:
+        self.ros_results.close()
+        self.ros_stats.close()
+        self.plain.close()
+        self.graph.close()
+
+
+def _text(doc: dict | bytes) -> str:
+    import json
+
+    return doc.decode("utf-8") if isinstance(doc, bytes) else json.dumps(doc, separators=(",", ":"))
