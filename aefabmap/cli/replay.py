@@ -22,7 +22,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         description="Run the detector over the logged images; optionally write a new log (--out) and "
         "compare with the logged results (--check; deterministic fields only, not timings).",
     )
-    p.add_argument("log", metavar="LOG.mcap", help="aefabmap MCAP log or ROS 2 bag (.mcap)")
+    p.add_argument("log", metavar="LOG.mcap", nargs="+",
+                   help="aefabmap MCAP log or ROS 2 bag (.mcap); several files, a directory of rotated files or a "
+                   "glob are read in run order as one run")
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
     p.add_argument("--check", action="store_true", help="compare with the results in the log")
@@ -32,6 +34,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.log_set import log_files
     from aefabmap.runtime.adapters.mcap_log import (
         RUN_CONFIG_METADATA,
         read_log_metadata,
@@ -41,11 +44,12 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         # Replay with the detector options of the logged run (max places, memory budget).
-        logged = read_log_metadata(args.log).get(RUN_CONFIG_METADATA) or {}
+        files = log_files(args.log)
+        logged = read_log_metadata(files[0]).get(RUN_CONFIG_METADATA) or {}
         detector = load_detector(
             args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
         )
-        summary = replay(detector, args.log, out_path=args.out, check=args.check)
+        summary = replay(detector, files, out_path=args.out, check=args.check)
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code

@@ -30,6 +30,28 @@ def add_zenoh_options(p: argparse.ArgumentParser, *, config: bool = True) -> Non
                 "`publish` connects there; no multicast scouting.")
 
 
+def add_log_rotation_options(p: argparse.ArgumentParser) -> None:
+    """--mcap-max-mb, --log-budget-mb and the free-space thresholds (rotating_log.LogRotationConfig)."""
+    p.add_argument("--mcap-max-mb", type=float, default=None, metavar="MB",
+                   help="start a new log file before the current one passes MB (default: one file)")
+    p.add_argument("--log-budget-mb", type=float, default=None, metavar="MB",
+                   help="delete the oldest closed files of the log set to keep it within MB (default: no limit)")
+    p.add_argument("--log-min-free-mb", type=float, nargs=2, default=None, metavar=("IMAGES", "RESULTS"),
+                   help="stop logging images below IMAGES MB free on the log's disk, everything below RESULTS "
+                   "(default: max(500, 2 x --mcap-max-mb) and 100)")
+
+
+def log_rotation_config(args: argparse.Namespace):
+    """The LogRotationConfig of the parsed options (ConfigError when inconsistent)."""
+    from aefabmap.runtime.adapters.rotating_log import LogRotationConfig
+
+    # getattr: a Namespace built by hand (an older caller) means the defaults.
+    min_free = getattr(args, "log_min_free_mb", None)
+    free = {} if min_free is None else {"images_min_free_mb": min_free[0], "results_min_free_mb": min_free[1]}
+    return LogRotationConfig(max_mb=getattr(args, "mcap_max_mb", None), budget_mb=getattr(args, "log_budget_mb", None),
+                             **free)
+
+
 def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "run",
@@ -40,7 +62,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--key", required=True, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
     add_zenoh_options(p)
-    p.add_argument("--mcap", required=True, metavar="LOG.mcap", help="MCAP log to write")
+    p.add_argument("--mcap", required=True, metavar="LOG.mcap|DIR/|PATTERN",
+                   help="MCAP log to write: a file (an existing one is never overwritten: the next is LOG-0001.mcap), "
+                   "a directory (files lcd-YYYYmmdd-HHMMSS-0001.mcap) or a pattern with {n} (run-{n}.mcap)")
+    add_log_rotation_options(p)
     p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
     p.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="memory budget of the map (MB)")
     p.add_argument("--queue", type=int, default=2, metavar="N",
@@ -59,18 +84,21 @@ def main(args: argparse.Namespace) -> int:
 
     stop = threading.Event()
     try:
+        rotation = log_rotation_config(args)
         session = cli_session_config("listen", connect=args.connect, listen=args.listen, config_file=args.config)
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
 
         options = NodeOptions(key=args.key, mcap_path=args.mcap, session=session, queue_size=args.queue,
-                              stats_period_s=5.0, image_log_every=args.image_every, run_config=run_config)
+                              stats_period_s=5.0, image_log_every=args.image_every, run_config=run_config,
+                              log_rotation=rotation)
 
         def on_stats(msg) -> None:
             log.info(
-                "processed %d, dropped %d, bad %d, loops %d, %s fps, latency p50 %s ms p95 %s ms, RSS %s MB",
+                "processed %d, dropped %d, bad %d, loops %d, %s fps, latency p50 %s ms p95 %s ms, RSS %s MB, "
+                "log %s (%d errors)",
                 msg.frames_processed, msg.dropped, msg.bad_total, msg.loops, _fmt(msg.fps),
-                _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb,
+                _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb, msg.log_state, msg.log_errors,
             )
 
         with stop_on_signals(stop):

@@ -36,6 +36,7 @@ import numpy as np
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
+from aefabmap.runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
 from aefabmap.runtime.adapters.zenoh_transport import (
     FrameSubscriber,
     ReceivedFrame,
@@ -77,6 +78,8 @@ class NodeOptions:
     n-th image (0 = none; 1 keeps the log replayable exactly). log_config: the MCAP writer's
     other settings. run_config: extra JSON-able settings stored in the log metadata.
     max_frames: stop after this many processed frames (None: run until stopped).
+    log_rotation: file size limit, disk budget and free-space thresholds of the log set
+    (runtime/adapters/rotating_log.py; mcap_path may then be a directory or a ``{n}`` pattern).
     """
 
     key: str
@@ -89,6 +92,7 @@ class NodeOptions:
     log_config: McapLogConfig | None = None
     run_config: dict | None = None
     max_frames: int | None = None
+    log_rotation: LogRotationConfig | None = None
 
     def __post_init__(self) -> None:
         if not self.stats_period_s > 0:
@@ -147,7 +151,7 @@ class StatsEmitter:
     and sent to the publisher, the log and the caller's ``on_stats``."""
 
     def __init__(self, period_s: float, t0: float, loop: FrameLoop, stats: RunStats, drops,
-                 pub: ResultPublisher, log: McapLogWriter,
+                 pub: ResultPublisher, log: McapLogWriter | RotatingLog,
                  on_stats: Callable[[StatsMessage], None] | None = None) -> None:
         self.period_s, self.t0 = period_s, t0
         self.loop, self.stats, self.drops = loop, stats, drops
@@ -169,6 +173,7 @@ class StatsEmitter:
         self._last_t, self._last_n = now, self.loop.processed
         self.stats.dropped, self.stats.publisher_restarts = self.drops.dropped, self.drops.restarts
         msg = self.stats.snapshot(self.loop, now - self.t0, fps)
+        msg.log_errors, msg.log_state = getattr(self.log, "errors", 0), getattr(self.log, "state", None)
         data = msg.to_json_bytes()
         self.pub.publish_stats(data)
         self.log.write_stats(msg, data=data)
@@ -180,7 +185,7 @@ class ResultOutput:
     """Where a frame's result goes: its transport fields added, serialised once, published on
     the results key and logged to MCAP with the frame's image."""
 
-    def __init__(self, pub: ResultPublisher, log: McapLogWriter, stats: RunStats) -> None:
+    def __init__(self, pub: ResultPublisher, log: McapLogWriter | RotatingLog, stats: RunStats) -> None:
         self.pub, self.log, self.stats = pub, log, stats
 
     def send(self, frame: ReceivedFrame, out: FrameOutcome) -> None:
@@ -236,16 +241,16 @@ def run_node(
     """Run the streaming loop until ``stop_event`` is set (or ``options.max_frames`` processed).
 
     on_stats: called with each stats message. ready_event: set once subscribed (tests and
-    supervisors wait on it). Raises LogError (MCAP not writable; before any network
-    activity), TransportError (session), ConfigError.
+    supervisors wait on it). Raises LogError (MCAP target not writable: checked before any
+    network activity; the first file is created once the session is up, so a start that
+    fails leaves no file behind and no existing file is ever overwritten), TransportError
+    (session), ConfigError. Once running, log errors are counted in the stats, never raised.
     """
     manifest = getattr(detector, "manifest", None)
     loop, stats, t0 = FrameLoop(detector), RunStats(), time.monotonic()
-    with (
-        McapLogWriter(options.mcap_path, options.mcap_config(), run_config=options.log_metadata(),
-                      manifest=manifest if isinstance(manifest, dict) else None) as log,
-        _Transport(options) as io,
-    ):
+    log = RotatingLog(options.mcap_path, options.mcap_config(), options.log_rotation,
+                      run_config=options.log_metadata(), manifest=manifest if isinstance(manifest, dict) else None)
+    with _Transport(options) as io, log.open():
         if ready_event is not None:
             ready_event.set()
         emitter = StatsEmitter(options.stats_period_s, t0, loop, stats, io.sub.drops, io.pub, log, on_stats)
@@ -262,8 +267,9 @@ def run_node(
         frames_received=loop.frames_in, frames_processed=loop.processed, dropped=stats.dropped,
         bad=dict(loop.bad.counts), loops=loop.loops, duration_s=time.monotonic() - t0,
         latency_ms_p50=latency.p50, latency_ms_p95=latency.p95, peak_rss_mb=stats.peak_rss_mb,
-        mcap_path=str(options.mcap_path), images_logged=log.images_written,
+        mcap_path=str(log.files[0] if log.files else options.mcap_path), images_logged=log.images_written,
         result_key=options.results_key, stats_key=options.stats_key,
+        log_files=[str(p) for p in log.files], log_files_deleted=len(log.deleted), log_errors=log.errors,
     )
 
 
