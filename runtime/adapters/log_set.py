@@ -109,7 +109,7 @@ class LogSet:
     def name_for(self, number: int, opened_ns: int | None = None) -> str:
         """File name of number ``number`` (opened at ``opened_ns``, ns since the epoch, for a directory)."""
         if self.kind == "dir":
-            stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime((opened_ns or time.time_ns()) / 1e9))
+            stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime((time.time_ns() if opened_ns is None else opened_ns) / 1e9))
             return f"{DIR_PREFIX}{stamp}-{number:04d}.mcap"
         if self.kind == "pattern":
             return f"{self._prefix}{number:04d}{self._suffix}"

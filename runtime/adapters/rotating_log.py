@@ -61,10 +61,12 @@ class LogRotationConfig:
     summary_reserve_bytes: int = 64 * 1024
 
     def __post_init__(self) -> None:
-        for name in ("max_mb", "budget_mb", "images_min_free_mb"):
+        for name in ("max_mb", "budget_mb"):
             v = getattr(self, name)
             if v is not None and not (isinstance(v, (int, float)) and v > 0):
                 raise ConfigError(f"log {name} must be > 0, got {v!r}")
+        if self.images_min_free_mb is not None and not self.images_min_free_mb >= 0:
+            raise ConfigError(f"images_min_free_mb must be >= 0, got {self.images_min_free_mb!r}")
         if self.max_mb is not None and self.max_mb * MB < 4 * self.summary_reserve_bytes:
             raise ConfigError(f"log max_mb must be >= {4 * self.summary_reserve_bytes / MB:.2f}, got {self.max_mb}")
         if self.budget_mb is not None and self.max_mb is not None and self.budget_mb < self.max_mb:
