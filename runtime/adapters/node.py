@@ -269,7 +269,7 @@ def run_node(
         latency_ms_p50=latency.p50, latency_ms_p95=latency.p95, peak_rss_mb=stats.peak_rss_mb,
         mcap_path=str(log.files[0] if log.files else options.mcap_path), images_logged=log.images_written,
         result_key=options.results_key, stats_key=options.stats_key,
-        log_files=[str(p) for p in log.files], log_files_deleted=len(log.deleted), log_errors=log.errors,
+        log_files=[str(p) for p in log.files], log_files_deleted=log.deleted_count, log_errors=log.errors,
     )
 
 

@@ -262,6 +262,9 @@ def replay(
             report.notes.append("the bundle manifest differs from the one in the log")
         if reader.status.truncated:
             report.notes.append("the log was truncated (no summary): compared up to its last complete chunk")
+        if reader.results and reader.results[0].sequence > 0:
+            report.notes.append(f"the log starts at frame {reader.results[0].sequence} (its first files deleted by "
+                                "the log budget?): the replay starts with an empty map, so results differ")
         if isinstance(reader, LogSetReader) and reader.runs > 1:
             report.notes.append(f"the {len(reader.paths)} files hold {reader.runs} runs: each run started with an "
                                 "empty map, the replay with one map, so results differ after the first run")

@@ -37,6 +37,8 @@ from aefabmap.runtime.core.messages import LOG_STATES
 __all__ = ["LOG_STATES", "MB", "LogRotationConfig", "RotatingLog"]
 
 MB = 1024 * 1024
+#: RotatingLog.files keeps the names of the last files created (a long run may create thousands).
+MAX_LISTED_FILES = 100
 
 
 @dataclass(frozen=True)
@@ -99,9 +101,10 @@ class RotatingLog:
     target: the ``--mcap`` target (file, ``{n}`` pattern or directory, see log_set).
     Construction checks the target (ConfigError, LogError) and opens no file; :meth:`open`
     creates the first one (LogError when it cannot: a start-time failure). After that the
-    write methods never raise; ``errors``, ``state``, ``files`` and ``deleted`` say how the
-    log fares. free_space / writer_factory / clock: seams for tests (defaults: os.statvfs,
-    McapLogWriter, time.monotonic).
+    write methods never raise; ``errors``, ``state``, ``files`` (the last MAX_LISTED_FILES
+    created), ``files_opened`` and ``deleted_count`` say how the log fares.
+    free_space / writer_factory / clock: seams for tests (defaults: os.statvfs, McapLogWriter,
+    time.monotonic).
     """
 
     def __init__(
@@ -125,7 +128,8 @@ class RotatingLog:
         self._free_space, self._factory, self._clock = free_space, writer_factory, clock
         self.run_started_ns = time.time_ns()
         self.files: list[Path] = []
-        self.deleted: list[Path] = []
+        self.deleted: list[Path] = []  # the last MAX_LISTED_FILES deleted
+        self.deleted_count = 0
         self.errors = 0
         self.last_error = ""
         self.images_written = 0
@@ -138,8 +142,14 @@ class RotatingLog:
         self._next_retry = 0.0
         self._space_state = "ok"
         self._closed = False
+        self._in_frame = False
+        self._opened = 0
 
     # ------------------------------------------------------------------ files
+    @property
+    def files_opened(self) -> int:
+        return self._opened
+
     @property
     def current_path(self) -> Path | None:
         return self._writer.path if self._writer is not None else None
@@ -156,7 +166,7 @@ class RotatingLog:
         for _ in range(100):  # another writer may take a name between listing and creating
             opened_ns = time.time_ns()
             path = self.set.directory / self.set.name_for(number, opened_ns)
-            meta = {"run_started_ns": self.run_started_ns, "index": len(self.files) + 1,
+            meta = {"run_started_ns": self.run_started_ns, "index": self._opened + 1,
                     "opened_ns": opened_ns, "previous": self.files[-1].name if self.files else None}
             try:
                 writer = self._factory(path, self.config, manifest=self.manifest, run_config=self.run_config,
@@ -172,7 +182,8 @@ class RotatingLog:
                         pass
                 raise
             self._writer = writer
-            self.files.append(path)
+            self._opened += 1
+            self.files = [*self.files[-(MAX_LISTED_FILES - 1):], path]
             self._trim()
             return
         raise LogError(f"cannot create MCAP log in {self.set.directory}: no free name after 100 tries")
@@ -186,11 +197,12 @@ class RotatingLog:
         else:
             reserve = self._writer.bytes_written if self._writer is not None else 0
         gone = self.set.trim_to_budget(int(budget * MB), reserve, self.current_path)
-        self.deleted += [f.path for f in gone]
+        self.deleted = [*self.deleted, *(f.path for f in gone)][-MAX_LISTED_FILES:]
+        self.deleted_count += len(gone)
 
     def _rotate_if_full(self) -> None:
-        if self.rotation.max_mb is None or self._writer is None:
-            return
+        if self.rotation.max_mb is None or self._writer is None or self._in_frame:
+            return  # (never between a frame's image and its result: each file replays on its own)
         reserve = self.config.chunk_size + self._largest_message + self.rotation.summary_reserve_bytes
         if self._writer.bytes_written + reserve < self.rotation.max_mb * MB:
             return
@@ -277,18 +289,23 @@ class RotatingLog:
     def write_image(self, payload: bytes, encoding: str, stamp_ns: int, *, sequence: int = 0,
                     log_time_ns: int | None = None, gray=None) -> bool:
         """Log a frame image (see McapLogWriter.write_image); False when not logged."""
-        size = len(payload) if gray is None else max(len(payload), int(getattr(gray, "size", 0)))
+        self._in_frame = False  # a new frame: the file may be rotated before its image
 
         def write(w: McapLogWriter) -> bool:
             done = w.write_image(payload, encoding, stamp_ns, sequence=sequence, log_time_ns=log_time_ns, gray=gray)
             self.images_written += int(done)
             return done
 
-        return self._write(True, size, write)
+        # A raw frame is stored as PNG, smaller than its pixels: len(payload) bounds the message.
+        written = self._write(True, len(payload), write)
+        self._in_frame = True  # the frame's result follows: it goes into the same file
+        return written
 
     def write_result(self, result, *, data: bytes | None = None, log_time_ns: int | None = None) -> None:
+        """Log a frame's result (see McapLogWriter.write_result), in the file of its image."""
         self._write(False, len(data or b""),
                     lambda w: w.write_result(result, data=data, log_time_ns=log_time_ns) or True)
+        self._in_frame = False
 
     def write_stats(self, stats, *, data: bytes | None = None, log_time_ns: int | None = None) -> None:
         self._write(False, len(data or b""),

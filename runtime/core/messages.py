@@ -287,7 +287,7 @@ class RunSummary(_Message):
     result_key: str = _f(description="Zenoh key of the results")
     stats_key: str = _f(description="Zenoh key of the stats")
     log_files: list[str] = field(default_factory=list, metadata=_meta(
-        "MCAP files this run created, in order (some may since have been deleted by the log budget)", since="1.2"))
+        "MCAP files this run created, in order (the last 100; some may since have been deleted by the log budget)", since="1.2"))
     log_files_deleted: int = _f(0, "files of the log set deleted to keep within the log budget", since="1.2")
     log_errors: int = _f(0, "log write errors (not fatal)", since="1.2")
     bad_total: int = _f(init=False, description="sum of bad")
@@ -297,11 +297,11 @@ class RunSummary(_Message):
 
 
 __all__ = [
+    "LOG_STATES",
     "MESSAGE_FORMAT_VERSION",
     "SCORE_KINDS",
     "TRANSPORT_FIELDS",
     "FrameResult",
-    "LOG_STATES",
     "LatencySummary",
     "RunSummary",
     "StatsMessage",

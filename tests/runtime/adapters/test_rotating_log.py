@@ -83,6 +83,7 @@ def test_rotated_files_are_each_a_complete_log_and_read_as_one_run(tmp_path):
         assert path.stat().st_size <= 0.5 * MB
         topics, names = _plain_read(path)
         assert {MANIFEST_METADATA, RUN_CONFIG_METADATA, LOG_METADATA, LOG_FILE_METADATA} <= names
+        assert topics["/camera/image"] == topics["/lcd/result"]  # a frame's image and result share a file
         for k, v in topics.items():
             total[k] = total.get(k, 0) + v
     assert total == {"/camera/image": 120, "/lcd/result": 120, "/lcd/stats": 1}
