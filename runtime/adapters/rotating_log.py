@@ -8,7 +8,7 @@ I/O problem once the run has started: detection never stops because of the log.
 - ``max_mb``: the file in progress is finished (summary, footer) and a new one started
   before it would pass max_mb; every file is a complete log on its own (schemas, channels,
   ``aefabmap.log``, manifest, run config and ``aefabmap.log_file`` metadata).
-- ``budget_mb``: when a file is opened, the oldest *closed* files of the set (ours only, see
+- ``budget_mb``: before a file is opened, the oldest *closed* files of the set (ours only, see
   log_set) are deleted until they plus the room for the open file (max_mb, or its current
   size when files are not rotated) fit the budget. So the set never exceeds the budget when
   max_mb is set (budget plus one file otherwise).
@@ -23,6 +23,7 @@ I/O problem once the run has started: detection never stops because of the log.
 
 from __future__ import annotations
 
+import errno
 import os
 import time
 from collections.abc import Callable
@@ -155,13 +156,24 @@ class RotatingLog:
         return self._writer.path if self._writer is not None else None
 
     def open(self) -> RotatingLog:
-        """Create the first file; LogError when it cannot be (the run should not start)."""
+        """Create the first file. LogError when it cannot be (the run should not start), except
+        for a full disk (ENOSPC, EDQUOT): that is counted and retried like a mid-run error, so a
+        service whose disk is full still detects."""
         self._check_space(force=True)
-        self._open_next()
+        try:
+            self._open_next()
+        except LogError as exc:
+            if getattr(exc.__cause__, "errno", None) not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            self._count(exc)
+            self._next_retry = self._clock() + self.rotation.retry_interval_s
+        self._update_state()
         return self
 
     def _open_next(self) -> None:
-        """Open the next file of the set (LogError on failure), after trimming to the budget."""
+        """Open the next file of the set (LogError on failure), after trimming the set to the
+        budget (first: on a full disk, deleting our oldest files is what makes room)."""
+        self._trim()
         number = self.set.first_number()
         for _ in range(100):  # another writer may take a name between listing and creating
             opened_ns = time.time_ns()
@@ -184,7 +196,6 @@ class RotatingLog:
             self._writer = writer
             self._opened += 1
             self.files = [*self.files[-(MAX_LISTED_FILES - 1):], path]
-            self._trim()
             return
         raise LogError(f"cannot create MCAP log in {self.set.directory}: no free name after 100 tries")
 

@@ -273,3 +273,14 @@ def test_a_full_disk_is_survived_and_a_budget_keeps_it_from_filling(tiny_disk):
     assert bounded.errors == 0 and len(bounded.deleted) >= 3
     for f in LogSet(tiny_disk / "run.mcap").files():
         _plain_read(f.path)
+    # a disk already full at start: the node starts anyway, the log counts the error and retries
+    for p in list(tiny_disk.iterdir()):
+        p.unlink()
+    with open(tiny_disk / "filler", "wb") as filler, pytest.raises(OSError):
+        while True:
+            filler.write(b"\0" * 65536)
+    full = RotatingLog(tiny_disk / "late.mcap", rotation=LogRotationConfig(**NO_LIMITS)).open()
+    assert full.state == "failed" and full.errors == 1 and full.files == []
+    _write_frames(full, 3)
+    full.close()
+    assert [p.name for p in tiny_disk.iterdir()] == ["filler"]  # no debris left by the failed attempts
