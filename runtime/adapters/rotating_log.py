@@ -24,6 +24,7 @@ I/O problem once the run has started: detection never stops because of the log.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import time
 from collections.abc import Callable
@@ -64,18 +65,18 @@ class LogRotationConfig:
     summary_reserve_bytes: int = 64 * 1024
 
     def __post_init__(self) -> None:
-        for name in ("max_mb", "budget_mb"):
+        for name, low in (("max_mb", 0.0), ("budget_mb", 0.0), ("images_min_free_mb", None),
+                          ("results_min_free_mb", None)):
             v = getattr(self, name)
-            if v is not None and not (isinstance(v, (int, float)) and v > 0):
-                raise ConfigError(f"log {name} must be > 0, got {v!r}")
-        if self.images_min_free_mb is not None and not self.images_min_free_mb >= 0:
-            raise ConfigError(f"images_min_free_mb must be >= 0, got {self.images_min_free_mb!r}")
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0 or v == low:
+                raise ConfigError(f"log {name} must be a finite number {'> 0' if low is not None else '>= 0'} "
+                                  f"(MB), got {v!r}")
         if self.max_mb is not None and self.max_mb * MB < 4 * self.summary_reserve_bytes:
             raise ConfigError(f"log max_mb must be >= {4 * self.summary_reserve_bytes / MB:.2f}, got {self.max_mb}")
         if self.budget_mb is not None and self.max_mb is not None and self.budget_mb < self.max_mb:
             raise ConfigError(f"log budget ({self.budget_mb} MB) must be >= the file size limit ({self.max_mb} MB)")
-        if not self.results_min_free_mb >= 0:
-            raise ConfigError(f"results_min_free_mb must be >= 0, got {self.results_min_free_mb!r}")
         if not (self.space_check_interval_s > 0 and self.retry_interval_s > 0):
             raise ConfigError("log space check and retry intervals must be > 0 s")
 

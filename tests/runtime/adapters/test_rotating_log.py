@@ -216,8 +216,15 @@ def test_a_write_error_is_counted_the_file_abandoned_and_a_new_one_tried(tmp_pat
 def test_rotation_config_is_checked():
     with pytest.raises(ConfigError, match="budget"):
         LogRotationConfig(max_mb=10, budget_mb=5)
-    with pytest.raises(ConfigError, match="max_mb"):
-        LogRotationConfig(max_mb=-1)
+    for bad in (-1, 0, float("nan"), float("inf"), "5", True):
+        with pytest.raises(ConfigError, match="max_mb"):
+            LogRotationConfig(max_mb=bad)
+    for bad in (-1, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="min_free_mb"):
+            LogRotationConfig(results_min_free_mb=bad)
+        with pytest.raises(ConfigError, match="budget_mb"):
+            LogRotationConfig(budget_mb=bad)
+    assert LogRotationConfig(images_min_free_mb=0, results_min_free_mb=0).images_threshold_bytes == 0
     with pytest.raises(ConfigError, match="max_mb must be >="):
         LogRotationConfig(max_mb=0.01)
     assert LogRotationConfig(max_mb=5).images_threshold_bytes == 500 * MB
