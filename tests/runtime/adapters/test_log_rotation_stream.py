@@ -18,27 +18,41 @@ from aefabmap.runtime.adapters.rotating_log import MB, LogRotationConfig
 from aefabmap.runtime.adapters.zenoh_transport import open_session
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
-from .stream_fakes import FakeDetector, JsonCollector, NodeThread, sample_images, session_pair
+from .stream_fakes import (
+    FakeDetector,
+    JsonCollector,
+    NodeThread,
+    mounted_tmpfs,
+    sample_images,
+    session_pair,
+)
 
 pytestmark = pytest.mark.timeout(120)
 KEY = "robot/camera/image"
 NO_LIMITS = {"images_min_free_mb": 0.0, "results_min_free_mb": 0.0}
 
 
-def _record(target, images, n_frames, rotation, fmt="jpeg"):
+def _record(target, images, n_frames, rotation, fmt="jpeg", results_seen=None):
     """Run the node on ``target`` while ``n_frames`` frames (``images`` looped) are published;
-    returns (run summary, last stats message seen on Zenoh)."""
+    returns (run summary, last stats message seen on Zenoh). results_seen: a list to which the
+    results published on Zenoh are appended."""
     listen, connect = session_pair()
     with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=target,
                     queue_size=n_frames, stats_period_s=0.2, log_rotation=rotation) as node:
         with open_session(connect) as s:
             stats = JsonCollector(s, "robot/camera/lcd/stats")
+            results = JsonCollector(s, "robot/camera/lcd")
             pub = publish_frames(connect, KEY, array_source(images, fmt), rate_hz=150, count=n_frames,
                                  loop=True, wait_for_subscriber_s=10)
             assert pub.published == n_frames
-            docs = stats.wait_for(lambda d: d["frames_processed"] == n_frames, timeout_s=60)
+            docs = stats.wait_for(lambda d: d["frames_processed"] + d["dropped"] == n_frames, timeout_s=60)
+            done = docs[-1]["frames_processed"]
+            published = results.wait_for(lambda d: d["sequence"] == done - 1, timeout_s=30)
             stats.close()
+            results.close()
         summary = node.finish()
+    if results_seen is not None:
+        results_seen.extend(published)
     return summary, docs[-1]
 
 
@@ -87,3 +101,21 @@ def test_a_budgeted_log_never_passes_its_budget_and_every_closed_file_reads(tmp_
     list(last.frames())
     assert last.results[-1].sequence == 299
     json.dumps(result.to_dict(), default=str)
+
+
+def test_a_full_disk_never_stops_detection_and_shows_in_the_stats(tmp_path):
+    """The node logs onto a 1 MiB tmpfs that fills after a few frames: every frame is still
+    processed and published; the stats say log_errors > 0 and log_state 'failed'."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    with mounted_tmpfs(disk, "1m"):
+        published = []
+        summary, last_stats = _record(disk / "run.mcap", sample_images(16, size=(320, 240)), 120,
+                                      LogRotationConfig(**NO_LIMITS), fmt="png", results_seen=published)
+        # (a loaded machine may drop a frame in transport: counted, not the log's doing)
+        done = summary.frames_processed
+        assert done + summary.dropped == 120 and done >= 110 and [d["sequence"] for d in published] == list(range(done))
+        assert summary.log_errors >= 1 and last_stats["log_errors"] >= 1 and last_stats["log_state"] == "failed"
+        reader = McapLogReader(disk / "run.mcap")
+        list(reader.frames())
+        assert 0 < len(reader.results) < done  # what fit before the disk was full is readable

@@ -7,7 +7,6 @@ import errno
 import os
 import shutil
 import socket
-import subprocess
 import threading
 
 import pytest
@@ -26,7 +25,7 @@ from aefabmap.runtime.adapters.node import NodeOptions, run_node
 from aefabmap.runtime.adapters.rotating_log import MB, LogRotationConfig, RotatingLog
 from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
 
-from .stream_fakes import FakeDetector, make_result
+from .stream_fakes import FakeDetector, make_result, mounted_tmpfs
 
 PAYLOAD = 20_000  # bytes of one logged "image": random, so compression does not shrink it
 T0 = 1_700_000_000_000_000_000
@@ -251,16 +250,8 @@ def tiny_disk(tmp_path):
     """A 1 MiB tmpfs (needs root and mount; skipped elsewhere)."""
     disk = tmp_path / "disk"
     disk.mkdir()
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("needs root to mount a tmpfs")
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)], capture_output=True,
-                          timeout=10)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {done.stderr.decode(errors='replace').strip()[:80]}")
-    try:
+    with mounted_tmpfs(disk, "1m"):
         yield disk
-    finally:
-        subprocess.run(["umount", str(disk)], capture_output=True, timeout=10)
 
 
 def test_a_full_disk_is_survived_and_a_budget_keeps_it_from_filling(tiny_disk):
