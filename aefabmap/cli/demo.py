@@ -90,6 +90,8 @@ def run(args) -> int:
             session.close()
         summary = stop_node(node)
     print(f"runtime summary: {json.dumps(summary.to_dict())}" if summary else "runtime gave no summary")
+    if summary is not None:  # the log actually written: demo-0001.mcap... when demo.mcap exists (never overwritten)
+        mcap_path = Path(summary.mcap_path)
     _report(_logged_results(mcap_path), gt_path, n_frames)
     return _replay_check(model, mcap_path)
 

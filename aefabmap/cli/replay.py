@@ -22,8 +22,9 @@ def register(subparsers) -> argparse.ArgumentParser:
         description="Run the detector over the logged images; optionally write a new log (--out) and "
         "compare with the logged results (--check; deterministic fields only, not timings).",
     )
-    p.add_argument("log", metavar="LOG",
-                   help="aefabmap MCAP log, or a ROS bag: rosbag2 directory (metadata.yaml), .db3 or .mcap file, "
+    p.add_argument("log", metavar="LOG", nargs="+",
+                   help="aefabmap MCAP log (several files, a directory of rotated files or a glob are read in run "
+                   "order as one run), or a ROS bag: rosbag2 directory (metadata.yaml), .db3 or .mcap file, "
                    "ROS 1 .bag (needs aefabmap[ros], except ROS 2 .mcap)")
     p.add_argument("--topic", default=None, metavar="TOPIC",
                    help="image topic to replay (required when the bag has several image topics)")
@@ -36,6 +37,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.log_set import log_files
     from aefabmap.runtime.adapters.mcap_log import (
         RUN_CONFIG_METADATA,
         read_log_metadata,
@@ -46,11 +48,13 @@ def main(args: argparse.Namespace) -> int:
 
     try:
         # Replay with the detector options of the logged run (max places, memory budget).
-        logged = {} if is_ros_bag(args.log) else read_log_metadata(args.log).get(RUN_CONFIG_METADATA) or {}
+        bag = len(args.log) == 1 and is_ros_bag(args.log[0])
+        source = args.log[0] if bag else log_files(args.log)
+        logged = {} if bag else read_log_metadata(source[0]).get(RUN_CONFIG_METADATA) or {}
         detector = load_detector(
             args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
         )
-        summary = replay(detector, args.log, out_path=args.out, check=args.check,
+        summary = replay(detector, source, out_path=args.out, check=args.check,
                          image_topic=getattr(args, "topic", None))
     except AefabmapError as exc:
         log.error("%s", exc)

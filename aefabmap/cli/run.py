@@ -31,6 +31,28 @@ def add_zenoh_options(p: argparse.ArgumentParser, *, config: bool = True) -> Non
                 "`publish` connects there; no multicast scouting.")
 
 
+def add_log_rotation_options(p: argparse.ArgumentParser) -> None:
+    """--mcap-max-mb, --log-budget-mb and the free-space thresholds (rotating_log.LogRotationConfig)."""
+    p.add_argument("--mcap-max-mb", type=float, default=None, metavar="MB",
+                   help="start a new log file before the current one passes MB (default: one file)")
+    p.add_argument("--log-budget-mb", type=float, default=None, metavar="MB",
+                   help="delete the oldest closed files of the log set to keep it within MB (default: no limit)")
+    p.add_argument("--log-min-free-mb", type=float, nargs=2, default=None, metavar=("IMAGES", "RESULTS"),
+                   help="stop logging images below IMAGES MB free on the log's disk, everything below RESULTS "
+                   "(default: max(500, 2 x --mcap-max-mb) and 100)")
+
+
+def log_rotation_config(args: argparse.Namespace):
+    """The LogRotationConfig of the parsed options (ConfigError when inconsistent)."""
+    from aefabmap.runtime.adapters.rotating_log import LogRotationConfig
+
+    # getattr: a Namespace built by hand (an older caller) means the defaults.
+    min_free = getattr(args, "log_min_free_mb", None)
+    free = {} if min_free is None else {"images_min_free_mb": min_free[0], "results_min_free_mb": min_free[1]}
+    return LogRotationConfig(max_mb=getattr(args, "mcap_max_mb", None), budget_mb=getattr(args, "log_budget_mb", None),
+                             **free)
+
+
 def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "run",
@@ -52,7 +74,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="zenoh key of the JSON results (stats on <key>/stats); default: the sibling 'lcd' of "
                    "the image key or topic")
     add_zenoh_options(p)
-    p.add_argument("--mcap", required=True, metavar="LOG.mcap", help="MCAP log to write")
+    p.add_argument("--mcap", required=True, metavar="LOG.mcap|DIR/|PATTERN",
+                   help="MCAP log to write: a file (an existing one is never overwritten: the next is LOG-0001.mcap), "
+                   "a directory (files lcd-YYYYmmdd-HHMMSS-0001.mcap) or a pattern with {n} (run-{n}.mcap)")
+    add_log_rotation_options(p)
     p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
     p.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="memory budget of the map (MB)")
     p.add_argument("--queue", type=int, default=2, metavar="N",
@@ -79,6 +104,7 @@ def main(args: argparse.Namespace) -> int:
         if ros_topic is not None:
             ros = RosOptions(topic=ros_topic, domain=getattr(args, "ros_domain", 0),
                              distro=getattr(args, "ros_distro", "humble"))
+        rotation = log_rotation_config(args)
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
                                      listen=args.listen, config_file=args.config)
@@ -90,13 +116,15 @@ def main(args: argparse.Namespace) -> int:
 
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
                               queue_size=args.queue, stats_period_s=5.0, image_log_every=args.image_every,
-                              run_config=run_config, result_key=getattr(args, "results_key", None), ros=ros)
+                              run_config=run_config, result_key=getattr(args, "results_key", None), ros=ros,
+                              log_rotation=rotation)
 
         def on_stats(msg) -> None:
             log.info(
-                "processed %d, dropped %d, bad %d, loops %d, %s fps, latency p50 %s ms p95 %s ms, RSS %s MB",
+                "processed %d, dropped %d, bad %d, loops %d, %s fps, latency p50 %s ms p95 %s ms, RSS %s MB, "
+                "log %s (%d errors)",
                 msg.frames_processed, msg.dropped, msg.bad_total, msg.loops, _fmt(msg.fps),
-                _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb,
+                _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb, msg.log_state, msg.log_errors,
             )
 
         with stop_on_signals(stop):

@@ -113,8 +113,9 @@ class McapLogConfig:
 class _UnbufferedFile:
     """Write-through file: every write reaches the OS at once (a SIGKILL loses nothing written)."""
 
-    def __init__(self, path: Path) -> None:
-        self._f = open(path, "wb", buffering=0)  # noqa: SIM115 - closed in close()
+    def __init__(self, path: Path, *, exclusive: bool = False) -> None:
+        # exclusive: create or fail (FileExistsError), never truncate an existing file.
+        self._f = open(path, "xb" if exclusive else "wb", buffering=0)  # noqa: SIM115 - closed in close()
         self._pos = 0
 
     def write(self, data) -> int:
@@ -166,6 +167,9 @@ class McapLogWriter:
 
     path: output file (parent directory must exist and be writable).
     manifest / run_config: JSON-able dicts stored as metadata at open.
+    extra_metadata: further metadata records (name -> JSON-able dict) written at open.
+    exclusive: refuse an existing ``path`` (LogError caused by FileExistsError) instead of
+    truncating it; the node's logs are opened so (runtime/adapters/rotating_log.py).
     Raises LogError (naming the path) when the file cannot be created or written.
     """
 
@@ -176,6 +180,8 @@ class McapLogWriter:
         *,
         manifest: dict | None = None,
         run_config: dict | None = None,
+        extra_metadata: dict[str, dict] | None = None,
+        exclusive: bool = False,
     ) -> None:
         self.path = Path(path)
         self.config = config or McapLogConfig()
@@ -184,7 +190,7 @@ class McapLogWriter:
         self.messages_written = 0
         self._closed = False
         try:
-            self._file = _UnbufferedFile(self.path)
+            self._file = _UnbufferedFile(self.path, exclusive=exclusive)
         except OSError as exc:
             raise LogError(f"cannot create MCAP log {self.path}: {exc.strerror or exc}") from exc
         try:
@@ -207,8 +213,12 @@ class McapLogWriter:
                 self.add_metadata(MANIFEST_METADATA, manifest)
             if run_config is not None:
                 self.add_metadata(RUN_CONFIG_METADATA, run_config)
-        except OSError as exc:
+            for name, doc in (extra_metadata or {}).items():
+                self.add_metadata(name, doc)
+        except (OSError, LogError) as exc:
             self._file.close()
+            if isinstance(exc, LogError):
+                raise
             raise LogError(f"cannot write MCAP log {self.path}: {exc.strerror or exc}") from exc
         self._last_flush = time.monotonic()
         self._seq = {self._image_channel: 0, self._result_channel: 0, self._stats_channel: 0}
@@ -333,7 +343,22 @@ class McapLogWriter:
         except OSError as exc:
             raise LogError(f"cannot write MCAP log {self.path}: {exc.strerror or exc}") from exc
 
+    @property
+    def bytes_written(self) -> int:
+        """Bytes written to the file so far (the chunk in progress is not yet among them)."""
+        return self._file.tell()
+
     # ------------------------------------------------------------------ lifecycle
+    def abort(self) -> None:
+        """Close the file without finishing it (after a write error: the MCAP writer's state
+        no longer matches the file). The file stays readable up to its last complete chunk."""
+        if not self._closed:
+            self._closed = True
+            try:
+                self._file.close()
+            except OSError:
+                pass
+
     def close(self) -> None:
         """Finish the file (summary, footer) and close it; idempotent."""
         if self._closed:
@@ -400,6 +425,7 @@ class ReadStatus:
     invalid_messages: int = 0
     last_invalid: str = ""
     format_version: str | None = None
+    files: list[str] = field(default_factory=list)
 
     def describe(self) -> str:
         text = f"{self.path}: read {self.messages_read} messages ({self.images_read} images"

@@ -41,6 +41,7 @@ from aefabmap.runtime.adapters.rmw_zenoh import (
     RosOptions,
     RosResultPublisher,
 )
+from aefabmap.runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
 from aefabmap.runtime.adapters.zenoh_transport import (
     FrameSubscriber,
     ReceivedFrame,
@@ -84,6 +85,8 @@ class NodeOptions:
     max_frames: stop after this many processed frames (None: run until stopped).
     ros: subscribe to this ROS 2 image topic over rmw_zenoh instead of ``key`` (which is then
     only recorded), and also publish results as ROS 2 messages (runtime/adapters/rmw_zenoh.py).
+    log_rotation: file size limit, disk budget and free-space thresholds of the log set
+    (runtime/adapters/rotating_log.py; mcap_path may then be a directory or a ``{n}`` pattern).
     """
 
     key: str
@@ -97,6 +100,7 @@ class NodeOptions:
     run_config: dict | None = None
     max_frames: int | None = None
     ros: RosOptions | None = None
+    log_rotation: LogRotationConfig | None = None
 
     def __post_init__(self) -> None:
         if not self.stats_period_s > 0:
@@ -158,7 +162,7 @@ class StatsEmitter:
     and sent to the publisher, the log and the caller's ``on_stats``."""
 
     def __init__(self, period_s: float, t0: float, loop: FrameLoop, stats: RunStats, drops,
-                 pub: ResultPublisher, log: McapLogWriter,
+                 pub: ResultPublisher, log: McapLogWriter | RotatingLog,
                  on_stats: Callable[[StatsMessage], None] | None = None) -> None:
         self.period_s, self.t0 = period_s, t0
         self.loop, self.stats, self.drops = loop, stats, drops
@@ -180,6 +184,7 @@ class StatsEmitter:
         self._last_t, self._last_n = now, self.loop.processed
         self.stats.dropped, self.stats.publisher_restarts = self.drops.dropped, self.drops.restarts
         msg = self.stats.snapshot(self.loop, now - self.t0, fps)
+        msg.log_errors, msg.log_state = getattr(self.log, "errors", 0), getattr(self.log, "state", None)
         data = msg.to_json_bytes()
         self.pub.publish_stats(data)
         self.log.write_stats(msg, data=data)
@@ -191,7 +196,7 @@ class ResultOutput:
     """Where a frame's result goes: its transport fields added, serialised once, published on
     the results key and logged to MCAP with the frame's image."""
 
-    def __init__(self, pub: ResultPublisher, log: McapLogWriter, stats: RunStats) -> None:
+    def __init__(self, pub: ResultPublisher, log: McapLogWriter | RotatingLog, stats: RunStats) -> None:
         self.pub, self.log, self.stats = pub, log, stats
 
     def send(self, frame: ReceivedFrame, out: FrameOutcome) -> None:
@@ -252,16 +257,16 @@ def run_node(
     """Run the streaming loop until ``stop_event`` is set (or ``options.max_frames`` processed).
 
     on_stats: called with each stats message. ready_event: set once subscribed (tests and
-    supervisors wait on it). Raises LogError (MCAP not writable; before any network
-    activity), TransportError (session), ConfigError.
+    supervisors wait on it). Raises LogError (MCAP target not writable: checked before any
+    network activity; the first file is created once the session is up, so a start that
+    fails leaves no file behind and no existing file is ever overwritten), TransportError
+    (session), ConfigError. Once running, log errors are counted in the stats, never raised.
     """
     manifest = getattr(detector, "manifest", None)
     loop, stats, t0 = FrameLoop(detector), RunStats(), time.monotonic()
-    with (
-        McapLogWriter(options.mcap_path, options.mcap_config(), run_config=options.log_metadata(),
-                      manifest=manifest if isinstance(manifest, dict) else None) as log,
-        _Transport(options) as io,
-    ):
+    log = RotatingLog(options.mcap_path, options.mcap_config(), options.log_rotation,
+                      run_config=options.log_metadata(), manifest=manifest if isinstance(manifest, dict) else None)
+    with _Transport(options) as io, log.open():
         if ready_event is not None:
             ready_event.set()
         emitter = StatsEmitter(options.stats_period_s, t0, loop, stats, io.sub.drops, io.pub, log, on_stats)
@@ -281,8 +286,9 @@ def run_node(
         frames_received=loop.frames_in, frames_processed=loop.processed, dropped=stats.dropped,
         bad=dict(loop.bad.counts), loops=loop.loops, duration_s=time.monotonic() - t0,
         latency_ms_p50=latency.p50, latency_ms_p95=latency.p95, peak_rss_mb=stats.peak_rss_mb,
-        mcap_path=str(options.mcap_path), images_logged=log.images_written,
+        mcap_path=str(log.files[0] if log.files else options.mcap_path), images_logged=log.images_written,
         result_key=options.results_key, stats_key=options.stats_key,
+        log_files=[str(p) for p in log.files], log_files_deleted=log.deleted_count, log_errors=log.errors,
     )
 
 

@@ -18,12 +18,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
+from aefabmap.runtime.adapters.log_set import LogSetReader
 from aefabmap.runtime.adapters.mcap_log import (
     McapLogConfig,
     McapLogWriter,
     ReadStatus,
 )
-from aefabmap.runtime.adapters.ros_bag import open_image_source
+from aefabmap.runtime.adapters.ros_bag import open_replay_source
 from aefabmap.runtime.core.messages import FrameResult
 
 #: Result fields that vary from run to run (wall-clock timings, transport data); --check
@@ -178,7 +179,7 @@ class ReplaySummary:
 
 def replay(
     detector,
-    mcap_path: str | Path,
+    mcap_path: str | Path | list[str | Path],
     *,
     out_path: str | Path | None = None,
     check: bool = False,
@@ -189,6 +190,9 @@ def replay(
     """Run ``detector`` (see frame_loop.Detector) over the images of ``mcap_path``: an aefabmap
     log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/adapters/ros_bag.py).
 
+    mcap_path: one log, or a log set read in run order as one run: a directory of rotated
+    files, a glob, or a list of those (runtime/adapters/log_set.py).
+
     out_path: write a new log (images, replayed results, final stats, manifest metadata).
     check: compare the replayed results with the ones logged (all but NONDETERMINISTIC_FIELDS,
     and fields added to the message format after the log's version).
@@ -197,7 +201,8 @@ def replay(
     Raises LogError when the source cannot be read (or is of a newer format) or the output
     not written.
     """
-    reader = open_image_source(mcap_path, image_topic=image_topic)
+    reader = open_replay_source(mcap_path, image_topic=image_topic)
+    source = str(mcap_path) if isinstance(mcap_path, (str, Path)) else ", ".join(map(str, mcap_path))
     replayed: list[FrameResult] = []
     loop = FrameLoop(detector)
     writer = None
@@ -208,7 +213,7 @@ def replay(
             out_path,
             log_config or McapLogConfig(),
             manifest=manifest if isinstance(manifest, dict) else None,
-            run_config={"replay_of": str(mcap_path), "image_topic": image_topic, "started_ns": time.time_ns()},
+            run_config={"replay_of": source, "image_topic": image_topic, "started_ns": time.time_ns()},
         )
     try:
         for image in reader.frames():
@@ -259,8 +264,14 @@ def replay(
             report.notes.append("the bundle manifest differs from the one in the log")
         if reader.status.truncated:
             report.notes.append("the log was truncated (no summary): compared up to its last complete chunk")
+        if reader.results and reader.results[0].sequence > 0:
+            report.notes.append(f"the log starts at frame {reader.results[0].sequence} (its first files deleted by "
+                                "the log budget?): the replay starts with an empty map, so results differ")
+        if isinstance(reader, LogSetReader) and reader.runs > 1:
+            report.notes.append(f"the {len(reader.paths)} files hold {reader.runs} runs: each run started with an "
+                                "empty map, the replay with one map, so results differ after the first run")
     return ReplaySummary(
-        source=str(mcap_path),
+        source=source,
         frames_read=loop.frames_in,
         frames_processed=loop.processed,
         bad=dict(loop.bad.counts),

@@ -38,10 +38,12 @@ _IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 
 
 def is_ros_bag(path: str | Path) -> bool:
-    """True for what only this reader opens: a directory, a ``.db3`` or ``.bag`` file, or an
+    """True for what only this reader opens: a rosbag2 directory (with metadata.yaml), a ``.db3`` or ``.bag`` file, or an
     ``.mcap`` file that is not an aefabmap log (no ``aefabmap.log`` metadata)."""
     p = Path(path)
-    if p.is_dir() or p.suffix in (".db3", ".bag"):
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()  # a rosbag2 directory; other directories are rotated aefabmap logs
+    if p.suffix in (".db3", ".bag"):
         return True
     if p.suffix == ".mcap" and p.is_file():
         try:
@@ -155,12 +157,17 @@ class RosBagReader:
             return None
 
 
-def open_image_source(path: str | Path, *, image_topic: str | None = None):
-    """The reader for a replay source: RosBagReader for ROS bags (when rosbags is installed;
-    without it a ROS 2 ``.mcap`` bag still goes to the MCAP reader), else McapLogReader."""
-    from aefabmap.runtime.adapters.mcap_log import McapLogReader
+def open_replay_source(sources, *, image_topic: str | None = None):
+    """The reader for a replay source.
 
-    p = Path(path)
-    if is_ros_bag(p) and (p.suffix != ".mcap" or rosbags_available()):
-        return RosBagReader(p, image_topic=image_topic)
-    return McapLogReader(p, image_topic=image_topic)
+    sources: one path, or several (files, a directory of rotated logs, globs). One ROS bag (a
+    rosbag2 directory, ``.db3``, ``.bag``, or an ``.mcap`` that is not an aefabmap log) goes to
+    RosBagReader when rosbags is installed (without it a ROS 2 ``.mcap`` bag still goes to the
+    MCAP reader); aefabmap logs go to the log-set reader, which reads rotated files as one run.
+    """
+    from aefabmap.runtime.adapters.log_set import open_log_reader
+
+    single = sources if isinstance(sources, (str, Path)) else (sources[0] if len(sources) == 1 else None)
+    if single is not None and is_ros_bag(single) and (Path(single).suffix != ".mcap" or rosbags_available()):
+        return RosBagReader(Path(single), image_topic=image_topic)
+    return open_log_reader(sources, image_topic=image_topic)

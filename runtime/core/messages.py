@@ -27,8 +27,12 @@ from aefabmap.errors import InputError
 from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 
 #: Format of the messages (and of the log layout that carries them): "major.minor".
-#: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``.
-MESSAGE_FORMAT_VERSION = "1.1"
+#: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``; 1.2: the log's health in
+#: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...).
+MESSAGE_FORMAT_VERSION = "1.2"
+
+#: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
+LOG_STATES = ("ok", "images_stopped", "stopped", "failed", "closed")
 
 #: What ``score`` of a result holds: see FrameResult.score_kind.
 SCORE_KINDS = ("probability", "llr", "similarity")
@@ -248,6 +252,11 @@ class StatsMessage(_Message):
     latency_ms: LatencySummary = field(default_factory=LatencySummary,
                                        metadata=_meta("latency percentiles over the last frames"))
     fps: float | None = _f(None, "processed frames per second since the previous stats message")
+    log_errors: int = _f(0, "log write errors so far (disk full, I/O error, ...); never fatal", since="1.2")
+    log_state: str | None = _f(None, (
+        "the log now: 'ok', 'images_stopped' (low disk space: results only), 'stopped' (no space: nothing "
+        "logged), 'failed' (no file open after an error; retried), 'closed'; null: not told"),
+        enum=LOG_STATES, since="1.2")
 
     def __post_init__(self) -> None:
         self.bad_total = sum(self.bad.values())
@@ -277,6 +286,10 @@ class RunSummary(_Message):
     images_logged: int = _f(description="images written to the log")
     result_key: str = _f(description="Zenoh key of the results")
     stats_key: str = _f(description="Zenoh key of the stats")
+    log_files: list[str] = field(default_factory=list, metadata=_meta(
+        "MCAP files this run created, in order (the last 100; some may since have been deleted by the log budget)", since="1.2"))
+    log_files_deleted: int = _f(0, "files of the log set deleted to keep within the log budget", since="1.2")
+    log_errors: int = _f(0, "log write errors (not fatal)", since="1.2")
     bad_total: int = _f(init=False, description="sum of bad")
 
     def __post_init__(self) -> None:
@@ -284,6 +297,7 @@ class RunSummary(_Message):
 
 
 __all__ = [
+    "LOG_STATES",
     "MESSAGE_FORMAT_VERSION",
     "SCORE_KINDS",
     "TRANSPORT_FIELDS",

@@ -537,6 +537,8 @@ def bench_stream(config: StreamBenchConfig) -> dict:
         summary = stop_node(node)
         sampler.stop.set()
         sampler.join(timeout=5)
+        if summary is not None:  # the file actually written (a kept workdir's old log is never overwritten)
+            mcap = Path(summary.mcap_path)
         mcap_bytes = mcap.stat().st_size if mcap.exists() else None
         if tmp is not None and not config.keep_log:
             tmp.cleanup()

@@ -6,6 +6,7 @@ The stand-in detector only mimics the interface of aefabmap.runtime.core.detecto
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 import time
@@ -222,3 +223,25 @@ def write_ros2_bag(path, images, *, stamp0_ns: int = 1_700_000_000_000_000_000, 
                 w.write_message("/cam/raw", rschema, msg, log_time=stamp + 1, publish_time=stamp)
         w.finish()
     return stamps
+
+
+@contextlib.contextmanager
+def mounted_tmpfs(directory, size: str = "1m"):
+    """Mount a tmpfs of ``size`` on the (existing, empty) ``directory`` for the block: a real
+    small disk to fill. Skips the test where it cannot be mounted (not root, no mount)."""
+    import os
+    import shutil
+    import subprocess
+
+    import pytest
+
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("needs root to mount a tmpfs")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(directory)],
+                          capture_output=True, timeout=10, check=False)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {done.stderr.decode(errors='replace').strip()[:80]}")
+    try:
+        yield directory
+    finally:
+        subprocess.run(["umount", str(directory)], capture_output=True, timeout=10, check=False)

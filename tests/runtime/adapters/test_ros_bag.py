@@ -171,11 +171,11 @@ def test_unusable_bags_fail_with_a_reason(tmp_path, monkeypatch, capsys):
         args = argparse.Namespace(**{"model": "fake", "out": None, "check": False, "topic": None, **kw})
         return cli_replay.main(args)
 
-    assert run(log=str(bag), topic=COLOUR) == 0
+    assert run(log=[str(bag)], topic=COLOUR) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_processed"] == 4
-    assert run(log=str(bag)) == LogError.exit_code  # two image topics, none given
-    assert run(log=str(only_text)) == LogError.exit_code
-    assert run(log=str(bag), topic="/nope") == LogError.exit_code
+    assert run(log=[str(bag)]) == LogError.exit_code  # two image topics, none given
+    assert run(log=[str(only_text)]) == LogError.exit_code
+    assert run(log=[str(bag)], topic="/nope") == LogError.exit_code
 
     # Without rosbags, one line says how to get it.
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
