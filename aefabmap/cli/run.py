@@ -40,6 +40,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--mcap", required=True, metavar="LOG.mcap", help="MCAP log to write")
     p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
     p.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="memory budget of the map (MB)")
+    p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
+                   help="pinhole intrinsics in pixels of the images: verify loops with an essential matrix")
     p.add_argument("--queue", type=int, default=2, metavar="N",
                    help="frames kept while busy; older ones are dropped (default 2)")
     p.add_argument("--image-every", type=int, default=1, metavar="N",
@@ -53,12 +55,17 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.node import run_node, stop_on_signals
     from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
     from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap.runtime.core.verification import VerificationConfig
 
     stop = threading.Event()
     try:
         session = SessionConfig(connect=tuple(args.connect), listen=tuple(args.listen), config_file=args.config)
-        detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
-        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
+        verification = VerificationConfig(camera=args.camera)
+        detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb,
+                                                            verification=verification))
+        # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
+        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb,
+                      "camera": list(verification.camera) if verification.camera else None}
 
         def on_stats(doc: dict) -> None:
             lat = doc.get("latency_ms") or {}

@@ -14,6 +14,7 @@ from typing import Protocol
 import numpy as np
 
 from aefabmap.errors import ConfigError, InputError
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
 from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.features import (
@@ -147,6 +148,13 @@ class FrameResult:
         x_q ~ H x_p); None unless verified. candidates_tried: places verified this frame.
     geometry_ok: the geometric check passed (before the temporal check); temporal_ok: the
         temporal check passed (None when it is off).
+    nfa: log10 of the number of false alarms of the accepted geometry (or of the most
+        significant attempt when none passed): how many times that much support is expected by
+        chance among the pair's matches (runtime/core/acontrario.py); < 0 means NFA < 1. None
+        when no geometry was fitted. geometry_reason: "" when verified, else why not
+        (verification.REJECT_REASONS: "no_evidence" when the query or its candidates had too few
+        keypoints or matches to fit any model, "chance", "degenerate", "collinear",
+        "cheirality", ...); None when nothing was verified (no candidate, verification off).
     """
 
     sequence: int
@@ -175,6 +183,8 @@ class FrameResult:
     candidates_tried: int = 0
     geometry_ok: bool = False
     temporal_ok: bool | None = None
+    nfa: float | None = None
+    geometry_reason: str | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -348,7 +358,9 @@ class LoopClosureDetector:
         check = _Check()
         lag = seq - self._track_seq  # query frames since the last verified match
         expect = self._track_frame + lag if 1 <= lag <= v.track_memory else None
-        if features is not None and len(features) and ranking.size:
+        if features is not None and ranking.size and len(features) <= SAMPLE_SIZE["H"]:
+            check.reason = "no_evidence"  # texture-poor frame: nothing to verify with
+        elif features is not None and len(features) and ranking.size:
             q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
             tried: set[int] = set()
             cap = v.max_trials if v.max_trials is not None else np.inf
@@ -363,7 +375,8 @@ class LoopClosureDetector:
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                 place.image_shape, v, bruteforce=bruteforce)
-                if check.best is None or g.verified or g.inliers > check.best.inliers:
+                # Keep the accepted attempt, else the most significant one (diagnostics).
+                if check.best is None or g.verified or g.nfa < check.best.nfa:
                     check.best, check.best_place, check.source = g, int(pid), source
                 return g.verified
 
@@ -470,6 +483,7 @@ class _Check:
     temporal_ok: bool | None = None
     verified: bool = False
     timing_ms: float = 0.0
+    reason: str | None = None
 
     def fill(self, res: FrameResult, place_frame: np.ndarray) -> None:
         res.verified = bool(self.verified)
@@ -477,9 +491,14 @@ class _Check:
         res.temporal_ok = self.temporal_ok
         res.candidates_tried = self.tried
         res.timings_ms["verification"] = self.timing_ms
+        res.geometry_reason = self.reason
         if self.best is not None:
             res.inliers, res.matches = int(self.best.inliers), int(self.best.matches)
             res.geometry_model = self.best.model
+            res.nfa = float(self.best.nfa) if np.isfinite(self.best.nfa) else None
+            res.geometry_reason = self.best.reason if not self.verified else ""
+            if self.best.verified and not self.verified:
+                res.geometry_reason = "temporal"
         if self.verified and self.place is not None:
             res.verified_place = int(self.place)
             res.verified_frame = int(place_frame[self.place])

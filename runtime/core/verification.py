@@ -31,15 +31,22 @@ resolutions), so H 22 / F 40.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, significance
+from aefabmap.runtime.core.conditioning import (
+    homography_is_plausible,
+    minor_axis_extent,
+    rank2_fundamental,
+)
 
 GEOMETRY_METHODS = ("magsac", "ransac")
-MODELS = ("F", "H")
+MODELS = ("F", "E", "H")
+REJECT_REASONS = ("no_evidence", "chance", "degenerate", "collinear", "clustered", "cheirality")
 
 # popcount of every byte value: Hamming distance of ORB descriptors via a table look-up.
 _POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.uint16)
@@ -65,23 +72,35 @@ class VerificationConfig:
     ratio: Lowe ratio test, nearest / second-nearest descriptor distance of the same word.
     ratio_bruteforce: ratio test of brute-force matching (nearest / second-nearest of all
         place keypoints: a stricter test than within one word, where the second-nearest is
-        rarer and farther).
-    min_inliers_bf / min_inliers_h_bf: F / H inliers needed when the matches came from
-        brute-force matching: it returns more chance matches than same-word matching, so
-        unrelated training pairs reach more chance inliers (see the README) and need their own,
-        higher bars.
+        rarer and farther). Brute-force matching returns more matches, chance ones included;
+        the a-contrario test accounts for that through n, so it needs no bars of its own.
     max_hamming: ORB: largest Hamming distance (bits of 256) of a match.
     max_l2: SIFT: largest L2 distance of (unit-norm) descriptors of a match.
     reference_long_side: geometry runs in coordinates where the image's longer side is this
         many units, so thresholds do not depend on the camera resolution.
     method: "magsac" (cv2.USAC_MAGSAC) or "ransac" (cv2.FM_RANSAC / cv2.RANSAC).
-    f_threshold: fundamental-matrix inlier threshold (symmetric epipolar distance, units).
-    h_threshold: homography inlier threshold (forward transfer error, units).
-    min_inliers: F inliers needed to accept.
-    min_inliers_h: H inliers needed to accept (H is a stronger model: a point must land on a
-        point, not on a line, so chance inliers are rarer and fewer suffice).
+    f_threshold: fundamental/essential-matrix noise scale: the estimator's threshold and the
+        largest point-to-epipolar-line distance (units, in both images) an inlier may have.
+    h_threshold: the same for the homography (larger of forward and backward transfer error).
+    max_log10_nfa: acceptance: log10 of the number of false alarms (`acontrario.py`: how many
+        times a model this well supported is expected by chance among the matches) must be
+        below this. 0 is NFA < 1, the a-contrario default; see the README for the choice.
+    min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
+        fewer is not used as a loop closure whatever its NFA: too few points to trust it).
+    min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
+        matrix at least this (rank-1 or null matrices, ratio ~0, explain points on a line).
+    h_max_scale / h_max_anisotropy: a homography's local map at its inliers must keep
+        orientation, scale area by at most h_max_scale (either way) and stretch one axis at most
+        h_max_anisotropy times the other (a near-singular H crushes the image onto a line).
+    min_extent: the inliers' spread across their principal axis (standard deviation), in
+        fractions of the reference long side, in both images: inliers along one line (railings,
+        a row of windows, a kerb) do not fix a two-view geometry.
     min_spread: fraction of the `grid` x `grid` cells holding at least one inlier, required
-        in both images.
+        in both images (0 disables; diagnostics report it anyway).
+    camera: pinhole intrinsics (fx, fy, cx, cy) in pixels of the original images: the
+        epipolar model is then an essential matrix (cv2.findEssentialMat) whose inliers must
+        mostly (`min_cheirality`) lie in front of both cameras (recoverPose). None: F.
+    min_cheirality: fraction of E inliers that must triangulate in front of both cameras.
     grid: cells per side of the spread grid.
     max_iters: homography RANSAC iterations cap (an H iteration is cheap: 1000 cost ~0.2 ms).
     f_max_iters: fundamental-matrix iterations cap: a 7-point MAGSAC iteration costs ~5x an H
@@ -114,17 +133,22 @@ class VerificationConfig:
     max_keypoints: int | None = None
     ratio: float = 0.9
     ratio_bruteforce: float = 0.9
-    min_inliers_bf: int = 40
-    min_inliers_h_bf: int = 22
     max_hamming: int = 64
     max_l2: float = 0.7
     reference_long_side: float = 640.0
     method: str = "magsac"
     f_threshold: float = 1.5
     h_threshold: float = 8.0
-    min_inliers: int = 21
-    min_inliers_h: int = 15
-    min_spread: float = 0.15
+    max_log10_nfa: float = 0.0
+    min_inliers: int = 12
+    min_inliers_h: int = 8
+    min_f_sigma_ratio: float = 0.005
+    h_max_scale: float = 4.0
+    h_max_anisotropy: float = 6.0
+    min_extent: float = 0.01
+    min_spread: float = 0.0
+    camera: tuple[float, float, float, float] | None = None
+    min_cheirality: float = 0.5
     grid: int = 4
     max_iters: int = 1000
     f_max_iters: int = 300
@@ -156,8 +180,16 @@ class VerificationConfig:
             raise ConfigError("verification thresholds and reference_long_side must be > 0")
         if not (0.0 < self.ratio_bruteforce <= 1.0):
             raise ConfigError(f"verification ratio_bruteforce must lie in (0, 1], got {self.ratio_bruteforce}")
-        if self.min_inliers < 8 or self.min_inliers_h < 4 or self.min_inliers_bf < 8 or self.min_inliers_h_bf < 4:
-            raise ConfigError("verification needs min_inliers >= 8 (F) and min_inliers_h >= 4 (H)")
+        if self.min_inliers < 8 or self.min_inliers_h < 5:
+            raise ConfigError("verification needs min_inliers >= 8 (F/E) and min_inliers_h >= 5 (H)")
+        if not (0.0 <= self.min_f_sigma_ratio < 1.0) or self.h_max_scale < 1.0 or self.h_max_anisotropy < 1.0:
+            raise ConfigError("verification needs 0 <= min_f_sigma_ratio < 1, h_max_scale >= 1, h_max_anisotropy >= 1")
+        if not (0.0 <= self.min_extent < 1.0) or not (0.0 <= self.min_cheirality <= 1.0):
+            raise ConfigError("verification min_extent must lie in [0, 1) and min_cheirality in [0, 1]")
+        if not np.isfinite(self.max_log10_nfa):
+            raise ConfigError(f"verification max_log10_nfa must be finite, got {self.max_log10_nfa}")
+        if self.camera is not None:
+            object.__setattr__(self, "camera", parse_camera(self.camera))
         if not (0.0 <= self.min_spread <= 1.0) or self.grid < 1:
             raise ConfigError("verification min_spread must lie in [0, 1] and grid be >= 1")
         if self.max_iters < 1 or self.f_max_iters < 1 or not (0.0 < self.confidence < 1.0):
@@ -168,12 +200,19 @@ class VerificationConfig:
 class GeometryResult:
     """Outcome of verifying one (query, place) pair.
 
-    verified: accepted. model: "F" or "H" (the one accepted, or the better one when rejected;
-    None when there were too few matches to fit anything). matrix: (3, 3) float64 mapping place
-    -> query (F: x_q^T F x_p = 0; H: x_q ~ H x_p), in ORIGINAL pixels of each image.
-    inliers: inliers of `model`; f_inliers / h_inliers: of each model; matches: putative
-    matches; spread: min over both images of the occupied grid-cell fraction of the inliers
-    of `model` (f_spread / h_spread: of each model).
+    verified: accepted. model: "F", "E" (calibrated camera) or "H" (the one accepted, or the
+    most significant one when rejected; None when there were too few matches to fit anything).
+    matrix: (3, 3) float64 mapping place -> query (F and E: the fundamental matrix,
+    x_q^T F x_p = 0; H: x_q ~ H x_p), in ORIGINAL pixels of each image.
+    inliers: a-contrario inliers of `model` (the k matches of smallest error that make it most
+    significant); f_inliers / h_inliers: of each model (f_: F or E); matches: putative matches.
+    nfa: log10 of the number of false alarms of `model` (inf: no model); f_nfa / h_nfa: of
+    each model. f_sigma_ratio: sigma2 / sigma1 of the normalised F/E (0 when not fitted).
+    extent: min over both images of the inliers' standard deviation across their principal
+    axis, in fractions of the reference long side (0: on a line).
+    spread: min over both images of the occupied grid-cell fraction of the inliers of `model`
+    (f_spread / h_spread: of each model). reason: "" when verified, else why not, one of
+    REJECT_REASONS ("no_evidence": too few matches to fit a model).
     """
 
     verified: bool = False
@@ -183,10 +222,31 @@ class GeometryResult:
     f_inliers: int = 0
     h_inliers: int = 0
     matches: int = 0
+    nfa: float = float("inf")
+    f_nfa: float = float("inf")
+    h_nfa: float = float("inf")
+    f_sigma_ratio: float = 0.0
+    extent: float = 0.0
     spread: float = 0.0
     f_spread: float = 0.0
     h_spread: float = 0.0
+    reason: str = "no_evidence"
     inlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+def parse_camera(value) -> tuple[float, float, float, float]:
+    """Pinhole intrinsics from "fx,fy,cx,cy" or a sequence of 4 numbers -> (fx, fy, cx, cy) floats.
+
+    Raises ConfigError unless there are 4 finite numbers with fx, fy > 0.
+    """
+    parts = value.split(",") if isinstance(value, str) else value
+    try:
+        cam = tuple(float(v) for v in parts)
+    except (TypeError, ValueError):
+        raise ConfigError(f"camera must be fx,fy,cx,cy (4 numbers), got {value!r}") from None
+    if len(cam) != 4 or not all(np.isfinite(cam)) or cam[0] <= 0 or cam[1] <= 0:
+        raise ConfigError(f"camera must be fx,fy,cx,cy with fx, fy > 0, got {value!r}")
+    return cam
 
 
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -334,9 +394,12 @@ def symmetric_epipolar_distance(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -
     lq = hp @ F.T  # epipolar lines in the query image
     lp = hq @ F  # epipolar lines in the place image
     num = np.abs(np.sum(hq * lq, axis=1))
-    dq = num / np.maximum(np.hypot(lq[:, 0], lq[:, 1]), 1e-12)
-    dp = num / np.maximum(np.hypot(lp[:, 0], lp[:, 1]), 1e-12)
-    return np.sqrt(0.5 * (dq**2 + dp**2))
+    # Lines with a (near) zero normal are undefined: infinite distance, not a clamped one.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dq = num / np.hypot(lq[:, 0], lq[:, 1])
+        dp = num / np.hypot(lp[:, 0], lp[:, 1])
+        d = np.sqrt(0.5 * (dq**2 + dp**2))
+    return np.where(np.isfinite(d), d, np.inf)
 
 
 def estimate_geometry(
@@ -347,58 +410,160 @@ def estimate_geometry(
     config: VerificationConfig | None = None,
     full: bool = False,
 ) -> GeometryResult:
-    """Fit H and F to matched points and decide acceptance.
+    """Fit H and F (or E with a camera) to matched points and decide acceptance.
 
     xq, xp: (K, 2) float matched positions in original pixels of the query / place image;
     shape_q, shape_p: (height, width) of those images. Returned matrices are in original pixels.
 
-    Staged for speed (full=False): fewer than `min_inliers_h` matches cannot pass and fit
-    nothing; the homography (MAGSAC: ~0.2 ms) is tried first and accepted at once; the
-    fundamental matrix (~1.5 ms) only when H failed and there are >= `min_inliers` matches.
-    full=True fits both models (calibration and diagnostics); acceptance is the same.
+    A model is accepted when it is well conditioned (`conditioning.py`), its inliers are not
+    explained by a line in either image, and its a-contrario significance (`acontrario.py`)
+    is below `max_log10_nfa`. Staged for speed (full=False): the homography (~0.2 ms) is tried
+    first and accepted at once; the epipolar model (~1 ms) only when H failed. full=True fits
+    both (calibration and diagnostics); acceptance is the same.
     """
     c = config or VerificationConfig()
     k = int(xq.shape[0])
     res = GeometryResult(matches=k)
-    if k < min(c.min_inliers_h, c.min_inliers) and not full:
+    if k <= SAMPLE_SIZE["H"]:
+        res.reason = "no_evidence"
         return res
     sq = c.reference_long_side / max(shape_q)
     sp = c.reference_long_side / max(shape_p)
     nq = np.ascontiguousarray(xq, np.float64) * sq
     np_ = np.ascontiguousarray(xp, np.float64) * sp
-    best_margin = -np.inf
+    region = _match_region(nq, np_, c.reference_long_side)
+    best_key = (-1, -np.inf)
 
-    def consider(name: str, M: np.ndarray, mask: np.ndarray, need: int) -> None:
-        nonlocal best_margin
-        spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
+    def consider(name: str, M: np.ndarray, err: np.ndarray, reason: str) -> None:
+        """Count the model's significant inliers and keep it if it is the best so far."""
+        nonlocal best_key
+        kind = "H" if name == "H" else name
+        sig = significance(err, kind, region[0], region[1], c.h_threshold if name == "H" else c.f_threshold)
+        mask = np.isfinite(err) & (err <= sig.eps) if sig.inliers else np.zeros(k, bool)
         n_in = int(mask.sum())
-        if name == "F":
-            res.f_inliers, res.f_spread = n_in, spread
+        spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
+        extent = min(minor_axis_extent(nq[mask]), minor_axis_extent(np_[mask]))
+        if name == "H":
+            res.h_inliers, res.h_spread, res.h_nfa = n_in, spread, sig.log10_nfa
         else:
-            res.h_inliers, res.h_spread = n_in, spread
-        ok = n_in >= need and spread >= c.min_spread
-        # Prefer an accepted model; among equals, the one with the most support over its bar.
-        margin = (1e9 if ok else 0.0) + n_in / need
-        if margin > best_margin:
-            best_margin = margin
+            res.f_inliers, res.f_spread, res.f_nfa = n_in, spread, sig.log10_nfa
+        if not reason:
+            if n_in < (c.min_inliers_h if name == "H" else c.min_inliers) or sig.log10_nfa >= c.max_log10_nfa:
+                reason = "chance"
+            elif extent < c.min_extent * c.reference_long_side:
+                reason = "collinear"
+            elif spread < c.min_spread:
+                reason = "clustered"
+        ok = not reason
+        # Prefer an accepted model; then the most significant one (lowest NFA).
+        key = (int(ok), -sig.log10_nfa if np.isfinite(sig.log10_nfa) else -1e300)
+        if key > best_key:
+            best_key = key
             res.verified, res.model, res.inliers, res.spread = ok, name, n_in, spread
-            res.inlier_mask = mask
+            res.nfa, res.reason, res.inlier_mask = sig.log10_nfa, reason, mask
+            res.extent = extent / c.reference_long_side
             res.matrix = _to_pixels(name, M, sq, sp)
 
-    if k >= 4:
-        H = _fit_homography(np_, nq, c)
-        if H is not None:
-            proj = np.c_[np_, np.ones(k)] @ H.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                proj = proj[:, :2] / proj[:, 2:3]
-            err = np.linalg.norm(proj - nq, axis=1)
-            consider("H", H, np.isfinite(err) & (err <= c.h_threshold), c.min_inliers_h)
-    if (full or not res.verified) and k >= max(8, c.min_inliers if not full else 8):
-        F = _fit_fundamental(np_, nq, c)
-        if F is not None:
-            # MAGSAC's mask is a soft decision: re-check every match with one crisp test.
-            consider("F", F, symmetric_epipolar_distance(F, nq, np_) <= c.f_threshold, c.min_inliers)
+    H = _fit_homography(np_, nq, c)
+    if H is not None:
+        inl = _transfer_error(H, np_, nq) <= c.h_threshold
+        plausible = inl.sum() >= SAMPLE_SIZE["H"] and homography_is_plausible(H, np_[inl], c.h_max_scale, c.h_max_anisotropy)
+        consider("H", H, _transfer_error(H, np_, nq), "" if plausible else "degenerate")
+    if (full or not res.verified) and k > SAMPLE_SIZE["F"]:
+        if c.camera is not None:
+            _consider_essential(nq, np_, xq, xp, sq, sp, c, consider)
+        else:
+            F = _fit_fundamental(np_, nq, c)
+            if F is not None:
+                F, ratio = rank2_fundamental(F, nq, np_)
+                res.f_sigma_ratio = ratio
+                consider("F", F, epipolar_errors(F, nq, np_), "" if ratio >= c.min_f_sigma_ratio else "degenerate")
+    if res.model is None:
+        res.reason = "no_evidence"
     return res
+
+
+def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> None:
+    """Calibrated camera: essential matrix, cheirality-checked, judged as the F it implies."""
+    fx, fy, cx, cy = c.camera
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    px_threshold = c.f_threshold / min(sq, sp)  # reference units -> original pixels
+    try:
+        E, _ = cv2.findEssentialMat(np.ascontiguousarray(xp, np.float64), np.ascontiguousarray(xq, np.float64), K,
+                                    cv2.USAC_MAGSAC if c.method == "magsac" else cv2.RANSAC, c.confidence, px_threshold,
+                                    maxIters=c.f_max_iters)
+    except cv2.error:
+        return
+    if E is None or E.shape != (3, 3) or not np.all(np.isfinite(E)):
+        return
+    Kinv = np.linalg.inv(K)
+    # F in pixels (x_q^T F x_p = 0), then in reference units (x' = s x).
+    F_px = Kinv.T @ E @ Kinv
+    F = np.diag([1.0 / sq, 1.0 / sq, 1.0]) @ F_px @ np.diag([1.0 / sp, 1.0 / sp, 1.0])
+    F, ratio = rank2_fundamental(F, nq, np_)
+    err = epipolar_errors(F, nq, np_)
+    inl = err <= c.f_threshold
+    reason = "" if ratio >= c.min_f_sigma_ratio else "degenerate"
+    if not reason and inl.sum() > SAMPLE_SIZE["E"]:
+        try:
+            mask = inl.astype(np.uint8).reshape(-1, 1).copy()
+            front, _, _, mask = cv2.recoverPose(E, np.ascontiguousarray(xp[inl], np.float64),
+                                                np.ascontiguousarray(xq[inl], np.float64), K)
+        except cv2.error:
+            front = 0
+        # The points must lie in front of both cameras: most inliers, not a chance few.
+        if front < c.min_cheirality * int(inl.sum()):
+            reason = "cheirality"
+    consider("E", F, err, reason)
+
+
+def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[float, float]:
+    """(width, height) of the smaller bounding box of the matched points of either image.
+
+    The a-contrario background spreads chance matches over the region matches actually fall
+    in: a box smaller than the image makes chance agreement likelier (larger alpha), so the
+    smaller of the two boxes is the conservative choice. Floored at 1/8 of the reference side.
+    """
+    boxes = [np.ptp(x, axis=0) for x in (nq, np_)]
+    w, h = min(boxes, key=lambda b: b[0] * b[1])
+    floor = long_side / 8
+    return max(float(w), floor), max(float(h), floor)
+
+
+def _transfer_error(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Larger of the forward (src -> dst) and backward transfer errors of H (K,); inf where undefined."""
+    k = src.shape[0]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        fwd = np.c_[src, np.ones(k)] @ H.T
+        fwd = np.linalg.norm(fwd[:, :2] / fwd[:, 2:3] - dst, axis=1)
+        try:
+            Hi = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return np.full(k, np.inf)
+        bwd = np.c_[dst, np.ones(k)] @ Hi.T
+        bwd = np.linalg.norm(bwd[:, :2] / bwd[:, 2:3] - src, axis=1)
+        err = np.maximum(fwd, bwd)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def epipolar_errors(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> np.ndarray:
+    """Larger of the two point-to-epipolar-line distances (K,) of matches xp -> xq under x_q^T F x_p = 0.
+
+    The a-contrario test counts a match as explained only when both points lie near their
+    lines. A line with (near) zero normal is undefined: its matches get an infinite error
+    (never an inlier, unlike a clamped denominator, which makes a null F explain everything).
+    """
+    hp = np.c_[xp, np.ones(len(xp))]
+    hq = np.c_[xq, np.ones(len(xq))]
+    lq = hp @ F.T
+    lp = hq @ F
+    num = np.abs(np.sum(hq * lq, axis=1))
+    nq, np_ = np.hypot(lq[:, 0], lq[:, 1]), np.hypot(lp[:, 0], lp[:, 1])
+    scale = max(np.linalg.norm(F), 1e-300)
+    ok = (nq > 1e-9 * scale) & (np_ > 1e-9 * scale)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.maximum(num / nq, num / np_)
+    return np.where(ok & np.isfinite(err), err, np.inf)
 
 
 def _fit_homography(src: np.ndarray, dst: np.ndarray, c: VerificationConfig) -> np.ndarray | None:
@@ -429,7 +594,7 @@ def _to_pixels(model: str, M: np.ndarray, sq: float, sp: float) -> np.ndarray:
     """Matrix estimated on scaled points (x' = s x) -> the same relation in original pixels."""
     Sq = np.diag([sq, sq, 1.0])
     Sp = np.diag([sp, sp, 1.0])
-    if model == "F":
+    if model in ("F", "E"):
         # x'q^T F x'p = 0  <=>  xq^T (Sq F Sp) xp = 0.
         out = Sq @ M @ Sp
         return out / max(np.linalg.norm(out), 1e-300)
@@ -466,6 +631,7 @@ def verify_pair(
     pairs = match_all(q_desc, p_desc, c)
     if pairs.shape[0] == 0:
         return res
-    cb = replace(c, min_inliers=c.min_inliers_bf, min_inliers_h=c.min_inliers_h_bf)
-    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, cb)
-    return retry if retry.verified or retry.inliers > res.inliers else res
+    # Same criterion: the NFA grows with the number of matches, so the extra chance matches of
+    # all-pairs matching raise the support a model needs by themselves.
+    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
+    return retry if retry.verified or retry.nfa < res.nfa else res
