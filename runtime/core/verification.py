@@ -434,50 +434,72 @@ def estimate_geometry(
     region = _match_region(nq, np_, c.reference_long_side)
     best_key = (-1, -np.inf)
 
-    def consider(name: str, M: np.ndarray, err: np.ndarray, reason: str) -> None:
-        """Count the model's significant inliers and keep it if it is the best so far."""
+    def consider(name: str, M: np.ndarray, err: np.ndarray, conditioning=None) -> None:
+        """Count the model's significant inliers, run the acceptance tests, keep the best model.
+
+        conditioning: None or a callable -> "" (well conditioned) or a reject reason; called
+        only for a significant model (it costs more than the NFA).
+        """
         nonlocal best_key
-        kind = "H" if name == "H" else name
-        sig = significance(err, kind, region[0], region[1], c.h_threshold if name == "H" else c.f_threshold)
-        mask = np.isfinite(err) & (err <= sig.eps) if sig.inliers else np.zeros(k, bool)
+        sig = significance(err, name, region[0], region[1], c.h_threshold if name == "H" else c.f_threshold)
+        mask = (err <= sig.eps) if sig.inliers else np.zeros(k, bool)
         n_in = int(mask.sum())
-        spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
-        extent = min(minor_axis_extent(nq[mask]), minor_axis_extent(np_[mask]))
         if name == "H":
-            res.h_inliers, res.h_spread, res.h_nfa = n_in, spread, sig.log10_nfa
+            res.h_inliers, res.h_nfa = n_in, sig.log10_nfa
         else:
-            res.f_inliers, res.f_spread, res.f_nfa = n_in, spread, sig.log10_nfa
-        if not reason:
-            if n_in < (c.min_inliers_h if name == "H" else c.min_inliers) or sig.log10_nfa >= c.max_log10_nfa:
-                reason = "chance"
-            elif extent < c.min_extent * c.reference_long_side:
+            res.f_inliers, res.f_nfa = n_in, sig.log10_nfa
+        extent = 0.0
+        if n_in < (c.min_inliers_h if name == "H" else c.min_inliers) or sig.log10_nfa >= c.max_log10_nfa:
+            reason = "chance"
+        else:
+            reason = conditioning() if conditioning is not None else ""
+            extent = min(minor_axis_extent(nq[mask]), minor_axis_extent(np_[mask]))
+            if not reason and extent < c.min_extent * c.reference_long_side:
                 reason = "collinear"
-            elif spread < c.min_spread:
+        spread = None
+        if c.min_spread > 0 or full:
+            spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
+            if name == "H":
+                res.h_spread = spread
+            else:
+                res.f_spread = spread
+            if not reason and spread < c.min_spread:
                 reason = "clustered"
         ok = not reason
         # Prefer an accepted model; then the most significant one (lowest NFA).
         key = (int(ok), -sig.log10_nfa if np.isfinite(sig.log10_nfa) else -1e300)
         if key > best_key:
             best_key = key
+            if spread is None:
+                spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
             res.verified, res.model, res.inliers, res.spread = ok, name, n_in, spread
             res.nfa, res.reason, res.inlier_mask = sig.log10_nfa, reason, mask
             res.extent = extent / c.reference_long_side
             res.matrix = _to_pixels(name, M, sq, sp)
 
-    H = _fit_homography(np_, nq, c)
+    # Fewer matches than a model's inlier floor cannot pass: do not fit it (unless full).
+    H = _fit_homography(np_, nq, c) if full or k >= c.min_inliers_h else None
     if H is not None:
-        inl = _transfer_error(H, np_, nq) <= c.h_threshold
-        plausible = inl.sum() >= SAMPLE_SIZE["H"] and homography_is_plausible(H, np_[inl], c.h_max_scale, c.h_max_anisotropy)
-        consider("H", H, _transfer_error(H, np_, nq), "" if plausible else "degenerate")
-    if (full or not res.verified) and k > SAMPLE_SIZE["F"]:
+
+        def h_conditioning() -> str:
+            inl = err_h <= c.h_threshold
+            ok = homography_is_plausible(H, np_[inl], c.h_max_scale, c.h_max_anisotropy)
+            return "" if ok else "degenerate"
+
+        err_h = _transfer_error(H, np_, nq)
+        consider("H", H, err_h, h_conditioning)
+    if (full or not res.verified) and k > SAMPLE_SIZE["F"] and (full or k >= c.min_inliers):
         if c.camera is not None:
             _consider_essential(nq, np_, xq, xp, sq, sp, c, consider)
         else:
             F = _fit_fundamental(np_, nq, c)
             if F is not None:
+                # Rank 2 enforced and sigma2 / sigma1 measured before counting inliers: a
+                # rank-1 F explains any points near one line per image.
                 F, ratio = rank2_fundamental(F, nq, np_)
                 res.f_sigma_ratio = ratio
-                consider("F", F, epipolar_errors(F, nq, np_), "" if ratio >= c.min_f_sigma_ratio else "degenerate")
+                consider("F", F, epipolar_errors(F, nq, np_),
+                         lambda: "" if ratio >= c.min_f_sigma_ratio else "degenerate")
     if res.model is None:
         res.reason = "no_evidence"
     return res
@@ -502,19 +524,20 @@ def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider
     F = np.diag([1.0 / sq, 1.0 / sq, 1.0]) @ F_px @ np.diag([1.0 / sp, 1.0 / sp, 1.0])
     F, ratio = rank2_fundamental(F, nq, np_)
     err = epipolar_errors(F, nq, np_)
-    inl = err <= c.f_threshold
-    reason = "" if ratio >= c.min_f_sigma_ratio else "degenerate"
-    if not reason and inl.sum() > SAMPLE_SIZE["E"]:
+
+    def e_conditioning() -> str:
+        if ratio < c.min_f_sigma_ratio:
+            return "degenerate"
+        inl = err <= c.f_threshold
         try:
-            mask = inl.astype(np.uint8).reshape(-1, 1).copy()
-            front, _, _, mask = cv2.recoverPose(E, np.ascontiguousarray(xp[inl], np.float64),
-                                                np.ascontiguousarray(xq[inl], np.float64), K)
+            front, _, _, _ = cv2.recoverPose(E, np.ascontiguousarray(xp[inl], np.float64),
+                                             np.ascontiguousarray(xq[inl], np.float64), K)
         except cv2.error:
             front = 0
         # The points must lie in front of both cameras: most inliers, not a chance few.
-        if front < c.min_cheirality * int(inl.sum()):
-            reason = "cheirality"
-    consider("E", F, err, reason)
+        return "" if front >= c.min_cheirality * int(inl.sum()) else "cheirality"
+
+    consider("E", F, err, e_conditioning)
 
 
 def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[float, float]:
@@ -532,18 +555,22 @@ def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[fl
 
 def _transfer_error(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Larger of the forward (src -> dst) and backward transfer errors of H (K,); inf where undefined."""
-    k = src.shape[0]
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return np.full(src.shape[0], np.inf)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        fwd = np.c_[src, np.ones(k)] @ H.T
-        fwd = np.linalg.norm(fwd[:, :2] / fwd[:, 2:3] - dst, axis=1)
-        try:
-            Hi = np.linalg.inv(H)
-        except np.linalg.LinAlgError:
-            return np.full(k, np.inf)
-        bwd = np.c_[dst, np.ones(k)] @ Hi.T
-        bwd = np.linalg.norm(bwd[:, :2] / bwd[:, 2:3] - src, axis=1)
-        err = np.maximum(fwd, bwd)
+        err = np.maximum(_transfer(H, src, dst), _transfer(Hi, dst, src))
     return np.where(np.isfinite(err), err, np.inf)
+
+
+def _transfer(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Distance (K,) between H applied to src (K, 2) and dst (K, 2)."""
+    x, y = src[:, 0], src[:, 1]
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w - dst[:, 0]
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w - dst[:, 1]
+    return np.sqrt(u * u + v * v)
 
 
 def epipolar_errors(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> np.ndarray:
@@ -553,11 +580,9 @@ def epipolar_errors(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> np.ndarray
     lines. A line with (near) zero normal is undefined: its matches get an infinite error
     (never an inlier, unlike a clamped denominator, which makes a null F explain everything).
     """
-    hp = np.c_[xp, np.ones(len(xp))]
-    hq = np.c_[xq, np.ones(len(xq))]
-    lq = hp @ F.T
-    lp = hq @ F
-    num = np.abs(np.sum(hq * lq, axis=1))
+    lq = xp @ F[:, :2].T + F[:, 2]  # lines F x_p in the query image, (K, 3)
+    lp = xq @ F[:2, :] + F[2, :]  # lines F^T x_q in the place image
+    num = np.abs(xq[:, 0] * lq[:, 0] + xq[:, 1] * lq[:, 1] + lq[:, 2])
     nq, np_ = np.hypot(lq[:, 0], lq[:, 1]), np.hypot(lp[:, 0], lp[:, 1])
     scale = max(np.linalg.norm(F), 1e-300)
     ok = (nq > 1e-9 * scale) & (np_ > 1e-9 * scale)
