@@ -53,7 +53,7 @@ def run(args) -> int:
     if args.plot:
         require_plotting()  # fail before a long run, not after it
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
-    verification = VerificationConfig(enabled=not args.no_verify, camera=args.camera)
+    verification = VerificationConfig(enabled=not args.no_verify, camera=getattr(args, "camera", None))
     if args.verify_top_k is not None:
         verification = dataclasses.replace(verification, top_k=args.verify_top_k)
     rows, runs, table = {}, {}, {}

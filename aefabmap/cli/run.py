@@ -60,7 +60,7 @@ def main(args: argparse.Namespace) -> int:
     stop = threading.Event()
     try:
         session = SessionConfig(connect=tuple(args.connect), listen=tuple(args.listen), config_file=args.config)
-        verification = VerificationConfig(camera=args.camera)
+        verification = VerificationConfig(camera=getattr(args, "camera", None))
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb,
                                                             verification=verification))
         # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
