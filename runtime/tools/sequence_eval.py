@@ -64,8 +64,13 @@ class SequenceRun:
 
     @property
     def verified_scores(self) -> np.ndarray:
-        """(N,) score of the verified output: the inlier count (0 where nothing was verified)."""
-        return np.array([r.inliers if r.verified else 0 for r in self.results], np.float64)
+        """(N,) score of the verified output: its significance -log10 NFA (0 where nothing was verified).
+
+        Comparable across models (H and F inlier counts are not) and across frames with
+        different numbers of matches; a result without an NFA falls back to its inlier count.
+        """
+        return np.array([(0.0 if not r.verified else -r.nfa if getattr(r, "nfa", None) is not None else r.inliers)
+                         for r in self.results], np.float64)
 
 
 def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix: bool = True, show_progress: bool = True) -> SequenceRun:

@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from aefabmap.runtime.core.acontrario import log10_binomial, significance
-from aefabmap.runtime.core.conditioning import homography_is_plausible, rank2_fundamental
+from aefabmap.runtime.core.conditioning import (
+    homography_is_plausible,
+    rank2_fundamental,
+)
 from aefabmap.runtime.core.verification import (
     VerificationConfig,
     epipolar_errors,
