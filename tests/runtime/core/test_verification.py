@@ -192,12 +192,15 @@ def test_detector_verifies_a_revisit_and_every_frame_gets_a_result(tmp_path):
     assert [r.sequence for r in results] == list(range(7))
     assert all(not r.verified for r in results[:-1])
     assert results[5].n_keypoints == 0 and results[5].verified is False
+    # A texture-poor frame is a miss for lack of evidence, not a rejected loop.
+    assert results[5].geometry_reason == "no_evidence" and results[5].nfa is None
     r = results[-1]
     assert r.verified and r.loop and r.verified_frame == 1 and r.inliers >= 30
+    assert r.geometry_reason == "" and r.nfa is not None and r.nfa < -30
     assert r.geometry_model in ("F", "H") and np.asarray(r.geometry).shape == (3, 3)
     assert "verification" in r.timings_ms
     doc = json.loads(json.dumps(r.to_dict()))  # the Zenoh/MCAP message carries it
-    assert doc["verified"] is True and doc["inliers"] == r.inliers
+    assert doc["verified"] is True and doc["inliers"] == r.inliers and doc["nfa"] == r.nfa
 
 
 def test_store_is_in_map_bytes_and_evicted_places_leave_it(tmp_path):
