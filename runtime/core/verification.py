@@ -500,7 +500,7 @@ def estimate_geometry(
         consider("H", H, err_h, h_conditioning)
     if (full or not res.verified) and k > SAMPLE_SIZE["F"] and (full or k >= c.min_inliers):
         if c.camera is not None:
-            _consider_essential(nq, np_, xq, xp, sq, sp, c, consider)
+            res.f_sigma_ratio = _consider_essential(nq, np_, xq, xp, sq, sp, c, consider)
         else:
             F = _fit_fundamental(np_, nq, c)
             if F is not None:
@@ -515,8 +515,11 @@ def estimate_geometry(
     return res
 
 
-def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> None:
-    """Calibrated camera: essential matrix, cheirality-checked, judged as the F it implies."""
+def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> float:
+    """Calibrated camera: essential matrix, cheirality-checked, judged as the F it implies.
+
+    Returns sigma2 / sigma1 of the normalised matrix (0.0 when no E was found).
+    """
     fx, fy, cx, cy = c.camera
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     px_threshold = c.f_threshold / min(sq, sp)  # reference units -> original pixels
@@ -525,9 +528,11 @@ def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider
                                     cv2.USAC_MAGSAC if c.method == "magsac" else cv2.RANSAC, c.confidence, px_threshold,
                                     maxIters=c.f_max_iters)
     except cv2.error:
-        return
+        return 0.0
+    if E is not None and E.ndim == 2 and E.shape[0] > 3 and E.shape[1] == 3:
+        E = E[:3]  # several stacked solutions: MAGSAC's best comes first
     if E is None or E.shape != (3, 3) or not np.all(np.isfinite(E)):
-        return
+        return 0.0
     Kinv = np.linalg.inv(K)
     # F in pixels (x_q^T F x_p = 0), then in reference units (x' = s x).
     F_px = Kinv.T @ E @ Kinv
@@ -548,6 +553,7 @@ def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider
         return "" if front >= c.min_cheirality * int(inl.sum()) else "cheirality"
 
     consider("E", F, err, e_conditioning)
+    return ratio
 
 
 def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[float, float]:

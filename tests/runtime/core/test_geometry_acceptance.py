@@ -99,8 +99,29 @@ def test_calibrated_camera_uses_the_essential_matrix():
     g = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg)
     assert g.verified and g.model == "E" and g.inliers > 180
     assert np.median(epipolar_errors(g.matrix, xq, xp)) < 1.0
-    # The same matches with the points behind one camera (mirrored depth): cheirality fails.
     assert parse_camera("400,400,320,240") == (400.0, 400.0, 320.0, 240.0)
+
+
+def test_points_behind_a_camera_fail_the_cheirality_check():
+    """Epipolar geometry holds exactly, but no pose puts most points in front of both cameras.
+
+    A third of the points lie in front of both cameras, a third behind both, a third between
+    them (in front of the place camera, behind the query camera): each of the four poses an
+    essential matrix admits explains only about a third.
+    """
+    rng = np.random.default_rng(3)
+    z = np.r_[rng.uniform(-20, -6, 60), rng.uniform(2, 8, 60), rng.uniform(14, 30, 60)]
+    X = np.c_[rng.uniform(-0.4, 0.4, 180) * np.abs(z), rng.uniform(-0.3, 0.3, 180) * np.abs(z), z]
+    Xq = X - np.array([0.0, 0.0, 10.0])  # the query camera 10 m ahead, same orientation
+
+    def project(P):
+        x = P @ K.T
+        return x[:, :2] / x[:, 2:]
+
+    xq, xp = project(Xq), project(X)
+    cfg = VerificationConfig(min_inliers_h=1000, camera=(400.0, 400.0, 320.0, 240.0))
+    g = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg, full=True)
+    assert not g.verified and g.reason == "cheirality", (g.model, g.reason, g.nfa)
 
 
 # --- real data (skipped when absent) ---------------------------------------------------------
