@@ -91,6 +91,11 @@ class VerificationConfig:
         the expected number of chance loop closures of a whole run below one. (NFA < 1, the
         textbook default, let 2 of ~1500 unrelated training pairs through, at log10 NFA -0.5
         and -1.9; none came below -2.6, and 0 -> -4 cost ~1 of 140 training positives.)
+    duplicate_radius: matches whose points fall in the same duplicate_radius-unit cell in both
+        images count once (ORB finds one corner at several pyramid levels; 4 units is about
+        the localisation error of its coarsest level, 1.2^7 px at the 640-px detection scale).
+        The a-contrario count assumes independent matches: on training pairs 3 s apart up to
+        half of the inliers were such copies. 0 disables.
     min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
         fewer is not used as a loop closure whatever its NFA: too few points to trust it).
     min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
@@ -150,6 +155,7 @@ class VerificationConfig:
     f_threshold: float = 1.5
     h_threshold: float = 8.0
     max_log10_nfa: float = -4.0
+    duplicate_radius: float = 4.0
     min_inliers: int = 12
     min_inliers_h: int = 8
     min_f_sigma_ratio: float = 0.005
@@ -196,6 +202,8 @@ class VerificationConfig:
             raise ConfigError("verification needs 0 <= min_f_sigma_ratio < 1, h_max_scale >= 1, h_max_anisotropy >= 1")
         if not (0.0 <= self.min_extent < 1.0) or not (0.0 <= self.min_cheirality <= 1.0):
             raise ConfigError("verification min_extent must lie in [0, 1) and min_cheirality in [0, 1]")
+        if self.duplicate_radius < 0:
+            raise ConfigError(f"verification duplicate_radius must be >= 0, got {self.duplicate_radius}")
         if not np.isfinite(self.max_log10_nfa):
             raise ConfigError(f"verification max_log10_nfa must be finite, got {self.max_log10_nfa}")
         if self.camera is not None:
@@ -215,7 +223,9 @@ class GeometryResult:
     matrix: (3, 3) float64 mapping place -> query (F and E: the fundamental matrix,
     x_q^T F x_p = 0; H: x_q ~ H x_p), in ORIGINAL pixels of each image.
     inliers: a-contrario inliers of `model` (the k matches of smallest error that make it most
-    significant); f_inliers / h_inliers: of each model (f_: F or E); matches: putative matches.
+    significant); f_inliers / h_inliers: of each model (f_: F or E); matches: putative matches;
+    distinct_matches: those left after merging copies at one location (`duplicate_radius`),
+    the n of the a-contrario test. inlier_mask: (matches,) bool over the matches given.
     nfa: log10 of the number of false alarms of `model` (inf: no model); f_nfa / h_nfa: of
     each model. f_sigma_ratio: sigma2 / sigma1 of the normalised F/E (0 when not fitted).
     extent: min over both images of the inliers' standard deviation across their principal
@@ -237,6 +247,7 @@ class GeometryResult:
     h_nfa: float = float("inf")
     f_sigma_ratio: float = 0.0
     extent: float = 0.0
+    distinct_matches: int = 0
     spread: float = 0.0
     f_spread: float = 0.0
     h_spread: float = 0.0
@@ -432,15 +443,22 @@ def estimate_geometry(
     both (calibration and diagnostics); acceptance is the same.
     """
     c = config or VerificationConfig()
-    k = int(xq.shape[0])
-    res = GeometryResult(matches=k)
-    if k <= SAMPLE_SIZE["H"]:
-        res.reason = "no_evidence"
-        return res
     sq = c.reference_long_side / max(shape_q)
     sp = c.reference_long_side / max(shape_p)
     nq = np.ascontiguousarray(xq, np.float64) * sq
     np_ = np.ascontiguousarray(xp, np.float64) * sp
+    res = GeometryResult(matches=int(xq.shape[0]))
+    # One match per location: ORB detects one corner at several pyramid levels, and copies
+    # of a match agree with any model the original agrees with. The a-contrario count assumes
+    # independent matches, so copies must not count twice (in k or in n).
+    distinct = distinct_matches(nq, np_, c.duplicate_radius)
+    if distinct.size < nq.shape[0]:
+        xq, xp, nq, np_ = xq[distinct], xp[distinct], nq[distinct], np_[distinct]
+    k = int(nq.shape[0])
+    res.distinct_matches = k
+    if k <= SAMPLE_SIZE["H"]:
+        res.reason = "no_evidence"
+        return res
     region = _match_region(nq, np_, c.reference_long_side)
     best_key = (-1, -np.inf)
 
@@ -512,7 +530,26 @@ def estimate_geometry(
                          lambda: "" if ratio >= c.min_f_sigma_ratio else "degenerate")
     if res.model is None:
         res.reason = "no_evidence"
+    elif distinct.size < res.matches:
+        # Report the mask over all the matches given (copies of a location count as outliers).
+        full_mask = np.zeros(res.matches, bool)
+        full_mask[distinct[res.inlier_mask]] = True
+        res.inlier_mask = full_mask
     return res
+
+
+def distinct_matches(nq: np.ndarray, np_: np.ndarray, radius: float) -> np.ndarray:
+    """Indices of matches (K, 2) + (K, 2), in reference units, keeping one per location.
+
+    Two matches are copies when both their points share a radius x radius cell of a grid in
+    each image (a cheap stand-in for "within radius in both images"); the first is kept.
+    radius <= 0 keeps everything. Returns sorted int64 indices.
+    """
+    if radius <= 0 or nq.shape[0] < 2:
+        return np.arange(nq.shape[0], dtype=np.int64)
+    cells = np.floor(np.c_[nq, np_] / radius).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return np.sort(first).astype(np.int64)
 
 
 def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> float:

@@ -149,3 +149,19 @@ def test_lip6_233_to_41_is_not_verified(lip6):
         g = verify_pair(fq.keypoints, one, fq.descriptors, fq.image_shape,
                         fp.keypoints, np.zeros(len(fp), np.int64), fp.descriptors, fp.image_shape, cfg, bruteforce=True)
         assert not g.verified, (g.model, g.inliers, g.nfa)
+
+
+def test_copies_of_a_match_count_once():
+    """ORB finds one corner at several pyramid levels: its copies must not add significance."""
+    xq, xp = two_views(n=60, seed=5)
+    rng = np.random.default_rng(5)
+    jitter = lambda x: x + rng.normal(0, 0.2, x.shape)  # noqa: E731
+    xq3, xp3 = np.r_[xq, jitter(xq), jitter(xq)], np.r_[xp, jitter(xp), jitter(xp)]
+    cfg = VerificationConfig(min_inliers_h=1000)
+    once = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg)
+    copied = estimate_geometry(xq3, xp3, (480, 640), (480, 640), cfg)
+    counted = estimate_geometry(xq3, xp3, (480, 640), (480, 640), VerificationConfig(min_inliers_h=1000, duplicate_radius=0))
+    assert copied.distinct_matches < 0.5 * len(xq3) and copied.inlier_mask.shape == (len(xq3),)
+    # Counting the copies would claim far more significance than the 60 points carry.
+    assert counted.nfa < copied.nfa - 20
+    assert abs(copied.nfa - once.nfa) < 0.5 * abs(once.nfa)
