@@ -94,8 +94,8 @@ class VerificationConfig:
     duplicate_radius: matches whose points fall in the same duplicate_radius-unit cell in both
         images count once (ORB finds one corner at several pyramid levels; 4 units is about
         the localisation error of its coarsest level, 1.2^7 px at the 640-px detection scale).
-        The a-contrario count assumes independent matches: on training pairs 3 s apart up to
-        half of the inliers were such copies. 0 disables.
+        The a-contrario count assumes independent matches: on training pairs 3 s apart a third
+        to two thirds of the inliers were such copies. 0 disables.
     min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
         fewer is not used as a loop closure whatever its NFA: too few points to trust it).
     min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
