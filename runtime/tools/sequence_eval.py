@@ -133,7 +133,7 @@ def evaluate_run(run: SequenceRun, gt: np.ndarray, tolerance: int = 10) -> dict:
         tried = np.array([r.candidates_tried for r in run.results], np.float64)
         verified["mean_candidates_tried"] = float(tried.mean()) if tried.size else 0.0
         verified["geometry_models"] = {
-            m: int(sum(1 for r in run.results if r.verified and r.geometry_model == m)) for m in ("F", "H")
+            m: int(sum(1 for r in run.results if r.verified and r.geometry_model == m)) for m in ("F", "E", "H")
         }
         verified.update(run.extra.get("verified", {}))
         metrics["verified"] = verified
