@@ -91,11 +91,13 @@ class VerificationConfig:
         the expected number of chance loop closures of a whole run below one. (NFA < 1, the
         textbook default, let 2 of ~1500 unrelated training pairs through, at log10 NFA -0.5
         and -1.9; none came below -2.6, and 0 -> -4 cost ~1 of 140 training positives.)
-    duplicate_radius: matches whose points fall in the same duplicate_radius-unit cell in both
-        images count once (ORB finds one corner at several pyramid levels; 4 units is about
-        the localisation error of its coarsest level, 1.2^7 px at the 640-px detection scale).
-        The a-contrario count assumes independent matches: on training pairs 3 s apart a third
-        to two thirds of the inliers were such copies. 0 disables.
+    duplicate_radius: matches whose points fall in the same duplicate_radius x duplicate_radius
+        cell (ORIGINAL pixels of each image) in both images count once. ORB finds one corner at
+        several pyramid levels, and an image upsampled to the 640-px detection scale yields
+        several keypoints per native corner; FAST's test circle has a radius of 3 pixels, so
+        corners closer than that share their evidence. The a-contrario count assumes
+        independent matches: on training pairs 3 s apart a third to two thirds of the inliers
+        were such copies. 0 disables.
     min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
         fewer is not used as a loop closure whatever its NFA: too few points to trust it).
     min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
@@ -155,7 +157,7 @@ class VerificationConfig:
     f_threshold: float = 1.5
     h_threshold: float = 8.0
     max_log10_nfa: float = -4.0
-    duplicate_radius: float = 4.0
+    duplicate_radius: float = 3.0
     min_inliers: int = 12
     min_inliers_h: int = 8
     min_f_sigma_ratio: float = 0.005
@@ -448,10 +450,11 @@ def estimate_geometry(
     nq = np.ascontiguousarray(xq, np.float64) * sq
     np_ = np.ascontiguousarray(xp, np.float64) * sp
     res = GeometryResult(matches=int(xq.shape[0]))
-    # One match per location: ORB detects one corner at several pyramid levels, and copies
+    # One match per location: ORB detects one corner at several pyramid levels (and several
+    # keypoints per corner of an image upsampled for detection), and copies
     # of a match agree with any model the original agrees with. The a-contrario count assumes
     # independent matches, so copies must not count twice (in k or in n).
-    distinct = distinct_matches(nq, np_, c.duplicate_radius)
+    distinct = distinct_matches(nq, np_, c.duplicate_radius * sq, c.duplicate_radius * sp)
     if distinct.size < nq.shape[0]:
         xq, xp, nq, np_ = xq[distinct], xp[distinct], nq[distinct], np_[distinct]
     k = int(nq.shape[0])
@@ -538,16 +541,16 @@ def estimate_geometry(
     return res
 
 
-def distinct_matches(nq: np.ndarray, np_: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of matches (K, 2) + (K, 2), in reference units, keeping one per location.
+def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: float) -> np.ndarray:
+    """Indices of matches xq (K, 2) -> xp (K, 2) keeping one per location.
 
-    Two matches are copies when both their points share a radius x radius cell of a grid in
-    each image (a cheap stand-in for "within radius in both images"); the first is kept.
-    radius <= 0 keeps everything. Returns sorted int64 indices.
+    Two matches are copies when their query points share a radius_q cell and their place
+    points a radius_p cell of a grid (a cheap stand-in for "within the radius in both
+    images"); the first is kept. A radius <= 0 keeps everything. Returns sorted int64 indices.
     """
-    if radius <= 0 or nq.shape[0] < 2:
-        return np.arange(nq.shape[0], dtype=np.int64)
-    cells = np.floor(np.c_[nq, np_] / radius).astype(np.int64)
+    if radius_q <= 0 or radius_p <= 0 or xq.shape[0] < 2:
+        return np.arange(xq.shape[0], dtype=np.int64)
+    cells = np.floor(np.c_[xq / radius_q, xp / radius_p]).astype(np.int64)
     _, first = np.unique(cells, axis=0, return_index=True)
     return np.sort(first).astype(np.int64)
 
