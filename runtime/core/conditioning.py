@@ -27,6 +27,15 @@ def _similarity_inverse(T: np.ndarray) -> np.ndarray:
     return np.array([[1.0 / s, 0.0, -T[0, 2] / s], [0.0, 1.0 / s, -T[1, 2] / s], [0.0, 0.0, 1.0]])
 
 
+def enforce_rank2(F: np.ndarray) -> np.ndarray:
+    """Closest rank-2 matrix to F (Frobenius), scaled to unit norm; zeros for a null F."""
+    u, s, vt = np.linalg.svd(F)
+    if not np.isfinite(s[0]) or s[0] < 1e-300:
+        return np.zeros((3, 3))
+    F2 = (u[:, :2] * s[:2]) @ vt[:2]
+    return F2 / np.linalg.norm(F2)
+
+
 def rank2_fundamental(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> tuple[np.ndarray, float]:
     """Closest rank-2 matrix to F (unit Frobenius norm) and sigma2 / sigma1 of F in normalised coordinates.
 

@@ -41,6 +41,7 @@ import numpy as np
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, significance
 from aefabmap.runtime.core.conditioning import (
+    enforce_rank2,
     homography_is_plausible,
     minor_axis_extent,
     rank2_fundamental,
@@ -229,7 +230,8 @@ class GeometryResult:
     distinct_matches: those left after merging copies at one location (`duplicate_radius`),
     the n of the a-contrario test. inlier_mask: (matches,) bool over the matches given.
     nfa: log10 of the number of false alarms of `model` (inf: no model); f_nfa / h_nfa: of
-    each model. f_sigma_ratio: sigma2 / sigma1 of the normalised F/E (0 when not fitted).
+    each model. f_sigma_ratio: sigma2 / sigma1 of the normalised F/E (0 when not computed:
+    F is checked only once it is significant).
     extent: min over both images of the inliers' standard deviation across their principal
     axis, in fractions of the reference long side (0: on a line).
     spread: min over both images of the occupied grid-cell fraction of the inliers of `model`
@@ -525,12 +527,16 @@ def estimate_geometry(
         else:
             F = _fit_fundamental(np_, nq, c)
             if F is not None:
-                # Rank 2 enforced and sigma2 / sigma1 measured before counting inliers: a
-                # rank-1 F explains any points near one line per image.
-                F, ratio = rank2_fundamental(F, nq, np_)
-                res.f_sigma_ratio = ratio
-                consider("F", F, epipolar_errors(F, nq, np_),
-                         lambda: "" if ratio >= c.min_f_sigma_ratio else "degenerate")
+                # Rank 2 enforced before counting inliers; sigma2 / sigma1 of the normalised F
+                # checked for a significant F (a rank-1 F explains any points near one line
+                # per image, and would be significant for such points).
+                F = enforce_rank2(F)
+
+                def f_conditioning() -> str:
+                    _, res.f_sigma_ratio = rank2_fundamental(F, nq, np_)
+                    return "" if res.f_sigma_ratio >= c.min_f_sigma_ratio else "degenerate"
+
+                consider("F", F, epipolar_errors(F, nq, np_), f_conditioning)
     if res.model is None:
         res.reason = "no_evidence"
     elif distinct.size < res.matches:
@@ -550,8 +556,10 @@ def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: 
     """
     if radius_q <= 0 or radius_p <= 0 or xq.shape[0] < 2:
         return np.arange(xq.shape[0], dtype=np.int64)
-    cells = np.floor(np.c_[xq / radius_q, xp / radius_p]).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    # Four cell indices (each clipped to 15 bits: images up to ~98k cells a side) in one int64.
+    cells = np.clip(np.floor(np.c_[xq / radius_q, xp / radius_p]), 0, 2**15 - 1).astype(np.int64)
+    key = ((cells[:, 0] * 2**15 + cells[:, 1]) * 2**15 + cells[:, 2]) * 2**15 + cells[:, 3]
+    _, first = np.unique(key, return_index=True)
     return np.sort(first).astype(np.int64)
 
 
