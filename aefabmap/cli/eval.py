@@ -27,6 +27,9 @@ def register(sub) -> None:
     p.add_argument("--no-verify", action="store_true", help="raw FAB-MAP/BoW only: no geometric verification")
     p.add_argument("--verify-top-k", type=int, default=None, metavar="K",
                    help=f"candidates verified per frame (default {VerificationConfig.top_k})")
+    p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
+                   help="pinhole intrinsics in pixels of the images: verify with an essential matrix "
+                        "(cheirality-checked) instead of a fundamental matrix")
     p.add_argument("--temporal-frames", type=int, default=0, metavar="N",
                    help="temporal consistency: N preceding frames must agree (default 0 = off)")
     p.add_argument("--temporal-tolerance", type=int, default=10, metavar="F",
@@ -50,7 +53,7 @@ def run(args) -> int:
     if args.plot:
         require_plotting()  # fail before a long run, not after it
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
-    verification = VerificationConfig(enabled=not args.no_verify)
+    verification = VerificationConfig(enabled=not args.no_verify, camera=getattr(args, "camera", None))
     if args.verify_top_k is not None:
         verification = dataclasses.replace(verification, top_k=args.verify_top_k)
     rows, runs, table = {}, {}, {}

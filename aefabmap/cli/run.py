@@ -80,6 +80,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     add_log_rotation_options(p)
     p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
     p.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="memory budget of the map (MB)")
+    p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
+                   help="pinhole intrinsics in pixels of the images: verify loops with an essential matrix")
     p.add_argument("--queue", type=int, default=2, metavar="N",
                    help="frames kept while busy; older ones are dropped (default 2)")
     p.add_argument("--image-every", type=int, default=1, metavar="N",
@@ -94,6 +96,7 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
     from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap.runtime.core.verification import VerificationConfig
 
     stop = threading.Event()
     try:
@@ -111,8 +114,12 @@ def main(args: argparse.Namespace) -> int:
         if ros is not None and not args.config and not args.listen:
             # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
             session = dataclasses.replace(session, mode="client")
-        detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
-        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb}
+        verification = VerificationConfig(camera=getattr(args, "camera", None))
+        detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb,
+                                                            verification=verification))
+        # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
+        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb,
+                      "camera": list(verification.camera) if verification.camera else None}
 
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
                               queue_size=args.queue, stats_period_s=5.0, image_log_every=args.image_every,

@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from aefabmap.errors import ConfigError, InputError
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
 from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features
@@ -282,7 +283,9 @@ class LoopClosureDetector:
         check = _Check()
         lag = seq - self._track_seq  # query frames since the last verified match
         expect = self._track_frame + lag if 1 <= lag <= v.track_memory else None
-        if features is not None and len(features) and ranking.size:
+        if features is not None and ranking.size and len(features) <= SAMPLE_SIZE["H"]:
+            check.reason = "no_evidence"  # texture-poor frame: nothing to verify with
+        elif features is not None and len(features) and ranking.size:
             q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
             tried: set[int] = set()
             cap = v.max_trials if v.max_trials is not None else np.inf
@@ -297,7 +300,8 @@ class LoopClosureDetector:
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                 place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance)
-                if check.best is None or g.verified or g.inliers > check.best.inliers:
+                # Keep the accepted attempt, else the most significant one (diagnostics).
+                if check.best is None or g.verified or g.nfa < check.best.nfa:
                     check.best, check.best_place, check.source = g, int(pid), source
                 return g.verified
 
@@ -404,6 +408,7 @@ class _Check:
     temporal_ok: bool | None = None
     verified: bool = False
     timing_ms: float = 0.0
+    reason: str | None = None
 
     def fill(self, res: FrameResult, place_frame: np.ndarray) -> None:
         res.verified = bool(self.verified)
@@ -411,9 +416,14 @@ class _Check:
         res.temporal_ok = self.temporal_ok
         res.candidates_tried = self.tried
         res.timings_ms["verification"] = self.timing_ms
+        res.geometry_reason = self.reason
         if self.best is not None:
             res.inliers, res.matches = int(self.best.inliers), int(self.best.matches)
             res.geometry_model = self.best.model
+            res.nfa = float(self.best.nfa) if np.isfinite(self.best.nfa) else None
+            res.geometry_reason = self.best.reason if not self.verified else ""
+            if self.best.verified and not self.verified:
+                res.geometry_reason = "temporal"
         if self.verified and self.place is not None:
             res.verified_place = int(self.place)
             res.verified_frame = int(place_frame[self.place])

@@ -73,12 +73,22 @@ class FeatureConfig:
         (up or down) before detection, so that datasets of different resolutions
         share one scale; None keeps the native size.
     rootsift: SIFT only: Hellinger-kernel RootSIFT descriptors.
+    bucket_grid: 0 keeps the `max_features` strongest keypoints; N > 0 spreads them over an
+        N x N grid of the image: the detector proposes `bucket_oversample` x max_features and
+        the cells take turns (strongest remaining keypoint of each cell first), so one
+        texture-rich region (foliage, a railing) cannot take the whole budget and geometry
+        sees points all over the image.
+    bucket_oversample: candidates detected per kept keypoint when bucketing.
+    clahe: equalise contrast locally (CLAHE, 8x8 tiles, clip 2) before detection.
     """
 
     kind: str = "orb"
     max_features: int = 500
     long_side: int | None = 640
     rootsift: bool = False
+    bucket_grid: int = 0
+    bucket_oversample: int = 4
+    clahe: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.kind, str):
@@ -90,6 +100,12 @@ class FeatureConfig:
             raise ConfigError(
                 f"long_side must be None or an integer in [{MIN_LONG_SIDE}, {MAX_LONG_SIDE}], got {_clip(self.long_side)}"
             )
+        if not _int_in(self.bucket_grid, 0, 64):
+            raise ConfigError(f"bucket_grid must be an integer in [0, 64], got {_clip(self.bucket_grid)}")
+        if not _int_in(self.bucket_oversample, 1, 16):
+            raise ConfigError(f"bucket_oversample must be an integer in [1, 16], got {_clip(self.bucket_oversample)}")
+        if not isinstance(self.clahe, bool):
+            raise ConfigError(f"clahe must be true or false, got {_clip(self.clahe)}")
         if not isinstance(self.rootsift, bool):
             raise ConfigError(f"rootsift must be true or false, got {_clip(self.rootsift)}")
         if self.rootsift and "rootsift" not in spec.options:
@@ -109,8 +125,12 @@ class FeatureConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "FeatureConfig":
-        known = {k: data[k] for k in ("kind", "max_features", "long_side", "rootsift") if k in data}
+    def from_dict(cls, data: dict) -> FeatureConfig:
+        known = {k: data[k] for k in ("kind", "max_features", "long_side", "rootsift", "bucket_grid",
+                                      "bucket_oversample", "clahe") if k in data}
+        # A bundle written before bucketing existed was trained without it: keep it that way.
+        known.setdefault("bucket_grid", 0)
+        known.setdefault("clahe", False)
         return cls(**known)
 
 
@@ -156,8 +176,11 @@ class FeatureExtractor:
 
     def __init__(self, config: FeatureConfig | None = None) -> None:
         self.config = config or FeatureConfig()
-        self.kind = self.config.spec
-        self._detector = self.kind.create(self.config.max_features)
+        c = self.config
+        self.kind = c.spec
+        # Bucketing proposes more keypoints than it keeps, then spreads the budget over a grid.
+        self._detector = self.kind.create(c.max_features * (c.bucket_oversample if c.bucket_grid else 1))
+        self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if c.clahe else None
 
     def extract(self, image: np.ndarray) -> Features:
         """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array.
@@ -180,10 +203,12 @@ class FeatureExtractor:
                 size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
                 work = cv2.resize(gray, size, interpolation=interp)
                 scale = size[0] / gray.shape[1]
+        if self._clahe is not None:
+            work = self._clahe.apply(work)
         kps, desc = self._detector.detectAndCompute(work, None)
-        return self._pack(kps, desc, scale, gray.shape)
+        return self._pack(kps, desc, scale, gray.shape, work.shape)
 
-    def _pack(self, kps, desc, scale: float, shape) -> Features:
+    def _pack(self, kps, desc, scale: float, shape, work_shape) -> Features:
         c = self.config
         n = 0 if desc is None else len(kps)
         if n == 0:
@@ -197,12 +222,35 @@ class FeatureExtractor:
         # Strongest first, ties broken by position: a fixed order for fixed input.
         resp = np.array([k.response for k in kps], np.float32)
         pts = np.array([k.pt for k in kps], np.float32)
-        order = np.lexsort((pts[:, 0], pts[:, 1], -resp))[: c.max_features]
+        order = np.lexsort((pts[:, 0], pts[:, 1], -resp))
+        if c.bucket_grid:
+            order = order[_bucket_turns(pts[order], work_shape, c.bucket_grid)]
+        order = order[: c.max_features]
         pts = pts[order] / scale
         sizes = np.array([kps[i].size for i in order], np.float32) / scale
         angles = np.array([kps[i].angle for i in order], np.float32)
         desc = self.kind.finish(desc[order], c.rootsift)
         return Features(pts, sizes, angles, desc, (int(shape[0]), int(shape[1])))
+
+
+def _bucket_turns(pts: np.ndarray, shape_hw: tuple[int, int], grid: int) -> np.ndarray:
+    """Order of keypoints pts (K, 2), given strongest first, in which grid cells take turns.
+
+    Returns a permutation of range(K): the strongest keypoint of every cell, then the second
+    strongest of every cell, and so on (within a turn, strongest first).
+    """
+    h, w = shape_hw
+    cx = np.minimum((pts[:, 0] * grid / max(w, 1)).astype(np.int64), grid - 1)
+    cy = np.minimum((pts[:, 1] * grid / max(h, 1)).astype(np.int64), grid - 1)
+    cell = np.maximum(cy, 0) * grid + np.maximum(cx, 0)
+    # Rank of each keypoint within its cell (input order is strongest first).
+    by_cell = np.argsort(cell, kind="stable")
+    sorted_cells = cell[by_cell]
+    start = np.r_[0, np.flatnonzero(np.diff(sorted_cells)) + 1]
+    run = np.repeat(start, np.diff(np.r_[start, sorted_cells.size]))
+    turn = np.empty(cell.size, np.int64)
+    turn[by_cell] = np.arange(cell.size) - run
+    return np.lexsort((np.arange(cell.size), turn))
 
 
 def descriptor_vectors(descriptors: np.ndarray, kind: str) -> np.ndarray:

@@ -29,7 +29,7 @@ from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 #: Format of the messages (and of the log layout that carries them): "major.minor".
 #: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``; 1.2: the log's health in
 #: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...).
-MESSAGE_FORMAT_VERSION = "1.2"
+MESSAGE_FORMAT_VERSION = "1.3"
 
 #: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
 LOG_STATES = ("ok", "images_stopped", "stopped", "failed", "closed")
@@ -199,12 +199,21 @@ class FrameResult(_Message):
     verified_frame: int | None = _f(None, "sequence of the frame that made verified_place")
     inliers: int = _f(0, "inliers of the accepted geometry (or of the best attempt)")
     matches: int = _f(0, "putative keypoint matches behind inliers")
-    geometry_model: str | None = _f(None, "F: fundamental matrix, H: homography", enum=("F", "H"))
+    geometry_model: str | None = _f(None, "F: fundamental matrix, E: essential matrix (calibrated camera), H: homography",
+                                    enum=("F", "E", "H"))
     geometry: list[list[float]] | None = field(default=None, metadata=_meta(
         "3x3 row-major matrix mapping the place image to the query image, original pixels; null unless verified"))
     candidates_tried: int = _f(0, "places verified for this frame")
     geometry_ok: bool = _f(False, "geometric check passed (before the temporal check)")
     temporal_ok: bool | None = _f(None, "temporal check passed (null: the check is off)")
+    nfa: float | None = _f(None, (
+        "log10 number of false alarms of the geometry: how many times that much support is expected by chance "
+        "among the pair's matches (a-contrario test); verified needs it below the configured bound (default -4); "
+        "null: no geometry fitted"), since="1.3")
+    geometry_reason: str | None = _f(None, (
+        "why verification failed: '' when verified, else no_evidence (too few keypoints or matches to fit a "
+        "model), chance, degenerate, collinear, clustered, cheirality, temporal, ...; null: nothing verified"),
+        since="1.3")
     score_kind: str | None = _f(None, "what score holds (null: not told, logs before format 1.1)",
                                 enum=SCORE_KINDS, since="1.1")
     frame_seq: int | None = _f(None, "publisher sequence number of the frame (live runs only)")

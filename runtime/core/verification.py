@@ -1,7 +1,8 @@
 """Geometric verification of loop-closure candidates (pure: numpy + OpenCV, no I/O).
 
 A candidate place is accepted when the query frame's keypoints and the place's stored
-keypoints admit a two-view geometry with enough well-spread inliers:
+keypoints admit a well-conditioned two-view geometry whose support is very unlikely to be
+a coincidence:
 
 1. Matching (:func:`match_keypoints`): only keypoint pairs that share a visual word are
    compared (the quantiser already did the coarse search, so this costs a few hundred
@@ -10,37 +11,46 @@ keypoints admit a two-view geometry with enough well-spread inliers:
    word, and mutual best matches.
 2. Geometry (:func:`estimate_geometry`): in coordinates scaled so that the image's longer
    side is ``reference_long_side`` units (thresholds then mean the same at any resolution),
-   a robust fundamental matrix (USAC_MAGSAC by default) whose inliers are re-checked with the
-   symmetric epipolar distance, and a homography (planar or rotation-only views, where F is
-   degenerate). The model with the larger accepted support wins.
-3. Acceptance (:func:`verify_pair`): inliers >= ``min_inliers`` (F) or ``min_inliers_h`` (H)
-   and the inliers cover at least ``min_spread`` of the image grid cells in BOTH images
-   (random or repeated-texture matches that happen to fit cluster in few cells).
+   a homography and a fundamental matrix (an essential matrix when the camera is
+   calibrated), both by USAC_MAGSAC.
+3. Acceptance, per model: well conditioned (runtime/core/conditioning.py: F/E of rank 2 with
+   a clear second singular value; H orientation-preserving and not near-singular; E with
+   most inliers in front of both cameras), inliers not on one line in either image, and
+   significant: log10 of the number of false alarms (runtime/core/acontrario.py, an
+   a-contrario test in the manner of ORSA/AC-RANSAC) below ``max_log10_nfa``. The NFA
+   weighs the inliers against the number of tentative matches, the region they fall in
+   and the model (point-to-line or point-to-point), so no inlier bar depends on the
+   matcher, the keypoint budget or the resolution.
 4. Brute-force retry (``bruteforce=True``): when same-word matches do not pass, all-pairs
-   matching (:func:`match_all`) and the same geometry against higher bars
-   (``min_inliers_bf`` / ``min_inliers_h_bf``: all-pairs matching gives unrelated images more
-   chance matches). The detector uses it for its best FAB-MAP candidate and for the places
-   its track prior proposes (runtime/core/detector.py).
+   matching (:func:`match_all`) and the same test (its extra chance matches raise n, and
+   with it the support the NFA asks for). The detector uses it for its best FAB-MAP
+   candidate and for the places its track prior proposes (runtime/core/detector.py).
 
-Defaults were calibrated on training data (camvid street drives: frames 1-3 s apart are
-positives, other drives and scene15 images are negatives; also with the images first reduced
-to 240 px, the size of small-board cameras), see the README. Brute-force bars: the worst
-unrelated training pair reached H 19 / F 34 inliers (ratio 0.9, worst over both
-resolutions), so H 22 / F 40.
+Remaining settings were checked on training data only (camvid frames 1-10 s apart in one
+drive and synthetic warps/lighting changes of training images are positives; frames of
+different drives, Scene-15 images and camvid-vs-Scene-15 pairs are negatives), see the README.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.feature_kinds import DISTANCES
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, significance
+from aefabmap.runtime.core.conditioning import (
+    enforce_rank2,
+    homography_is_plausible,
+    minor_axis_extent,
+    rank2_fundamental,
+)
 
 GEOMETRY_METHODS = ("magsac", "ransac")
-MODELS = ("F", "H")
+MODELS = ("F", "E", "H")
+REJECT_REASONS = ("no_evidence", "chance", "degenerate", "collinear", "clustered", "cheirality")
 
 # popcount of every byte value: Hamming distance of binary descriptors via a table look-up.
 _POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.uint16)
@@ -66,24 +76,51 @@ class VerificationConfig:
     ratio: Lowe ratio test, nearest / second-nearest descriptor distance of the same word.
     ratio_bruteforce: ratio test of brute-force matching (nearest / second-nearest of all
         place keypoints: a stricter test than within one word, where the second-nearest is
-        rarer and farther).
-    min_inliers_bf / min_inliers_h_bf: F / H inliers needed when the matches came from
-        brute-force matching: it returns more chance matches than same-word matching, so
-        unrelated training pairs reach more chance inliers (see the README) and need their own,
-        higher bars.
+        rarer and farther). Brute-force matching returns more matches, chance ones included;
+        the a-contrario test accounts for that through n, so it needs no bars of its own.
     max_hamming: binary kinds: largest Hamming distance of a match, in bits per 256 (ORB's
         length; a binary kind of B bits gets max_hamming * B / 256).
     max_l2: float kinds (SIFT): largest L2 distance of (unit-norm) descriptors of a match.
     reference_long_side: geometry runs in coordinates where the image's longer side is this
         many units, so thresholds do not depend on the camera resolution.
     method: "magsac" (cv2.USAC_MAGSAC) or "ransac" (cv2.FM_RANSAC / cv2.RANSAC).
-    f_threshold: fundamental-matrix inlier threshold (symmetric epipolar distance, units).
-    h_threshold: homography inlier threshold (forward transfer error, units).
-    min_inliers: F inliers needed to accept.
-    min_inliers_h: H inliers needed to accept (H is a stronger model: a point must land on a
-        point, not on a line, so chance inliers are rarer and fewer suffice).
+    f_threshold: fundamental/essential-matrix noise scale: the estimator's threshold and the
+        largest point-to-epipolar-line distance (units, in both images) an inlier may have.
+    h_threshold: the same for the homography (larger of forward and backward transfer error).
+    max_log10_nfa: acceptance: log10 of the number of false alarms (`acontrario.py`: how many
+        times a model this well supported is expected by chance among the matches) must be
+        below this. NFA bounds the expected number of chance acceptances per verified pair; a
+        run of ~1000 frames verifies up to ~10^4 pairs (track + top-k + retries), so -4 keeps
+        the expected number of chance loop closures of a whole run below one. (NFA < 1, the
+        textbook default, let 2 of ~1500 unrelated training pairs through, at log10 NFA -0.5
+        and -1.9; none came below -2.6, and 0 -> -4 cost ~1 of 140 training positives.)
+    duplicate_radius: matches whose points fall in the same duplicate_radius x duplicate_radius
+        cell (ORIGINAL pixels of each image) in both images count once. ORB finds one corner at
+        several pyramid levels, and an image upsampled to the 640-px detection scale yields
+        several keypoints per native corner; FAST's test circle has a radius of 3 pixels, so
+        corners closer than that share their evidence. The a-contrario count assumes
+        independent matches: on training pairs 3 s apart a third to two thirds of the inliers
+        were such copies. 0 disables.
+    min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
+        fewer is not used as a loop closure whatever its NFA: too few points to trust it).
+    min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
+        matrix at least this (rank-1 or null matrices, ratio ~0, explain points on a line).
+    h_max_scale / h_max_anisotropy: a homography's local map at its inliers must keep
+        orientation, scale area by at most h_max_scale (either way) and stretch one axis at most
+        h_max_anisotropy times the other (a near-singular H crushes the image onto a line).
+    min_extent: the inliers' spread across their principal axis (standard deviation), in
+        fractions of the reference long side, in both images: inliers along one line (railings,
+        a row of windows, a kerb) do not fix a two-view geometry.
     min_spread: fraction of the `grid` x `grid` cells holding at least one inlier, required
-        in both images.
+        in both images (0 disables; diagnostics report it anyway).
+    camera: pinhole intrinsics (fx, fy, cx, cy) in pixels of the original images: the
+        epipolar model is then an essential matrix (cv2.findEssentialMat) whose inliers must
+        mostly (`min_cheirality`) lie in front of both cameras (recoverPose). None: F.
+    min_cheirality: fraction of E inliers that must triangulate in front of both cameras.
+    The conditioning limits are loose by design (they reject impossible models, not weak
+    ones): on training positives the smallest normalised sigma2 / sigma1 of a fitted F was
+    0.018 (the rank-1 F of Lip6 233 -> 41: 7e-4), and of ~165 training positives per run at
+    most one significant model was rejected as degenerate or collinear.
     grid: cells per side of the spread grid.
     max_iters: homography RANSAC iterations cap (an H iteration is cheap: 1000 cost ~0.2 ms).
     f_max_iters: fundamental-matrix iterations cap: a 7-point MAGSAC iteration costs ~5x an H
@@ -116,17 +153,23 @@ class VerificationConfig:
     max_keypoints: int | None = None
     ratio: float = 0.9
     ratio_bruteforce: float = 0.9
-    min_inliers_bf: int = 40
-    min_inliers_h_bf: int = 22
     max_hamming: int = 64
     max_l2: float = 0.7
     reference_long_side: float = 640.0
     method: str = "magsac"
     f_threshold: float = 1.5
     h_threshold: float = 8.0
-    min_inliers: int = 21
-    min_inliers_h: int = 15
-    min_spread: float = 0.15
+    max_log10_nfa: float = -4.0
+    duplicate_radius: float = 3.0
+    min_inliers: int = 12
+    min_inliers_h: int = 8
+    min_f_sigma_ratio: float = 0.005
+    h_max_scale: float = 4.0
+    h_max_anisotropy: float = 6.0
+    min_extent: float = 0.01
+    min_spread: float = 0.0
+    camera: tuple[float, float, float, float] | None = None
+    min_cheirality: float = 0.5
     grid: int = 4
     max_iters: int = 1000
     f_max_iters: int = 300
@@ -158,8 +201,18 @@ class VerificationConfig:
             raise ConfigError("verification thresholds and reference_long_side must be > 0")
         if not (0.0 < self.ratio_bruteforce <= 1.0):
             raise ConfigError(f"verification ratio_bruteforce must lie in (0, 1], got {self.ratio_bruteforce}")
-        if self.min_inliers < 8 or self.min_inliers_h < 4 or self.min_inliers_bf < 8 or self.min_inliers_h_bf < 4:
-            raise ConfigError("verification needs min_inliers >= 8 (F) and min_inliers_h >= 4 (H)")
+        if self.min_inliers < 8 or self.min_inliers_h < 5:
+            raise ConfigError("verification needs min_inliers >= 8 (F/E) and min_inliers_h >= 5 (H)")
+        if not (0.0 <= self.min_f_sigma_ratio < 1.0) or self.h_max_scale < 1.0 or self.h_max_anisotropy < 1.0:
+            raise ConfigError("verification needs 0 <= min_f_sigma_ratio < 1, h_max_scale >= 1, h_max_anisotropy >= 1")
+        if not (0.0 <= self.min_extent < 1.0) or not (0.0 <= self.min_cheirality <= 1.0):
+            raise ConfigError("verification min_extent must lie in [0, 1) and min_cheirality in [0, 1]")
+        if self.duplicate_radius < 0:
+            raise ConfigError(f"verification duplicate_radius must be >= 0, got {self.duplicate_radius}")
+        if not np.isfinite(self.max_log10_nfa):
+            raise ConfigError(f"verification max_log10_nfa must be finite, got {self.max_log10_nfa}")
+        if self.camera is not None:
+            object.__setattr__(self, "camera", parse_camera(self.camera))
         if not (0.0 <= self.min_spread <= 1.0) or self.grid < 1:
             raise ConfigError("verification min_spread must lie in [0, 1] and grid be >= 1")
         if self.max_iters < 1 or self.f_max_iters < 1 or not (0.0 < self.confidence < 1.0):
@@ -170,12 +223,22 @@ class VerificationConfig:
 class GeometryResult:
     """Outcome of verifying one (query, place) pair.
 
-    verified: accepted. model: "F" or "H" (the one accepted, or the better one when rejected;
-    None when there were too few matches to fit anything). matrix: (3, 3) float64 mapping place
-    -> query (F: x_q^T F x_p = 0; H: x_q ~ H x_p), in ORIGINAL pixels of each image.
-    inliers: inliers of `model`; f_inliers / h_inliers: of each model; matches: putative
-    matches; spread: min over both images of the occupied grid-cell fraction of the inliers
-    of `model` (f_spread / h_spread: of each model).
+    verified: accepted. model: "F", "E" (calibrated camera) or "H" (the one accepted, or the
+    most significant one when rejected; None when there were too few matches to fit anything).
+    matrix: (3, 3) float64 mapping place -> query (F and E: the fundamental matrix,
+    x_q^T F x_p = 0; H: x_q ~ H x_p), in ORIGINAL pixels of each image.
+    inliers: a-contrario inliers of `model` (the k matches of smallest error that make it most
+    significant); f_inliers / h_inliers: of each model (f_: F or E); matches: putative matches;
+    distinct_matches: those left after merging copies at one location (`duplicate_radius`),
+    the n of the a-contrario test. inlier_mask: (matches,) bool over the matches given.
+    nfa: log10 of the number of false alarms of `model` (inf: no model); f_nfa / h_nfa: of
+    each model. f_sigma_ratio: sigma2 / sigma1 of the normalised F/E (0 when not computed:
+    F is checked only once it is significant).
+    extent: min over both images of the inliers' standard deviation across their principal
+    axis, in fractions of the reference long side (0: on a line).
+    spread: min over both images of the occupied grid-cell fraction of the inliers of `model`
+    (f_spread / h_spread: of each model). reason: "" when verified, else why not, one of
+    REJECT_REASONS ("no_evidence": too few matches to fit a model).
     """
 
     verified: bool = False
@@ -185,10 +248,32 @@ class GeometryResult:
     f_inliers: int = 0
     h_inliers: int = 0
     matches: int = 0
+    nfa: float = float("inf")
+    f_nfa: float = float("inf")
+    h_nfa: float = float("inf")
+    f_sigma_ratio: float = 0.0
+    extent: float = 0.0
+    distinct_matches: int = 0
     spread: float = 0.0
     f_spread: float = 0.0
     h_spread: float = 0.0
+    reason: str = "no_evidence"
     inlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+
+def parse_camera(value) -> tuple[float, float, float, float]:
+    """Pinhole intrinsics from "fx,fy,cx,cy" or a sequence of 4 numbers -> (fx, fy, cx, cy) floats.
+
+    Raises ConfigError unless there are 4 finite numbers with fx, fy > 0.
+    """
+    parts = value.split(",") if isinstance(value, str) else value
+    try:
+        cam = tuple(float(v) for v in parts)
+    except (TypeError, ValueError):
+        raise ConfigError(f"camera must be fx,fy,cx,cy (4 numbers), got {value!r}") from None
+    if len(cam) != 4 or not all(np.isfinite(cam)) or cam[0] <= 0 or cam[1] <= 0:
+        raise ConfigError(f"camera must be fx,fy,cx,cy with fx, fy > 0, got {value!r}")
+    return cam
 
 
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -335,9 +420,12 @@ def symmetric_epipolar_distance(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -
     lq = hp @ F.T  # epipolar lines in the query image
     lp = hq @ F  # epipolar lines in the place image
     num = np.abs(np.sum(hq * lq, axis=1))
-    dq = num / np.maximum(np.hypot(lq[:, 0], lq[:, 1]), 1e-12)
-    dp = num / np.maximum(np.hypot(lp[:, 0], lp[:, 1]), 1e-12)
-    return np.sqrt(0.5 * (dq**2 + dp**2))
+    # Lines with a (near) zero normal are undefined: infinite distance, not a clamped one.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dq = num / np.hypot(lq[:, 0], lq[:, 1])
+        dp = num / np.hypot(lp[:, 0], lp[:, 1])
+        d = np.sqrt(0.5 * (dq**2 + dp**2))
+    return np.where(np.isfinite(d), d, np.inf)
 
 
 def estimate_geometry(
@@ -348,58 +436,224 @@ def estimate_geometry(
     config: VerificationConfig | None = None,
     full: bool = False,
 ) -> GeometryResult:
-    """Fit H and F to matched points and decide acceptance.
+    """Fit H and F (or E with a camera) to matched points and decide acceptance.
 
     xq, xp: (K, 2) float matched positions in original pixels of the query / place image;
     shape_q, shape_p: (height, width) of those images. Returned matrices are in original pixels.
 
-    Staged for speed (full=False): fewer than `min_inliers_h` matches cannot pass and fit
-    nothing; the homography (MAGSAC: ~0.2 ms) is tried first and accepted at once; the
-    fundamental matrix (~1.5 ms) only when H failed and there are >= `min_inliers` matches.
-    full=True fits both models (calibration and diagnostics); acceptance is the same.
+    A model is accepted when it is well conditioned (`conditioning.py`), its inliers are not
+    explained by a line in either image, and its a-contrario significance (`acontrario.py`)
+    is below `max_log10_nfa`. Staged for speed (full=False): the homography (~0.2 ms) is tried
+    first and accepted at once; the epipolar model (~1 ms) only when H failed. full=True fits
+    both (calibration and diagnostics); acceptance is the same.
     """
     c = config or VerificationConfig()
-    k = int(xq.shape[0])
-    res = GeometryResult(matches=k)
-    if k < min(c.min_inliers_h, c.min_inliers) and not full:
-        return res
     sq = c.reference_long_side / max(shape_q)
     sp = c.reference_long_side / max(shape_p)
     nq = np.ascontiguousarray(xq, np.float64) * sq
     np_ = np.ascontiguousarray(xp, np.float64) * sp
-    best_margin = -np.inf
+    res = GeometryResult(matches=int(xq.shape[0]))
+    # One match per location: ORB detects one corner at several pyramid levels (and several
+    # keypoints per corner of an image upsampled for detection), and copies
+    # of a match agree with any model the original agrees with. The a-contrario count assumes
+    # independent matches, so copies must not count twice (in k or in n).
+    distinct = distinct_matches(nq, np_, c.duplicate_radius * sq, c.duplicate_radius * sp)
+    if distinct.size < nq.shape[0]:
+        xq, xp, nq, np_ = xq[distinct], xp[distinct], nq[distinct], np_[distinct]
+    k = int(nq.shape[0])
+    res.distinct_matches = k
+    if k <= SAMPLE_SIZE["H"]:
+        res.reason = "no_evidence"
+        return res
+    region = _match_region(nq, np_, c.reference_long_side)
+    best_key = (-1, -np.inf)
 
-    def consider(name: str, M: np.ndarray, mask: np.ndarray, need: int) -> None:
-        nonlocal best_margin
-        spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
+    def consider(name: str, M: np.ndarray, err: np.ndarray, conditioning=None) -> None:
+        """Count the model's significant inliers, run the acceptance tests, keep the best model.
+
+        conditioning: None or a callable -> "" (well conditioned) or a reject reason; called
+        only for a significant model (it costs more than the NFA).
+        """
+        nonlocal best_key
+        sig = significance(err, name, region[0], region[1], c.h_threshold if name == "H" else c.f_threshold)
+        mask = (err <= sig.eps) if sig.inliers else np.zeros(k, bool)
         n_in = int(mask.sum())
-        if name == "F":
-            res.f_inliers, res.f_spread = n_in, spread
+        if name == "H":
+            res.h_inliers, res.h_nfa = n_in, sig.log10_nfa
         else:
-            res.h_inliers, res.h_spread = n_in, spread
-        ok = n_in >= need and spread >= c.min_spread
-        # Prefer an accepted model; among equals, the one with the most support over its bar.
-        margin = (1e9 if ok else 0.0) + n_in / need
-        if margin > best_margin:
-            best_margin = margin
+            res.f_inliers, res.f_nfa = n_in, sig.log10_nfa
+        extent = 0.0
+        if n_in < (c.min_inliers_h if name == "H" else c.min_inliers) or sig.log10_nfa >= c.max_log10_nfa:
+            reason = "chance"
+        else:
+            reason = conditioning() if conditioning is not None else ""
+            extent = min(minor_axis_extent(nq[mask]), minor_axis_extent(np_[mask]))
+            if not reason and extent < c.min_extent * c.reference_long_side:
+                reason = "collinear"
+        spread = None
+        if c.min_spread > 0 or full:
+            spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
+            if name == "H":
+                res.h_spread = spread
+            else:
+                res.f_spread = spread
+            if not reason and spread < c.min_spread:
+                reason = "clustered"
+        ok = not reason
+        # Prefer an accepted model; then the most significant one (lowest NFA).
+        key = (int(ok), -sig.log10_nfa if np.isfinite(sig.log10_nfa) else -1e300)
+        if key > best_key:
+            best_key = key
+            if spread is None:
+                spread = min(grid_spread(xq[mask], shape_q, c.grid), grid_spread(xp[mask], shape_p, c.grid))
             res.verified, res.model, res.inliers, res.spread = ok, name, n_in, spread
-            res.inlier_mask = mask
+            res.nfa, res.reason, res.inlier_mask = sig.log10_nfa, reason, mask
+            res.extent = extent / c.reference_long_side
             res.matrix = _to_pixels(name, M, sq, sp)
 
-    if k >= 4:
-        H = _fit_homography(np_, nq, c)
-        if H is not None:
-            proj = np.c_[np_, np.ones(k)] @ H.T
-            with np.errstate(divide="ignore", invalid="ignore"):
-                proj = proj[:, :2] / proj[:, 2:3]
-            err = np.linalg.norm(proj - nq, axis=1)
-            consider("H", H, np.isfinite(err) & (err <= c.h_threshold), c.min_inliers_h)
-    if (full or not res.verified) and k >= max(8, c.min_inliers if not full else 8):
-        F = _fit_fundamental(np_, nq, c)
-        if F is not None:
-            # MAGSAC's mask is a soft decision: re-check every match with one crisp test.
-            consider("F", F, symmetric_epipolar_distance(F, nq, np_) <= c.f_threshold, c.min_inliers)
+    # Fewer matches than a model's inlier floor cannot pass: do not fit it (unless full).
+    H = _fit_homography(np_, nq, c) if full or k >= c.min_inliers_h else None
+    if H is not None:
+
+        def h_conditioning() -> str:
+            inl = err_h <= c.h_threshold
+            ok = homography_is_plausible(H, np_[inl], c.h_max_scale, c.h_max_anisotropy)
+            return "" if ok else "degenerate"
+
+        err_h = _transfer_error(H, np_, nq)
+        consider("H", H, err_h, h_conditioning)
+    if (full or not res.verified) and k > SAMPLE_SIZE["F"] and (full or k >= c.min_inliers):
+        if c.camera is not None:
+            res.f_sigma_ratio = _consider_essential(nq, np_, xq, xp, sq, sp, c, consider)
+        else:
+            F = _fit_fundamental(np_, nq, c)
+            if F is not None:
+                # Rank 2 enforced before counting inliers; sigma2 / sigma1 of the normalised F
+                # checked for a significant F (a rank-1 F explains any points near one line
+                # per image, and would be significant for such points).
+                F = enforce_rank2(F)
+
+                def f_conditioning() -> str:
+                    _, res.f_sigma_ratio = rank2_fundamental(F, nq, np_)
+                    return "" if res.f_sigma_ratio >= c.min_f_sigma_ratio else "degenerate"
+
+                consider("F", F, epipolar_errors(F, nq, np_), f_conditioning)
+    if res.model is None:
+        res.reason = "no_evidence"
+    elif distinct.size < res.matches:
+        # Report the mask over all the matches given (copies of a location count as outliers).
+        full_mask = np.zeros(res.matches, bool)
+        full_mask[distinct[res.inlier_mask]] = True
+        res.inlier_mask = full_mask
     return res
+
+
+def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: float) -> np.ndarray:
+    """Indices of matches xq (K, 2) -> xp (K, 2) keeping one per location.
+
+    Two matches are copies when their query points share a radius_q cell and their place
+    points a radius_p cell of a grid (a cheap stand-in for "within the radius in both
+    images"); the first is kept. A radius <= 0 keeps everything. Returns sorted int64 indices.
+    """
+    if radius_q <= 0 or radius_p <= 0 or xq.shape[0] < 2:
+        return np.arange(xq.shape[0], dtype=np.int64)
+    # Four cell indices (each clipped to 15 bits: images up to ~98k cells a side) in one int64.
+    cells = np.clip(np.floor(np.c_[xq / radius_q, xp / radius_p]), 0, 2**15 - 1).astype(np.int64)
+    key = ((cells[:, 0] * 2**15 + cells[:, 1]) * 2**15 + cells[:, 2]) * 2**15 + cells[:, 3]
+    _, first = np.unique(key, return_index=True)
+    return np.sort(first).astype(np.int64)
+
+
+def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> float:
+    """Calibrated camera: essential matrix, cheirality-checked, judged as the F it implies.
+
+    Returns sigma2 / sigma1 of the normalised matrix (0.0 when no E was found).
+    """
+    fx, fy, cx, cy = c.camera
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    px_threshold = c.f_threshold / min(sq, sp)  # reference units -> original pixels
+    try:
+        E, _ = cv2.findEssentialMat(np.ascontiguousarray(xp, np.float64), np.ascontiguousarray(xq, np.float64), K,
+                                    cv2.USAC_MAGSAC if c.method == "magsac" else cv2.RANSAC, c.confidence, px_threshold,
+                                    maxIters=c.f_max_iters)
+    except cv2.error:
+        return 0.0
+    if E is not None and E.ndim == 2 and E.shape[0] > 3 and E.shape[1] == 3:
+        E = E[:3]  # several stacked solutions: MAGSAC's best comes first
+    if E is None or E.shape != (3, 3) or not np.all(np.isfinite(E)):
+        return 0.0
+    Kinv = np.linalg.inv(K)
+    # F in pixels (x_q^T F x_p = 0), then in reference units (x' = s x).
+    F_px = Kinv.T @ E @ Kinv
+    F = np.diag([1.0 / sq, 1.0 / sq, 1.0]) @ F_px @ np.diag([1.0 / sp, 1.0 / sp, 1.0])
+    F, ratio = rank2_fundamental(F, nq, np_)
+    err = epipolar_errors(F, nq, np_)
+
+    def e_conditioning() -> str:
+        if ratio < c.min_f_sigma_ratio:
+            return "degenerate"
+        inl = err <= c.f_threshold
+        try:
+            front, _, _, _ = cv2.recoverPose(E, np.ascontiguousarray(xp[inl], np.float64),
+                                             np.ascontiguousarray(xq[inl], np.float64), K)
+        except cv2.error:
+            front = 0
+        # The points must lie in front of both cameras: most inliers, not a chance few.
+        return "" if front >= c.min_cheirality * int(inl.sum()) else "cheirality"
+
+    consider("E", F, err, e_conditioning)
+    return ratio
+
+
+def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[float, float]:
+    """(width, height) of the smaller bounding box of the matched points of either image.
+
+    The a-contrario background spreads chance matches over the region matches actually fall
+    in: a box smaller than the image makes chance agreement likelier (larger alpha), so the
+    smaller of the two boxes is the conservative choice. Floored at 1/8 of the reference side.
+    """
+    boxes = [np.ptp(x, axis=0) for x in (nq, np_)]
+    w, h = min(boxes, key=lambda b: b[0] * b[1])
+    floor = long_side / 8
+    return max(float(w), floor), max(float(h), floor)
+
+
+def _transfer_error(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Larger of the forward (src -> dst) and backward transfer errors of H (K,); inf where undefined."""
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return np.full(src.shape[0], np.inf)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        err = np.maximum(_transfer(H, src, dst), _transfer(Hi, dst, src))
+    return np.where(np.isfinite(err), err, np.inf)
+
+
+def _transfer(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Distance (K,) between H applied to src (K, 2) and dst (K, 2)."""
+    x, y = src[:, 0], src[:, 1]
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w - dst[:, 0]
+    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w - dst[:, 1]
+    return np.sqrt(u * u + v * v)
+
+
+def epipolar_errors(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> np.ndarray:
+    """Larger of the two point-to-epipolar-line distances (K,) of matches xp -> xq under x_q^T F x_p = 0.
+
+    The a-contrario test counts a match as explained only when both points lie near their
+    lines. A line with (near) zero normal is undefined: its matches get an infinite error
+    (never an inlier, unlike a clamped denominator, which makes a null F explain everything).
+    """
+    lq = xp @ F[:, :2].T + F[:, 2]  # lines F x_p in the query image, (K, 3)
+    lp = xq @ F[:2, :] + F[2, :]  # lines F^T x_q in the place image
+    num = np.abs(xq[:, 0] * lq[:, 0] + xq[:, 1] * lq[:, 1] + lq[:, 2])
+    nq, np_ = np.hypot(lq[:, 0], lq[:, 1]), np.hypot(lp[:, 0], lp[:, 1])
+    scale = max(np.linalg.norm(F), 1e-300)
+    ok = (nq > 1e-9 * scale) & (np_ > 1e-9 * scale)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.maximum(num / nq, num / np_)
+    return np.where(ok & np.isfinite(err), err, np.inf)
 
 
 def _fit_homography(src: np.ndarray, dst: np.ndarray, c: VerificationConfig) -> np.ndarray | None:
@@ -430,7 +684,7 @@ def _to_pixels(model: str, M: np.ndarray, sq: float, sp: float) -> np.ndarray:
     """Matrix estimated on scaled points (x' = s x) -> the same relation in original pixels."""
     Sq = np.diag([sq, sq, 1.0])
     Sp = np.diag([sp, sp, 1.0])
-    if model == "F":
+    if model in ("F", "E"):
         # x'q^T F x'p = 0  <=>  xq^T (Sq F Sp) xp = 0.
         out = Sq @ M @ Sp
         return out / max(np.linalg.norm(out), 1e-300)
@@ -470,6 +724,7 @@ def verify_pair(
     pairs = match_all(q_desc, p_desc, c, distance=distance)
     if pairs.shape[0] == 0:
         return res
-    cb = replace(c, min_inliers=c.min_inliers_bf, min_inliers_h=c.min_inliers_h_bf)
-    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, cb)
-    return retry if retry.verified or retry.inliers > res.inliers else res
+    # Same criterion: the NFA grows with the number of matches, so the extra chance matches of
+    # all-pairs matching raise the support a model needs by themselves.
+    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
+    return retry if retry.verified or retry.nfa < res.nfa else res

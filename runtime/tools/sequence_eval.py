@@ -68,8 +68,13 @@ class SequenceRun:
 
     @property
     def verified_scores(self) -> np.ndarray:
-        """(N,) score of the verified output: the inlier count (0 where nothing was verified)."""
-        return np.array([r.inliers if r.verified else 0 for r in self.results], np.float64)
+        """(N,) score of the verified output: its significance -log10 NFA (0 where nothing was verified).
+
+        Comparable across models (H and F inlier counts are not) and across frames with
+        different numbers of matches; a result without an NFA falls back to its inlier count.
+        """
+        return np.array([(0.0 if not r.verified else -r.nfa if getattr(r, "nfa", None) is not None else r.inliers)
+                         for r in self.results], np.float64)
 
 
 def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix: bool = True, show_progress: bool = True) -> SequenceRun:
@@ -131,7 +136,7 @@ def evaluate_run(run: SequenceRun, gt: np.ndarray, tolerance: int = 10) -> dict:
         tried = np.array([r.candidates_tried for r in run.results], np.float64)
         verified["mean_candidates_tried"] = float(tried.mean()) if tried.size else 0.0
         verified["geometry_models"] = {
-            m: int(sum(1 for r in run.results if r.verified and r.geometry_model == m)) for m in ("F", "H")
+            m: int(sum(1 for r in run.results if r.verified and r.geometry_model == m)) for m in ("F", "E", "H")
         }
         verified.update(run.extra.get("verified", {}))
         metrics["verified"] = verified

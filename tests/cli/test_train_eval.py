@@ -99,3 +99,11 @@ def test_bench_chowliu_json(tmp_path):
     out = tmp_path / "c.json"
     assert main(["bench", "chowliu", "--words", "500", "--images", "200", "--json", str(out)]) == 0
     assert json.loads(out.read_text())["seconds"] > 0
+
+
+def test_eval_refuses_a_malformed_camera(tmp_path, caplog):
+    (tmp_path / "imgs").mkdir()
+    code = main(["eval", "--model", str(tmp_path / "nope"), "--images", str(tmp_path / "imgs"),
+                 "--gt", str(tmp_path / "gt.npy"), "--camera", "400,400,320"])
+    assert code != 0
+    assert "camera" in caplog.text

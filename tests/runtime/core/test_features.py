@@ -83,3 +83,32 @@ def test_big_jpeg_header_refused():
     data[i + 7 : i + 9] = (10000).to_bytes(2, "big")
     with pytest.raises(ImageDecodeError, match="exceeds"):
         decode_image(bytes(data))
+
+
+def _clustered_texture() -> np.ndarray:
+    """Dense texture in the left quarter, sparse corners elsewhere (a hedge beside a facade)."""
+    rng = np.random.default_rng(0)
+    img = np.full((360, 480), 128, np.uint8)
+    img[:, :120] = cv2.GaussianBlur(rng.integers(0, 255, (360, 120)).astype(np.uint8), (0, 0), 1.5)
+    for x in range(160, 480, 40):
+        for y in range(20, 360, 40):
+            cv2.rectangle(img, (x, y), (x + 12, y + 12), 105, -1)  # weak corners
+    return img
+
+
+def test_bucketing_spreads_the_keypoint_budget_over_the_image():
+    img = _clustered_texture()
+    plain = FeatureExtractor(FeatureConfig(kind="orb", max_features=200, long_side=None)).extract(img)
+    spread = FeatureExtractor(FeatureConfig(kind="orb", max_features=200, long_side=None, bucket_grid=4)).extract(img)
+    right_plain = int((plain.keypoints[:, 0] > 140).sum())
+    right_spread = int((spread.keypoints[:, 0] > 140).sum())
+    assert len(spread) == 200 and right_spread > 2 * max(right_plain, 1), (right_plain, right_spread)
+
+
+def test_bundles_without_bucketing_keep_their_extraction():
+    # A bundle written before bucket_grid/clahe existed was trained without them.
+    cfg = FeatureConfig.from_dict({"kind": "orb", "max_features": 500, "long_side": 640, "rootsift": False})
+    assert cfg.bucket_grid == 0 and cfg.clahe is False
+    assert FeatureConfig.from_dict(FeatureConfig(bucket_grid=4, clahe=True).to_dict()) == FeatureConfig(bucket_grid=4, clahe=True)
+    with pytest.raises(ConfigError):
+        FeatureConfig(bucket_grid=-1)

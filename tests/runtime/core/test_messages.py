@@ -51,7 +51,7 @@ def test_result_schema_nullability_enums_and_score_description():
     assert props["score"]["type"] == "number"
     assert "llr" in props["score"]["description"] and "score_kind" in props["score"]["description"]
     assert props["score_kind"]["enum"] == ["probability", "llr", "similarity", None]
-    assert props["geometry_model"]["enum"] == ["F", "H", None]
+    assert props["geometry_model"]["enum"] == ["F", "E", "H", None]
     assert props["geometry"]["items"] == {"type": "array", "items": {"type": "number"}}
     assert props["timings_ms"]["additionalProperties"] == {"type": "number"}
 
@@ -143,5 +143,6 @@ def test_versions():
     for bad in ("", "one", "1.2.3", "-1"):
         with pytest.raises(InputError, match="malformed"):
             parse_version(bad)
-    assert FrameResult.fields_since((1, 0)) == ("score_kind",)
+    assert set(FrameResult.fields_since((1, 0))) == {"score_kind", "nfa", "geometry_reason"}
+    assert FrameResult.fields_since((1, 2)) == ("nfa", "geometry_reason")
     assert FrameResult.fields_since(parse_version(MESSAGE_FORMAT_VERSION)) == ()

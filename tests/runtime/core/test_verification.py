@@ -62,6 +62,7 @@ def test_warped_texture_verifies_and_returns_the_homography(extractor):
     g = verify_pair(fq.keypoints, one_word(fq), fq.descriptors, fq.image_shape,
                     fp.keypoints, one_word(fp), fp.descriptors, fp.image_shape, VerificationConfig(), distance="hamming")
     assert g.verified and g.inliers >= 50 and g.model == "H"
+    assert g.nfa < -30 and g.reason == ""  # far beyond chance: NFA << 1
     # The matrix maps the place image to the query image in pixels: compare with the warp.
     pts = np.array([[100.0, 100.0, 1.0], [300.0, 200.0, 1.0], [200.0, 300.0, 1.0]])
     est = pts @ g.matrix.T
@@ -76,7 +77,8 @@ def test_unrelated_textures_do_not_verify(extractor):
         fa, fb = extractor.extract(texture(a)), extractor.extract(texture(b))
         g = verify_pair(fa.keypoints, one_word(fa), fa.descriptors, fa.image_shape,
                         fb.keypoints, one_word(fb), fb.descriptors, fb.image_shape, cfg, distance="hamming")
-        assert not g.verified and g.inliers < cfg.min_inliers_h
+        # Whatever the estimator fitted is within chance: NFA >= 1.
+        assert not g.verified and g.nfa >= 0 and g.reason in ("chance", "degenerate", "no_evidence")
 
 
 def test_fundamental_matrix_of_a_3d_scene_is_in_pixels():
@@ -191,12 +193,15 @@ def test_detector_verifies_a_revisit_and_every_frame_gets_a_result(tmp_path):
     assert [r.sequence for r in results] == list(range(7))
     assert all(not r.verified for r in results[:-1])
     assert results[5].n_keypoints == 0 and results[5].verified is False
+    # A texture-poor frame is a miss for lack of evidence, not a rejected loop.
+    assert results[5].geometry_reason == "no_evidence" and results[5].nfa is None
     r = results[-1]
     assert r.verified and r.loop and r.verified_frame == 1 and r.inliers >= 30
+    assert r.geometry_reason == "" and r.nfa is not None and r.nfa < -30
     assert r.geometry_model in ("F", "H") and np.asarray(r.geometry).shape == (3, 3)
     assert "verification" in r.timings_ms
     doc = json.loads(json.dumps(r.to_dict()))  # the Zenoh/MCAP message carries it
-    assert doc["verified"] is True and doc["inliers"] == r.inliers
+    assert doc["verified"] is True and doc["inliers"] == r.inliers and doc["nfa"] == r.nfa
 
 
 def test_store_is_in_map_bytes_and_evicted_places_leave_it(tmp_path):
@@ -341,7 +346,7 @@ def test_island_tries_the_temporal_neighbours_of_a_failed_candidate(tmp_path):
     assert not r[6].verified and r[6].candidates_tried == 1
 
 
-def test_bruteforce_retry_has_its_own_bars(extractor):
+def test_bruteforce_retry_uses_the_same_acontrario_criterion(extractor):
     place = texture(1)
     query = cv2.warpPerspective(place, PERSPECTIVE, (place.shape[1], place.shape[0]))
     fp, fq = extractor.extract(place), extractor.extract(query)
@@ -355,15 +360,16 @@ def test_bruteforce_retry_has_its_own_bars(extractor):
     assert not verify_pair(fq.keypoints, qw, fq.descriptors, fq.image_shape, fp.keypoints, pw, fp.descriptors,
                            fp.image_shape, VerificationConfig(), distance="hamming").verified
     g = run()
-    assert g.verified and g.inliers >= VerificationConfig().min_inliers_h_bf
-    # The same matches against bars above their inlier count: rejected, although they clear
-    # the same-word bars.
-    high = run(min_inliers_h_bf=g.inliers + 1, min_inliers_bf=max(g.f_inliers, g.inliers) + 1)
-    assert not high.verified and high.inliers >= VerificationConfig().min_inliers_h
+    assert g.verified and g.nfa < -30
+    # The same matches against a significance bar they do not reach: rejected.
+    strict = run(max_log10_nfa=g.nfa - 1.0)
+    assert not strict.verified and strict.reason == "chance"
 
 
 def test_candidate_generation_config_is_validated():
     for kw in ({"track": -1}, {"island": -1}, {"max_trials": 0}, {"track_memory": 0}, {"ratio_bruteforce": 0.0},
-               {"min_inliers_h_bf": 3}, {"island_candidates": -1}):
+               {"min_inliers_h": 3}, {"island_candidates": -1}, {"min_f_sigma_ratio": 1.0},
+               {"h_max_scale": 0.5}, {"min_extent": 1.0}, {"max_log10_nfa": float("nan")},
+               {"camera": "1,2,3"}, {"camera": (0.0, 1.0, 2.0, 3.0)}, {"camera": "a,b,c,d"}):
         with pytest.raises(ConfigError):
             VerificationConfig(**kw)
