@@ -28,6 +28,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 
@@ -93,7 +94,7 @@ class MapStateDir:
         self.bundle = bundle
         self._lock_fd: int | None = None
 
-    def open(self) -> "MapStateDir":
+    def open(self) -> Self:
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             if self.path.is_symlink() or not self.path.is_dir():
@@ -114,7 +115,7 @@ class MapStateDir:
             os.close(self._lock_fd)
             self._lock_fd = None
 
-    def __enter__(self) -> "MapStateDir":
+    def __enter__(self) -> Self:
         return self.open()
 
     def __exit__(self, *exc_info) -> None:
@@ -284,7 +285,7 @@ class SnapshotPolicy:
     places: int | None = None
 
     @classmethod
-    def parse(cls, text: str) -> "SnapshotPolicy":
+    def parse(cls, text: str) -> SnapshotPolicy:
         """"30s", "5m" (time) or "100p" (places added)."""
         from aefabmap.errors import ConfigError
 

@@ -25,12 +25,12 @@ class MapState:
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     scalars: dict[str, Scalar] = field(default_factory=dict)
 
-    def put(self, prefix: str, part: "MapState") -> None:
+    def put(self, prefix: str, part: MapState) -> None:
         """Nest another part's state under ``prefix.``."""
         self.arrays.update({f"{prefix}.{k}": v for k, v in part.arrays.items()})
         self.scalars.update({f"{prefix}.{k}": v for k, v in part.scalars.items()})
 
-    def part(self, prefix: str) -> "MapState":
+    def part(self, prefix: str) -> MapState:
         """The names under ``prefix.``, with the prefix removed."""
         p = prefix + "."
         return MapState(
@@ -67,9 +67,10 @@ class MapState:
         kinds = kind if isinstance(kind, tuple) else (kind,)
         if not isinstance(v, kinds) or (isinstance(v, bool) and bool not in kinds):
             raise StateError(f"map state value {name!r} is {str(v)[:40]!r}, expected {'/'.join(k.__name__ for k in kinds)}")
-        if isinstance(v, int) and not isinstance(v, bool):
-            if (lo is not None and v < lo) or (hi is not None and v >= hi):
-                raise StateError(f"map state value {name!r} = {v} is outside [{lo}, {hi})")
+        if isinstance(v, int) and not isinstance(v, bool) and (
+            (lo is not None and v < lo) or (hi is not None and v >= hi)
+        ):
+            raise StateError(f"map state value {name!r} = {v} is outside [{lo}, {hi})")
         return v
 
 

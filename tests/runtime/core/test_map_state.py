@@ -10,7 +10,10 @@ from aefabmap.errors import StateError
 from aefabmap.runtime.adapters.bundle_reader import load_detector
 from aefabmap.runtime.core.detector import DetectorConfig
 from aefabmap.runtime.core.map_state import MapState
-from aefabmap.runtime.tools.synthetic_route import SyntheticConfig, generate_loop_sequence
+from aefabmap.runtime.tools.synthetic_route import (
+    SyntheticConfig,
+    generate_loop_sequence,
+)
 from tests.conftest import make_synthetic_bundle
 
 
