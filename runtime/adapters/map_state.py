@@ -212,7 +212,9 @@ class MapStateDir:
         previous snapshot stays current and StateError is raised."""
         t0 = time.perf_counter()
         current = self.current_or_none()
-        number = int(_SNAP_RE.match(current).group(1)) + 1 if current else 1
+        # Past every snapshot present: one orphaned by a crash before CURRENT moved is not reused.
+        taken = [int(m.group(1)) for p in self.path.iterdir() if (m := _SNAP_RE.match(p.name))]
+        number = max(taken, default=0) + 1
         name = f"snap-{number:06d}"
         tmp = self.path / f".tmp-{name}-{os.getpid()}"
         try:

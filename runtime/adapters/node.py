@@ -232,11 +232,14 @@ def run_node(
     stop_event: threading.Event,
     on_stats: Callable[[StatsMessage], None] | None = None,
     ready_event: threading.Event | None = None,
+    snapshotter=None,
 ) -> RunSummary:
     """Run the streaming loop until ``stop_event`` is set (or ``options.max_frames`` processed).
 
     on_stats: called with each stats message. ready_event: set once subscribed (tests and
-    supervisors wait on it). Raises LogError (MCAP not writable; before any network
+    supervisors wait on it). snapshotter: keeps the map on disk (runtime/adapters/map_state.py
+    Snapshotter): ``after_frame()`` between frames, ``final()`` on the normal stop path
+    (stop_event / max_frames; StateError when that last snapshot cannot be written). Raises LogError (MCAP not writable; before any network
     activity), TransportError (session), ConfigError.
     """
     manifest = getattr(detector, "manifest", None)
@@ -256,7 +259,11 @@ def run_node(
                 if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)
                     loop.bad.count("bad_attachment", frame.meta.problem)
                 output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
+                if snapshotter is not None:
+                    snapshotter.after_frame()
         emitter.emit()
+        if snapshotter is not None:
+            snapshotter.final()
     latency = stats.latency()
     return RunSummary(
         frames_received=loop.frames_in, frames_processed=loop.processed, dropped=stats.dropped,

@@ -178,6 +178,11 @@ class LoopClosureDetector:
         return self.scorer.n_alive
 
     @property
+    def next_sequence(self) -> int:
+        """Sequence number the next frame gets (frames continue across a saved state)."""
+        return self._sequence
+
+    @property
     def frames_inserted(self) -> int:
         """Frames that have entered the map since it was started (evicted ones included)."""
         return self._sequence - len(self._pending)
