@@ -50,7 +50,7 @@ def main(args: argparse.Namespace) -> int:
         detector = load_detector(
             args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
         )
-        if args.state is not None:
+        if getattr(args, "state", None) is not None:
             state_dir = open_state(args.state, detector, log)
         summary = replay(detector, args.log, out_path=args.out, check=args.check)
         if state_dir is not None:

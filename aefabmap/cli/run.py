@@ -78,7 +78,7 @@ def main(args: argparse.Namespace) -> int:
             )
 
         snapshotter = None
-        if args.state is not None:
+        if getattr(args, "state", None) is not None:
             from aefabmap.cli.state_options import open_state
             from aefabmap.runtime.adapters.map_state import SnapshotPolicy, Snapshotter
 

@@ -263,3 +263,48 @@ def test_snapshotter_keeps_running_when_a_snapshot_fails(bundle, tmp_path, monke
         det.process_words(words_stream(1)[0])
         snap.after_frame()
     assert snap.failures == 1 and len(errors) == 1
+
+
+def _write_log(path, images, first_seq: int) -> None:
+    from aefabmap.runtime.adapters.frames import encode_frame
+    from aefabmap.runtime.adapters.mcap_log import McapLogWriter
+
+    with McapLogWriter(path) as w:
+        for i, img in enumerate(images):
+            payload, encoding = encode_frame(img, "png")
+            w.write_image(payload, encoding, (first_seq + i) * 10**8, sequence=first_seq + i)
+
+
+def test_replay_builds_a_map_offline_and_continues_it(bundle, tmp_path, capsys):
+    """`replay --state`: a map built from one log is loaded by the replay of the next log; the
+    results are those of one replay over both."""
+    import argparse
+
+    from aefabmap.cli import replay as cli_replay
+    from aefabmap.runtime.adapters.replay import replay
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images = generate_loop_sequence(120, seed=2, size=(160, 120))[0][:70]  # revisits from frame 63 on
+    _write_log(tmp_path / "all.mcap", images, 0)
+    _write_log(tmp_path / "a.mcap", images[:60], 0)
+    _write_log(tmp_path / "b.mcap", images[60:], 60)
+    whole = replay(load_detector(bundle, DetectorConfig()), tmp_path / "all.mcap", out_path=tmp_path / "all_out.mcap")
+    assert whole.frames_processed == 70
+    for name in ("a", "b"):
+        args = argparse.Namespace(log=str(tmp_path / f"{name}.mcap"), model=str(bundle), out=str(tmp_path / f"{name}_out.mcap"),
+                                  check=False, state=str(tmp_path / "state"))
+        assert cli_replay.main(args) == 0
+    capsys.readouterr()
+    from aefabmap.runtime.adapters.mcap_log import McapLogReader
+
+    def results(path):
+        reader = McapLogReader(path)
+        for _ in reader.frames():  # results are collected while reading
+            pass
+        docs = [r.to_dict() for r in reader.results]
+        return [{k: v for k, v in d.items() if k not in ("timings_ms", "stamp_ns")} for d in docs]
+
+    split = results(tmp_path / "a_out.mcap") + results(tmp_path / "b_out.mcap")
+    assert [d["sequence"] for d in split] == list(range(70))
+    assert split == results(tmp_path / "all_out.mcap")
+    assert any(d["loop"] and d["verified_frame"] < 60 for d in split[60:])
