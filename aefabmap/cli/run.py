@@ -89,6 +89,7 @@ def main(args: argparse.Namespace) -> int:
                 on_error=lambda exc: log.warning("snapshot failed, the previous one is kept: %s", exc),
                 on_saved=lambda info: log.debug("snapshot %s: %d places, %d bytes, %.3f s",
                                                 info.path.name, info.n_places, info.nbytes, info.seconds),
+                background=True,
             )
 
         with stop_on_signals(stop):

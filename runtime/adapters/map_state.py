@@ -25,6 +25,7 @@ import json
 import os
 import re
 import shutil
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -304,15 +305,23 @@ class SnapshotPolicy:
 
 class Snapshotter:
     """The node's collaborator: snapshots the detector between frames when the policy says so,
-    and once more at the end of the run (``final``). A failed periodic snapshot is logged
-    (``on_error``) and counted, the run goes on and the previous snapshot stays current."""
+    and once more at the end of the run (``final``). A failed periodic snapshot is reported
+    (``on_error``) and counted, the run goes on and the previous snapshot stays current.
+
+    background: gather the state between frames (arrays copied, ~0.2 s per 1000 places with
+    keypoints) but write it in a thread, so that frames are not held up by the disk; at most
+    one write is in flight (a due snapshot waits for the next frame after it) and ``final``
+    waits for it before writing the last one.
+    """
 
     def __init__(self, detector, directory: MapStateDir, policy: SnapshotPolicy, *,
-                 on_error=None, on_saved=None, clock=time.monotonic) -> None:
+                 on_error=None, on_saved=None, clock=time.monotonic, background: bool = False) -> None:
         self.detector, self.directory, self.policy = detector, directory, policy
         self.on_error, self.on_saved, self.clock = on_error, on_saved, clock
+        self.background = background
         self.failures = 0
         self.saved: list[SnapshotInfo] = []
+        self._writer: threading.Thread | None = None
         self._mark()
 
     def _mark(self) -> None:
@@ -326,26 +335,37 @@ class Snapshotter:
         p = self.policy
         due = (p.seconds is not None and self.clock() - self._t >= p.seconds) or (
             p.places is not None and self._places_made() - self._inserted >= p.places)
-        if due:
-            self._save(final=False)
+        if not due or (self._writer is not None and self._writer.is_alive()):
+            return
+        state = self.detector.state()
+        self._mark()
+        if self.background:
+            self._writer = threading.Thread(target=self._write, args=(state, False), name="map-snapshot", daemon=True)
+            self._writer.start()
+        else:
+            self._write(state, final=False)
 
     def final(self) -> SnapshotInfo:
-        """The stop path's snapshot; raises StateError when it cannot be written."""
-        return self._save(final=True)
+        """The stop path's snapshot (after any write in flight); raises StateError when it cannot be written."""
+        self.join()
+        return self._write(self.detector.state(), final=True)
 
-    def _save(self, final: bool) -> SnapshotInfo | None:
+    def join(self) -> None:
+        if self._writer is not None:
+            self._writer.join()
+            self._writer = None
+
+    def _write(self, state: MapState, final: bool) -> SnapshotInfo | None:
         try:
-            info = self.directory.save(self.detector.state())
+            info = self.directory.save(state)
         except AefabmapError as exc:
             self.failures += 1
             if final:
                 raise
             if self.on_error is not None:
                 self.on_error(exc)
-            self._mark()
             return None
         self.saved.append(info)
         if self.on_saved is not None:
             self.on_saved(info)
-        self._mark()
         return info

@@ -308,3 +308,15 @@ def test_replay_builds_a_map_offline_and_continues_it(bundle, tmp_path, capsys):
     assert [d["sequence"] for d in split] == list(range(70))
     assert split == results(tmp_path / "all_out.mcap")
     assert any(d["loop"] and d["verified_frame"] < 60 for d in split[60:])
+
+
+def test_background_snapshots_write_in_a_thread_and_final_waits(bundle, tmp_path):
+    det = load_detector(bundle, DetectorConfig(exclude=0))
+    with MapStateDir(tmp_path / "s", bundle_id(det.manifest)) as d:
+        snap = Snapshotter(det, d, SnapshotPolicy(seconds=None, places=3), background=True)
+        for w in words_stream(10):
+            det.process_words(w)
+            snap.after_frame()
+        snap.final()
+        assert snap._writer is None and len(snap.saved) >= 2
+        assert d.load().scalars["sequence"] == 10
