@@ -154,11 +154,11 @@ class KeypointStore:
         """Checked inverse of pack_places for ``n_places`` places; raises StateError."""
         has = st.array("has", "b", (n_places,))
         shape = st.array("image_shape", "iu", (n_places, 2), lo=0, hi=1 << 16)
-        word = st.array("word", "iu", (None,), lo=0, hi=self.vocabulary_size)
+        word = st.array("word", "iu", (None,), lo=0, hi=self.vocabulary_size, as_int64=False)
         k = word.size
         ptr = check_ptr(st, "ptr", n_places, k)
-        xy = st.array("xy", "iu", (k, 2), lo=0, hi=int(_XY_SCALE) + 1)
-        desc = st.array("desc", "u", (k, self.kind.store_bytes))
+        xy = st.array("xy", "iu", (k, 2), lo=0, hi=int(_XY_SCALE) + 1, as_int64=False)
+        desc = st.array("desc", "u", (k, self.kind.store_bytes), as_int64=False)
         counts = np.diff(ptr)
         if np.any(counts[~has] != 0) or (self.max_keypoints is not None and np.any(counts > self.max_keypoints)):
             raise StateError("map state: keypoint counts do not fit the store's settings")

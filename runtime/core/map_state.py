@@ -38,9 +38,11 @@ class MapState:
             {k[len(p):]: v for k, v in self.scalars.items() if k.startswith(p)},
         )
 
-    def array(self, name: str, kinds: str, shape: tuple, *, lo: int | None = None, hi: int | None = None) -> np.ndarray:
+    def array(self, name: str, kinds: str, shape: tuple, *, lo: int | None = None, hi: int | None = None,
+              as_int64: bool = True) -> np.ndarray:
         """The array ``name``, checked: dtype kind in ``kinds``, ``shape`` (None = any length),
-        integer values in [lo, hi) when given. Integer arrays come back as int64."""
+        integer values in [lo, hi) when given. Integer arrays come back as int64 unless
+        ``as_int64`` is False (bulk arrays such as descriptors keep their compact type)."""
         a = self.arrays.get(name)
         if a is None:
             raise StateError(f"map state has no array {name!r}")
@@ -54,7 +56,8 @@ class MapState:
                 raise StateError(f"map state array {name!r} holds {int(a.min())} < {lo}")
             if a.size and hi is not None and int(a.max()) >= hi:
                 raise StateError(f"map state array {name!r} holds {int(a.max())}, expected < {hi}")
-            a = a.astype(np.int64)
+            if as_int64:
+                a = a.astype(np.int64)
         elif a.dtype.kind == "f" and not np.isfinite(a).all():
             raise StateError(f"map state array {name!r} holds NaN or infinite values")
         return a
