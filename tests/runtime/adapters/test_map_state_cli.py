@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from aefabmap.runtime.adapters.bundle_reader import load_detector
@@ -47,12 +48,12 @@ def _run_half(bundle, state, log_path, images_dir, first_seq: int, last_seq: int
             assert probe.wait_for_subscriber(60), "the node never subscribed"
             probe.close()
             pub = subprocess.run(CLI + ["publish", "--images", str(images_dir), "--key", KEY, "--rate", "30",
-                                        "--connect", ep], capture_output=True, text=True, timeout=60)
+                                        "--connect", ep], capture_output=True, text=True, timeout=60, check=False)
             assert pub.returncode == 0, pub.stderr
             docs = results.wait_for(lambda d: d["sequence"] == last_seq, timeout_s=90)
             results.close()
         run.send_signal(signal.SIGTERM)
-        out, err = run.communicate(timeout=60)
+        _out, err = run.communicate(timeout=60)
     finally:
         if run.poll() is None:
             run.kill()
@@ -67,8 +68,6 @@ def _run_half(bundle, state, log_path, images_dir, first_seq: int, last_seq: int
 def test_run_restarted_with_its_state_detects_revisits_of_frames_stored_before(tmp_path):
     bundle = make_synthetic_bundle(tmp_path / "bundle")
     images, _gt = generate_loop_sequence(N, seed=2, size=(160, 120))
-    import numpy as np
-
     first = write_sequence(tmp_path / "first", images[:HALF], np.zeros((HALF, HALF), bool))
     second = write_sequence(tmp_path / "second", images[HALF:], np.zeros((N - HALF, N - HALF), bool))
 
@@ -79,7 +78,7 @@ def test_run_restarted_with_its_state_detects_revisits_of_frames_stored_before(t
     assert loops_after and all(f < HALF for _, f in loops_after)
 
     state = tmp_path / "state"
-    docs1, err1 = _run_half(bundle, state, tmp_path / "a.mcap", tmp_path / "first", 0, HALF - 1)
+    docs1, _ = _run_half(bundle, state, tmp_path / "a.mcap", tmp_path / "first", 0, HALF - 1)
     assert (state / "CURRENT").is_file()
     docs2, err2 = _run_half(bundle, state, tmp_path / "b.mcap", tmp_path / "second", HALF, N - 1)
     assert "map state" in err2 and "loaded" in err2
@@ -101,7 +100,7 @@ def test_run_refuses_a_state_of_another_bundle_in_one_line(tmp_path):
     listen, _ = session_pair()
     proc = subprocess.run(CLI + ["run", "--model", str(bundle), "--key", KEY, "--listen", listen.listen[0],
                                  "--mcap", str(tmp_path / "x.mcap"), "--state", str(tmp_path / "state")],
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=60, check=False)
     assert proc.returncode == 3
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "another model bundle" in lines[0]
