@@ -320,3 +320,20 @@ def test_background_snapshots_write_in_a_thread_and_final_waits(bundle, tmp_path
         snap.final()
         assert snap._writer is None and len(snap.saved) >= 2
         assert d.load().scalars["sequence"] == 10
+
+
+def test_eval_saves_the_map_it_built_and_will_not_overwrite_one(bundle, tmp_path, caplog):
+    from aefabmap.cli.main import main
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence, write_sequence
+
+    images, gt = generate_loop_sequence(12, seed=1, size=(160, 120))
+    write_sequence(tmp_path / "seq", images, gt)
+    argv = ["eval", "--model", str(bundle), "--images", str(tmp_path / "seq"), "--gt", str(tmp_path / "seq" / "gt.npy"),
+            "--exclude", "2", "--no-progress", "--state", str(tmp_path / "state")]
+    assert main(argv) == 0
+    det = load_detector(bundle, DetectorConfig(exclude=2))
+    with MapStateDir(tmp_path / "state", bundle_id(det.manifest)) as d:
+        assert load_into(det, d)
+    assert det.n_places == 10 and det.next_sequence == 12
+    assert main(argv) == 2  # DIR already holds a map
+    assert "already holds a map" in caplog.text
