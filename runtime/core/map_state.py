@@ -86,7 +86,7 @@ def pack_ragged(rows: list[np.ndarray | None], dtype) -> tuple[np.ndarray, np.nd
     lengths = np.array([0 if r is None else len(r) for r in rows], np.int64)
     ptr = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
     parts = [np.asarray(r) for r in rows if r is not None and len(r)]
-    values = np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
+    values = np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype)
     return ptr, values
 
 
