@@ -8,13 +8,16 @@ descriptors, as verification stores them), then the map is saved to a fresh stat
     python -m aefabmap.runtime.tools.state_bench --model BUNDLE --places 1000 10000
 
 One core; prints one JSON line per size: state_s (arrays gathered), save_s, load_s
-(read, checksums, core checks, rebuild), bytes on disk, bytes per place, map_bytes in memory.
+(read, checksums, core checks, rebuild) as wall time and *_cpu_s as this process's CPU time
+(on a shared machine the wall time also holds the waits for a core), the 1-min load average,
+bytes on disk, bytes per place, map_bytes in memory.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 
@@ -47,22 +50,26 @@ def fill_map(detector, places: int, keypoints: int, seed: int = 0) -> None:
 def bench(model: str, places: int, keypoints: int) -> dict:
     det = load_detector(model, DetectorConfig())
     fill_map(det, places, keypoints)
+    clocks = (time.perf_counter, time.process_time)  # wall and CPU: the machine may be shared
     with tempfile.TemporaryDirectory(prefix="state_bench_") as tmp:
         with MapStateDir(tmp, bundle_id(det.manifest)) as d:
-            t0 = time.perf_counter()
+            t0 = [c() for c in clocks]
             state = det.state()
-            t1 = time.perf_counter()
+            t1 = [c() for c in clocks]
             info = d.save(state)
-            t2 = time.perf_counter()
+            t2 = [c() for c in clocks]
+        del state
         again = load_detector(model, DetectorConfig())
         with MapStateDir(tmp, bundle_id(again.manifest)) as d:
-            t3 = time.perf_counter()
+            t3 = [c() for c in clocks]
             load_into(again, d)
-            t4 = time.perf_counter()
+            t4 = [c() for c in clocks]
     assert again.n_places == det.n_places and again.map_bytes() == det.map_bytes()
     return {
         "places": places, "keypoints_per_place": keypoints, "vocabulary": det.bundle.vocabulary_size,
-        "state_s": round(t1 - t0, 3), "save_s": round(t2 - t1, 3), "load_s": round(t4 - t3, 3),
+        "state_s": round(t1[0] - t0[0], 3), "save_s": round(t2[0] - t1[0], 3), "load_s": round(t4[0] - t3[0], 3),
+        "state_cpu_s": round(t1[1] - t0[1], 3), "save_cpu_s": round(t2[1] - t1[1], 3),
+        "load_cpu_s": round(t4[1] - t3[1], 3), "load_average": os.getloadavg()[0],
         "bytes": info.nbytes, "bytes_per_place": round(info.nbytes / places), "map_bytes": det.map_bytes(),
     }
 
