@@ -61,7 +61,7 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.core.detector import DetectorConfig
 
     stop = threading.Event()
-    state_dir = None
+    state_dir = snapshotter = None
     try:
         session = cli_session_config("listen", connect=args.connect, listen=args.listen, config_file=args.config)
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb))
@@ -77,7 +77,6 @@ def main(args: argparse.Namespace) -> int:
                 _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb,
             )
 
-        snapshotter = None
         if getattr(args, "state", None) is not None:
             from aefabmap.cli.state_options import open_state
             from aefabmap.runtime.adapters.map_state import SnapshotPolicy, Snapshotter
@@ -101,6 +100,8 @@ def main(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return exc.exit_code
     finally:
+        if snapshotter is not None:
+            snapshotter.join()  # a snapshot being written when the run failed
         if state_dir is not None:
             state_dir.close()
     print(json.dumps(summary.to_dict()))
