@@ -106,12 +106,12 @@ def main() -> int:
                         signal.SIGKILL if args.kill else signal.SIGTERM)
     det = load_detector(args.model, DetectorConfig())
     with MapStateDir(args.work / "state", bundle_id(det.manifest)) as d:
-        state = d.load()
-        snap = d.path / d.current()
-    saved = int(state.scalars["sequence"])
+        state = d.load()  # None: killed before the first snapshot
+        snap = d.path / d.current() if state is not None else None
+    saved = int(state.scalars["sequence"]) if state is not None else 0
     print(json.dumps({"stop": "kill -9" if args.kill else "SIGTERM", "exit_code": rc, "seconds": round(t, 1),
                       "state_sequence": saved, "frames_lost": args.split - saved,
-                      "state_bytes": sum(f.stat().st_size for f in snap.iterdir())}), flush=True)
+                      "state_bytes": sum(f.stat().st_size for f in snap.iterdir()) if snap else 0}), flush=True)
     if args.kill:
         return 0
     rc2, _, t2 = run_part(args, args.work / "second", args.work / "second.mcap", len(frames) - 1, 17602, signal.SIGTERM)
