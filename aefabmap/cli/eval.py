@@ -55,7 +55,7 @@ def run(args) -> int:
         require_plotting()  # fail before a long run, not after it
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
     save_state = None
-    if args.state is not None:
+    if getattr(args, "state", None) is not None:
         if len(scorers) > 1:
             raise ConfigError("--state keeps one map: choose --scorer fabmap or bow, not both")
         save_state = _state_saver(args.state)

@@ -98,7 +98,7 @@ class MapStateDir:
     def open(self) -> Self:
         try:
             self.path.mkdir(parents=True, exist_ok=True)
-            if self.path.is_symlink() or not self.path.is_dir():
+            if not self.path.is_dir():  # DIR itself may be a link (e.g. to a data partition); its files may not
                 raise StateError(f"state directory {self.path} is not a directory")
             fd = os.open(self.path / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as exc:
