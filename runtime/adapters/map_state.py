@@ -145,12 +145,17 @@ class MapStateDir:
         if name is None:
             return None
         snap = self.path / name
-        if snap.is_symlink() or not snap.is_dir():
-            raise StateError(f"state snapshot {snap} is missing or not a directory")
-        manifest = self._read_manifest(snap)
-        arrays = {}
-        for key, entry in manifest["arrays"].items():
-            arrays[key] = self._read_array(snap, key, entry)
+        try:
+            if snap.is_symlink() or not snap.is_dir():
+                raise StateError(f"state snapshot {snap} is missing or not a directory")
+            manifest = self._read_manifest(snap)
+            arrays = {key: self._read_array(snap, key, entry) for key, entry in manifest["arrays"].items()}
+        except StateError as exc:
+            older = sorted(p.name for p in self.path.iterdir() if _SNAP_RE.match(p.name) and p.name < name)
+            if older:  # refused all the same: which map to fall back to is the operator's decision
+                raise StateError(f"{exc}; the previous snapshot {older[-1]} is in {self.path} "
+                                 f"(write its name into {CURRENT_NAME} to use it)") from None
+            raise
         return MapState(arrays, manifest["scalars"])
 
     def _read_manifest(self, snap: Path) -> dict:

@@ -324,7 +324,10 @@ def test_background_snapshots_write_in_a_thread_and_final_waits(bundle, tmp_path
 
 def test_eval_saves_the_map_it_built_and_will_not_overwrite_one(bundle, tmp_path, caplog):
     from aefabmap.cli.main import main
-    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence, write_sequence
+    from aefabmap.runtime.tools.synthetic_route import (
+        generate_loop_sequence,
+        write_sequence,
+    )
 
     images, gt = generate_loop_sequence(12, seed=1, size=(160, 120))
     write_sequence(tmp_path / "seq", images, gt)
@@ -337,3 +340,17 @@ def test_eval_saves_the_map_it_built_and_will_not_overwrite_one(bundle, tmp_path
     assert det.n_places == 10 and det.next_sequence == 12
     assert main(argv) == 2  # DIR already holds a map
     assert "already holds a map" in caplog.text
+
+
+def test_a_corrupt_current_snapshot_names_the_previous_one(bundle, tmp_path):
+    det = _saved(bundle, tmp_path / "s", n=10)
+    with MapStateDir(tmp_path / "s", bundle_id(det.manifest)) as d:
+        d.save(det.state())
+    p = _snap(tmp_path / "s") / "last_used.npy"
+    p.write_bytes(p.read_bytes()[:-1])
+    msg = _refused(bundle, tmp_path / "s")
+    assert "checksum" in msg and "snap-000001" in msg
+    (tmp_path / "s" / CURRENT_NAME).write_text("snap-000001\n")
+    det2 = load_detector(bundle, CONFIG)
+    with MapStateDir(tmp_path / "s", bundle_id(det2.manifest)) as d:
+        assert load_into(det2, d) and det2.next_sequence == 10
