@@ -354,3 +354,17 @@ def test_a_corrupt_current_snapshot_names_the_previous_one(bundle, tmp_path):
     det2 = load_detector(bundle, CONFIG)
     with MapStateDir(tmp_path / "s", bundle_id(det2.manifest)) as d:
         assert load_into(det2, d) and det2.next_sequence == 10
+
+
+def test_malformed_manifest_and_missing_array_are_refused(bundle, tmp_path):
+    _saved(bundle, tmp_path / "s")
+    (_snap(tmp_path / "s") / MANIFEST_NAME).write_bytes(b"{not json")
+    assert "not valid JSON" in _refused(bundle, tmp_path / "s")
+    _saved(bundle, tmp_path / "t")
+    doc = json.loads((_snap(tmp_path / "t") / MANIFEST_NAME).read_text())
+    doc["arrays"]["../../etc/passwd"] = {"sha256": "0" * 64}
+    (_snap(tmp_path / "t") / MANIFEST_NAME).write_text(json.dumps(doc))
+    assert "bad array entry" in _refused(bundle, tmp_path / "t")
+    _saved(bundle, tmp_path / "u")
+    (_snap(tmp_path / "u") / "scorer.places.alive.npy").unlink()
+    assert "scorer.places.alive" in _refused(bundle, tmp_path / "u")
