@@ -217,6 +217,7 @@ class MapStateDir:
         """Write ``state`` as the new current snapshot (see the module doc); on any failure the
         previous snapshot stays current and StateError is raised."""
         t0 = time.perf_counter()
+        state.resolve()  # deferred parts (keypoints) are packed here, by the writing thread
         current = self.current_or_none()
         # Past every snapshot present: one orphaned by a crash before CURRENT moved is not reused.
         taken = [int(m.group(1)) for p in self.path.iterdir() if (m := _SNAP_RE.match(p.name))]
@@ -313,8 +314,8 @@ class Snapshotter:
     and once more at the end of the run (``final``). A failed periodic snapshot is reported
     (``on_error``) and counted, the run goes on and the previous snapshot stays current.
 
-    background: gather the state between frames (arrays copied, ~0.2 s per 1000 places with
-    keypoints) but write it in a thread, so that frames are not held up by the disk; at most
+    background: take the state between frames (index arrays copied, keypoints referenced) but
+    pack the keypoints and write it all in a thread, so that frames are not held up by the disk; at most
     one write is in flight (a due snapshot waits for the next frame after it) and ``final``
     waits for it before writing the last one.
     """

@@ -370,7 +370,8 @@ class LoopClosureDetector:
         return pid
 
     def state(self) -> MapState:
-        """The whole map as arrays + scalars (runtime/core/map_state.py): scorer postings, keypoint
+        """The whole map as arrays + scalars (runtime/core/map_state.py; the keypoints are packed by
+        ``MapState.resolve()``, e.g. in the thread that writes them): scorer postings, keypoint
         store, place -> frame table, last-used order, delayed-insertion queue, frame counter,
         track prior and temporal history. Loading it (load_state) into a detector on the same
         bundle and settings continues the run with bit-identical results."""
@@ -390,7 +391,8 @@ class LoopClosureDetector:
         st.arrays["pending_words_ptr"], st.arrays["pending_words"] = pack_ragged([p[1] for p in pend], np.int64)
         if self.store is not None:
             st.put("store", self.store.state())
-            st.put("pending_kps", self.store.pack_places([p[2] for p in pend]))
+            store, pending_kps = self.store, [p[2] for p in pend]
+            st.put("pending_kps", MapState(deferred=[("", lambda: store.pack_places(pending_kps))]))
         if self.temporal is not None:
             st.put("temporal", self.temporal.state())
         return st

@@ -134,11 +134,18 @@ class KeypointStore:
         return int(place_id) in self._places
 
     def state(self) -> MapState:
-        """Stored places as arrays: ids (P,), their keypoints packed (pack_places)."""
-        pids = list(self._places)
-        st = self.pack_places([self._places[p] for p in pids])
-        st.arrays["place_ids"] = np.array(pids, np.int64)
-        return st
+        """Stored places as arrays: ids (P,), their keypoints packed (pack_places).
+
+        Deferred (MapState.resolve): only references are taken now; records are never changed
+        in place once stored (put replaces, remove drops), so packing them later is safe."""
+        places = list(self._places.items())
+
+        def pack() -> MapState:
+            st = self.pack_places([p for _, p in places])
+            st.arrays["place_ids"] = np.array([pid for pid, _ in places], np.int64)
+            return st
+
+        return MapState(deferred=[("", pack)])
 
     def pack_places(self, places: list[PlaceKeypoints | None]) -> MapState:
         """Keypoints of several places (None: a frame without keypoints kept) as flat arrays:

@@ -9,6 +9,7 @@ format lives in runtime/adapters/map_state.py.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,15 +21,31 @@ Scalar = int | float | str | bool | None
 
 @dataclass
 class MapState:
-    """Named numpy arrays plus JSON-able scalars. Names are dotted paths ("scorer.alive")."""
+    """Named numpy arrays plus JSON-able scalars. Names are dotted paths ("scorer.alive").
+
+    deferred: (prefix, packer) pairs whose arrays are built later by ``resolve()``: a part whose
+    contents are immutable once stored (the keypoint records) is captured as references when
+    the state is taken and packed into arrays by whoever writes it (possibly another thread),
+    so taking a state between two frames stays cheap.
+    """
 
     arrays: dict[str, np.ndarray] = field(default_factory=dict)
     scalars: dict[str, Scalar] = field(default_factory=dict)
+    deferred: list[tuple[str, Callable[[], MapState]]] = field(default_factory=list)
 
     def put(self, prefix: str, part: MapState) -> None:
-        """Nest another part's state under ``prefix.``."""
-        self.arrays.update({f"{prefix}.{k}": v for k, v in part.arrays.items()})
-        self.scalars.update({f"{prefix}.{k}": v for k, v in part.scalars.items()})
+        """Nest another part's state under ``prefix.`` (an empty prefix merges it as is)."""
+        pre = f"{prefix}." if prefix else ""
+        self.arrays.update({f"{pre}{k}": v for k, v in part.arrays.items()})
+        self.scalars.update({f"{pre}{k}": v for k, v in part.scalars.items()})
+        self.deferred.extend((f"{pre}{p}" if p else prefix, fn) for p, fn in part.deferred)
+
+    def resolve(self) -> MapState:
+        """Build the deferred arrays (in place); returns self."""
+        while self.deferred:
+            prefix, packer = self.deferred.pop(0)
+            self.put(prefix, packer().resolve())
+        return self
 
     def part(self, prefix: str) -> MapState:
         """The names under ``prefix.``, with the prefix removed."""

@@ -35,6 +35,7 @@ def _public(res) -> dict:
 
 
 def _copy(state: MapState) -> MapState:
+    state.resolve()
     return MapState({k: np.array(v, copy=True) for k, v in state.arrays.items()}, dict(state.scalars))
 
 
@@ -103,3 +104,18 @@ def test_hostile_states_are_refused(bundle, route):
     del s.arrays["last_used"]
     assert "last_used" in _refused(bundle, s)
     assert "scorer" in _refused(bundle, _copy(good), CONFIGS["bow"])
+
+
+def test_a_state_packs_the_map_it_was_taken_of_even_after_more_frames(bundle, route):
+    """The keypoints are packed late (MapState.resolve, in the snapshot thread): frames processed
+    in between (evicting places, reusing their ids) must not leak into it."""
+    det = load_detector(bundle, CONFIGS["fabmap-verified-capped"])
+    for i, img in enumerate(route[:50]):
+        det.process(img, i)
+    taken = det.state()
+    now = _copy(det.state())
+    evicted = [det.process(img, i).evicted_place for i, img in enumerate(route[50:], 50)]
+    assert any(e is not None for e in evicted)
+    taken.resolve()
+    assert taken.arrays.keys() == now.arrays.keys()
+    assert all(np.array_equal(taken.arrays[k], now.arrays[k]) for k in now.arrays)
