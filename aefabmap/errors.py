@@ -24,6 +24,13 @@ class BundleError(AefabmapError):
     exit_code = 3
 
 
+class StateError(AefabmapError):
+    """A saved map state (``--state DIR``) is corrupt, truncated, of another bundle or settings,
+    of a newer format, or cannot be written."""
+
+    exit_code = 3
+
+
 class InputError(AefabmapError):
     """An input (image, frame payload, observation, data file) is malformed."""
 

@@ -6,6 +6,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
 from aefabmap.runtime.core.verification import VerificationConfig
 
@@ -38,6 +39,9 @@ def register(sub) -> None:
     p.add_argument("--plot", type=Path, metavar="PR.png", help="PR curves (needs matplotlib)")
     p.add_argument("--score-matrix", type=Path, metavar="M.png", help="score matrix as an image")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--state", default=None, metavar="DIR",
+                   help="save the map built over the sequence to DIR (for `run --state`/`replay --state`); "
+                   "DIR must not hold a map yet: frames of a loaded map are not in the ground truth")
     p.set_defaults(func=run)
 
 
@@ -53,6 +57,11 @@ def run(args) -> int:
     if args.plot:
         require_plotting()  # fail before a long run, not after it
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
+    save_state = None
+    if getattr(args, "state", None) is not None:
+        if len(scorers) > 1:
+            raise ConfigError("--state keeps one map: choose --scorer fabmap or bow, not both")
+        save_state = _state_saver(args.state)
     verification = VerificationConfig(enabled=not args.no_verify, camera=getattr(args, "camera", None))
     if args.verify_top_k is not None:
         verification = dataclasses.replace(verification, top_k=args.verify_top_k)
@@ -70,7 +79,8 @@ def run(args) -> int:
             temporal_frames=args.temporal_frames if not args.no_verify else 0,
             temporal_tolerance=args.temporal_tolerance,
         )
-        rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance, not args.no_progress)
+        rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance,
+                                                     not args.no_progress, after_run=save_state)
         # Raw and verified rows side by side.
         table[scorer] = rows[scorer]
         if "verified" in rows[scorer]:
@@ -87,3 +97,24 @@ def run(args) -> int:
     if args.score_matrix:
         save_score_matrix(runs[scorers[0]].score_matrix, args.score_matrix)
     return 0
+
+
+def _state_saver(path):
+    """detector -> None: saves its map to the empty state directory ``path`` (checked now, before the run)."""
+    import logging
+
+    from aefabmap.runtime.adapters.map_state import MapStateDir
+
+    probe = MapStateDir(path, "")
+    if probe.current_or_none() is not None or (probe.path / "CURRENT").exists():
+        raise ConfigError(f"state directory {path} already holds a map; eval builds a new one")
+
+    def save(detector) -> None:
+        from aefabmap.runtime.adapters.map_state import bundle_id
+
+        with MapStateDir(path, bundle_id(detector.manifest)) as directory:
+            info = directory.save(detector.state())
+        logging.getLogger("aefabmap.eval").info("map state saved to %s: %d places, %d bytes",
+                                                info.path, info.n_places, info.nbytes)
+
+    return save

@@ -31,11 +31,15 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
     p.add_argument("--check", action="store_true", help="compare with the results in the log")
+    from aefabmap.cli.state_options import add_state_options
+
+    add_state_options(p)
     p.set_defaults(func=main)
     return p
 
 
 def main(args: argparse.Namespace) -> int:
+    from aefabmap.cli.state_options import open_state
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.log_set import log_files
     from aefabmap.runtime.adapters.mcap_log import (
@@ -46,6 +50,7 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.ros_bag import is_ros_bag
     from aefabmap.runtime.core.detector import DetectorConfig
 
+    state_dir = None
     try:
         # Replay with the detector options of the logged run (max places, memory budget).
         bag = len(args.log) == 1 and is_ros_bag(args.log[0])
@@ -54,11 +59,19 @@ def main(args: argparse.Namespace) -> int:
         detector = load_detector(
             args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
         )
+        if getattr(args, "state", None) is not None:
+            state_dir = open_state(args.state, detector, log)
         summary = replay(detector, source, out_path=args.out, check=args.check,
                          image_topic=getattr(args, "topic", None))
+        if state_dir is not None:
+            info = state_dir.save(detector.state())
+            log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code
+    finally:
+        if state_dir is not None:
+            state_dir.close()
     log.info("%s", summary.status.describe())
     if summary.status.truncated:
         log.warning("%s", summary.status.describe())

@@ -86,6 +86,9 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="frames kept while busy; older ones are dropped (default 2)")
     p.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
+    from aefabmap.cli.state_options import add_state_options
+
+    add_state_options(p, snapshots=True)
     p.set_defaults(func=main)
     return p
 
@@ -99,6 +102,7 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.core.verification import VerificationConfig
 
     stop = threading.Event()
+    state_dir = snapshotter = None
     try:
         ros_topic = getattr(args, "ros_topic", None)
         if (args.key is None) == (ros_topic is None):
@@ -134,11 +138,33 @@ def main(args: argparse.Namespace) -> int:
                 _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb, msg.log_state, msg.log_errors,
             )
 
+        if getattr(args, "state", None) is not None:
+            from aefabmap.cli.state_options import open_state
+            from aefabmap.runtime.adapters.map_state import SnapshotPolicy, Snapshotter
+
+            policy = SnapshotPolicy.parse(args.snapshot_every)
+            state_dir = open_state(args.state, detector, log)
+            snapshotter = Snapshotter(
+                detector, state_dir, policy,
+                on_error=lambda exc: log.warning("snapshot failed, the previous one is kept: %s", exc),
+                on_saved=lambda info: log.debug("snapshot %s: %d places, %d bytes, %.3f s",
+                                                info.path.name, info.n_places, info.nbytes, info.seconds),
+                background=True,
+            )
+
         with stop_on_signals(stop):
-            summary = run_node(detector, options, stop_event=stop, on_stats=on_stats)
+            summary = run_node(detector, options, stop_event=stop, on_stats=on_stats, snapshotter=snapshotter)
+        if snapshotter is not None and snapshotter.saved:
+            last = snapshotter.saved[-1]
+            log.info("map state saved to %s: %d places, %d bytes", last.path, last.n_places, last.nbytes)
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code
+    finally:
+        if snapshotter is not None:
+            snapshotter.join()  # a snapshot being written when the run failed
+        if state_dir is not None:
+            state_dir.close()
     print(json.dumps(summary.to_dict()))
     return 0
 

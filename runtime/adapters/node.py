@@ -253,14 +253,18 @@ def run_node(
     stop_event: threading.Event,
     on_stats: Callable[[StatsMessage], None] | None = None,
     ready_event: threading.Event | None = None,
+    snapshotter=None,
 ) -> RunSummary:
     """Run the streaming loop until ``stop_event`` is set (or ``options.max_frames`` processed).
 
     on_stats: called with each stats message. ready_event: set once subscribed (tests and
-    supervisors wait on it). Raises LogError (MCAP target not writable: checked before any
-    network activity; the first file is created once the session is up, so a start that
-    fails leaves no file behind and no existing file is ever overwritten), TransportError
-    (session), ConfigError. Once running, log errors are counted in the stats, never raised.
+    supervisors wait on it). snapshotter: keeps the map on disk (runtime/adapters/map_state.py
+    Snapshotter): ``after_frame()`` between frames, ``final()`` on the normal stop path
+    (stop_event / max_frames; StateError when that last snapshot cannot be written). Raises
+    LogError (MCAP target not writable: checked before any network activity; the first file is
+    created once the session is up, so a start that fails leaves no file behind and no existing
+    file is ever overwritten), TransportError (session), ConfigError. Once running, log errors
+    are counted in the stats, never raised.
     """
     manifest = getattr(detector, "manifest", None)
     loop, stats, t0 = FrameLoop(detector), RunStats(), time.monotonic()
@@ -280,7 +284,11 @@ def run_node(
                     output.send(frame, loop.refuse(frame.error))
                 else:
                     output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
+                if snapshotter is not None:
+                    snapshotter.after_frame()
         emitter.emit()
+        if snapshotter is not None:
+            snapshotter.final()
     latency = stats.latency()
     return RunSummary(
         frames_received=loop.frames_in, frames_processed=loop.processed, dropped=stats.dropped,

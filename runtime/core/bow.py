@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from aefabmap.errors import InputError
+from aefabmap.errors import InputError, StateError
+from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 
 
 class BowIndex:
@@ -122,6 +123,70 @@ class BowIndex:
             if k:
                 acc[self._ids[q][:k]] += x * self._wts[q][:k]
         return acc
+
+    def state(self) -> MapState:
+        """Postings (ids and tf-idf weights in their order, with buffer capacities), word lists, free ids."""
+        st = MapState()
+        n = self.n_places
+        st.scalars.update(n_places=n, capacity=int(self._alive.size))
+        st.arrays["alive"] = self._alive[:n].copy()
+        st.arrays["words_ptr"], st.arrays["words"] = pack_ragged(self._words, self._word_dtype)
+        st.arrays["post_cap"] = np.array([0 if b is None else b.size for b in self._ids], np.int64)
+        rows = [None if b is None else b[:k] for b, k in zip(self._ids, self._len.tolist())]
+        st.arrays["post_ptr"], st.arrays["postings"] = pack_ragged(rows, np.int64)
+        wrows = [None if b is None else b[:k] for b, k in zip(self._wts, self._len.tolist())]
+        st.arrays["weights"] = pack_ragged(wrows, np.float64)[1]
+        st.arrays["free"] = np.array(self._free, np.int64)
+        return st
+
+    def load_state(self, st: MapState) -> None:
+        """Replace the contents by a checked state (see state())."""
+        v = self.vocabulary_size
+        n = st.scalar("n_places", int, lo=0, hi=np.iinfo(np.int32).max)
+        cap = st.scalar("capacity", int, lo=n, hi=max(64, 2 * n) + 1)
+        alive = st.array("alive", "b", (n,))
+        words = st.array("words", "iu", (None,), lo=0, hi=v)
+        wptr = check_ptr(st, "words_ptr", n, words.size)
+        post_cap = st.array("post_cap", "iu", (v,), lo=0)
+        postings = st.array("postings", "iu", (None,), lo=0, hi=max(n, 1))
+        weights = st.array("weights", "f", (postings.size,))
+        pptr = check_ptr(st, "post_ptr", v, postings.size)
+        free = st.array("free", "iu", (None,), lo=0, hi=max(n, 1))
+        lens, rows = np.diff(pptr), np.diff(wptr)
+        if np.any(rows[~alive] != 0):
+            raise StateError("map state: a removed place still has words")
+        if np.any(lens > post_cap) or np.any((post_cap == 0) != (lens == 0)) or np.any(post_cap > 8 * lens + 8):
+            raise StateError("map state: posting capacities do not fit their lengths")
+        if np.any(weights < 0) or np.any(weights > 1):
+            raise StateError("map state: tf-idf weights outside [0, 1]")
+        if np.unique(free).size != free.size or set(free.tolist()) != set(np.flatnonzero(~alive).tolist()):
+            raise StateError("map state: free ids are not exactly the removed places")
+        place_of = np.repeat(np.arange(n, dtype=np.int64), rows)
+        if words.size > 1:
+            same = place_of[1:] == place_of[:-1]
+            if np.any(words[1:][same] <= words[:-1][same]):
+                raise StateError("map state: a place's word ids are not sorted and unique")
+        word_of = np.repeat(np.arange(v, dtype=np.int64), lens)
+        a, b = np.lexsort((place_of, words)), np.lexsort((postings, word_of))
+        if words.size != postings.size or np.any(words[a] != word_of[b]) or np.any(place_of[a] != postings[b]):
+            raise StateError("map state: postings do not match the places' words")
+        self.n_places, self.n_alive = n, int(alive.sum())
+        self._alive = np.zeros(cap, bool)
+        self._alive[:n] = alive
+        self._words = [None] * n
+        self._buffer_bytes = 0
+        for pid in np.flatnonzero(alive).tolist():
+            self._words[pid] = words[wptr[pid]:wptr[pid + 1]].astype(self._word_dtype)
+            self._buffer_bytes += self._words[pid].nbytes
+        self._ids, self._wts = [None] * v, [None] * v
+        self._len = lens.astype(np.int64)
+        for q in np.flatnonzero(post_cap).tolist():
+            c, k = int(post_cap[q]), int(lens[q])
+            ids, ws = np.empty(c, np.intp), np.empty(c, np.float64)
+            ids[:k], ws[:k] = postings[pptr[q]:pptr[q + 1]], weights[pptr[q]:pptr[q + 1]]
+            self._ids[q], self._wts[q] = ids, ws
+            self._buffer_bytes += ids.nbytes + ws.nbytes
+        self._free = free.tolist()
 
     def nbytes(self) -> int:
         """Bytes held by posting lists, per-place word lists and per-place arrays (O(1))."""

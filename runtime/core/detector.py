@@ -14,12 +14,13 @@ from typing import Protocol
 
 import numpy as np
 
-from aefabmap.errors import ConfigError, InputError
+from aefabmap.errors import ConfigError, InputError, StateError
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
 from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
+from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 from aefabmap.runtime.core.messages import FrameResult  # the result record lives with the wire messages
 from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Scorer
 from aefabmap.runtime.core.temporal import TemporalFilter
@@ -176,6 +177,16 @@ class LoopClosureDetector:
     def n_places(self) -> int:
         """Places in the map now."""
         return self.scorer.n_alive
+
+    @property
+    def next_sequence(self) -> int:
+        """Sequence number the next frame gets (frames continue across a saved state)."""
+        return self._sequence
+
+    @property
+    def frames_inserted(self) -> int:
+        """Frames that have entered the map since it was started (evicted ones included)."""
+        return self._sequence - len(self._pending)
 
     def last_scores(self) -> np.ndarray | None:
         """Scores of every place id (probability or similarity) from the last processed frame."""
@@ -361,6 +372,81 @@ class LoopClosureDetector:
         self._last_used[pid] = frame
         self._place_frame[pid] = frame
         return pid
+
+    def state(self) -> MapState:
+        """The whole map as arrays + scalars (runtime/core/map_state.py; the keypoints are packed by
+        ``MapState.resolve()``, e.g. in the thread that writes them): scorer postings, keypoint
+        store, place -> frame table, last-used order, delayed-insertion queue, frame counter,
+        track prior and temporal history. Loading it (load_state) into a detector on the same
+        bundle and settings continues the run with bit-identical results."""
+        st = MapState()
+        c = self.config
+        st.scalars.update(
+            scorer=c.scorer, verification=self.store is not None, vocabulary_size=int(self.bundle.vocabulary_size),
+            max_keypoints=self.store.max_keypoints if self.store is not None else None,
+            sequence=self._sequence, track_seq=self._track_seq, track_frame=self._track_frame,
+            n_places=self.scorer.n_places, n_alive=self.n_places,
+        )
+        st.put("scorer", self.scorer.state())
+        st.arrays["place_frame"] = self._place_frame.copy()
+        st.arrays["last_used"] = self._last_used.copy()
+        pend = list(self._pending)
+        st.arrays["pending_seq"] = np.array([p[0] for p in pend], np.int64)
+        st.arrays["pending_words_ptr"], st.arrays["pending_words"] = pack_ragged([p[1] for p in pend], np.int64)
+        if self.store is not None:
+            st.put("store", self.store.state())
+            store, pending_kps = self.store, [p[2] for p in pend]
+            st.put("pending_kps", MapState(deferred=[("", lambda: store.pack_places(pending_kps))]))
+        if self.temporal is not None:
+            st.put("temporal", self.temporal.state())
+        return st
+
+    def load_state(self, st: MapState) -> None:
+        """Replace the map by a checked state (see state()); raises StateError on any mismatch
+        with this detector's bundle or settings, or an array out of shape or bounds."""
+        c = self.config
+        scorer = st.scalar("scorer", str)
+        if scorer != c.scorer:
+            raise StateError(f"map state was built with the {scorer!r} scorer, this run uses {c.scorer!r}")
+        if st.scalar("verification", bool) != (self.store is not None):
+            raise StateError("map state and this run differ in geometric verification (on/off)")
+        v = int(self.bundle.vocabulary_size)
+        if st.scalar("vocabulary_size", int) != v:
+            raise StateError(f"map state has a vocabulary of {st.scalars['vocabulary_size']} words, the bundle {v}")
+        if self.store is not None and st.scalar("max_keypoints", (int, type(None))) != self.store.max_keypoints:
+            raise StateError("map state was built with another max_keypoints per place")
+        seq = st.scalar("sequence", int, lo=0, hi=2**62)
+        track_seq = st.scalar("track_seq", int, lo=-2, hi=seq)
+        track_frame = st.scalar("track_frame", int, lo=-1, hi=max(seq, 1))
+        self.scorer.load_state(st.part("scorer"))
+        n = self.scorer.n_places
+        if st.scalar("n_places", int) != n or st.scalar("n_alive", int) != self.scorer.n_alive:
+            raise StateError("map state: place counts disagree with the place index")
+        place_frame = st.array("place_frame", "iu", (None,), lo=-1, hi=max(seq, 1))
+        last_used = st.array("last_used", "iu", (place_frame.size,), lo=-1, hi=max(seq, 1))
+        if place_frame.size < n or place_frame.size > max(64, 2 * n):
+            raise StateError(f"map state: place tables hold {place_frame.size} ids for {n} places")
+        if np.any(place_frame[:n][self.scorer.alive] < 0):
+            raise StateError("map state: a stored place has no frame")
+        pseq = st.array("pending_seq", "iu", (None,), lo=0, hi=max(seq, 1))
+        if pseq.size > 1 and np.any(np.diff(pseq) <= 0):
+            raise StateError("map state: the insertion queue is not in frame order")
+        pwords = st.array("pending_words", "iu", (None,), lo=0, hi=v)
+        pptr = check_ptr(st, "pending_words_ptr", pseq.size, pwords.size)
+        pkps: list = [None] * pseq.size
+        if self.store is not None:
+            self.store.load_state(st.part("store"), n)
+            if any(not self.scorer.alive[p] for p in self.store._places):
+                raise StateError("map state: the keypoint store holds a removed place")
+            pkps = self.store.unpack_places(st.part("pending_kps"), pseq.size)
+        if self.temporal is not None:
+            self.temporal.load_state(st.part("temporal"))
+        self._place_frame, self._last_used = place_frame, last_used
+        self._pending = deque(
+            (int(s), pwords[pptr[i]:pptr[i + 1]], pkps[i]) for i, s in enumerate(pseq.tolist())
+        )
+        self._sequence, self._track_seq, self._track_frame = seq, track_seq, track_frame
+        self._last_scores = None
 
     def map_bytes(self) -> int:
         """Memory of the map (index postings, word lists, per-place arrays), in bytes.

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aefabmap.errors import InputError
+from aefabmap.errors import InputError, StateError
+from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 from aefabmap.runtime.core.tree import ChowLiuTree
 
 
@@ -241,6 +242,71 @@ class InvertedIndex:
             acc[buf[q][:k]] += w
         return acc
 
+    def state(self) -> MapState:
+        """Everything add/remove built: postings in their order and with their buffer
+        capacities (memory accounting must come out the same), word lists, free-id order."""
+        st = MapState()
+        n = self.n_places
+        st.scalars.update(n_places=n, capacity=int(self._alive.size))
+        st.arrays["alive"] = self._alive[:n].copy()
+        st.arrays["words_ptr"], st.arrays["words"] = pack_ragged(self._words, self._word_dtype)
+        st.arrays["post_cap"] = np.array([0 if b is None else b.size for b in self._buf], np.int64)
+        st.arrays["post_ptr"], st.arrays["postings"] = pack_ragged(
+            [None if b is None else b[:k] for b, k in zip(self._buf, self._len.tolist())], np.int64)
+        st.arrays["free"] = np.array(self._free, np.int64)
+        return st
+
+    def load_state(self, st: MapState, default) -> None:
+        """Replace the contents by a checked state; default(words int64) -> a place's default score."""
+        v = self.vocabulary_size
+        n = st.scalar("n_places", int, lo=0, hi=np.iinfo(np.int32).max)
+        cap = st.scalar("capacity", int, lo=n, hi=max(64, 2 * n) + 1)
+        alive = st.array("alive", "b", (n,))
+        words = st.array("words", "iu", (None,), lo=0, hi=v)
+        wptr = check_ptr(st, "words_ptr", n, words.size)
+        post_cap = st.array("post_cap", "iu", (v,), lo=0)
+        postings = st.array("postings", "iu", (None,), lo=0, hi=max(n, 1))
+        pptr = check_ptr(st, "post_ptr", v, postings.size)
+        free = st.array("free", "iu", (None,), lo=0, hi=max(n, 1))
+        lens = np.diff(pptr)
+        rows = np.diff(wptr)
+        if np.any(rows[~alive] != 0):
+            raise StateError("map state: a removed place still has words")
+        if np.any(lens > post_cap) or np.any((post_cap == 0) != (lens == 0)) or np.any(post_cap > 8 * lens + 8):
+            raise StateError("map state: posting capacities do not fit their lengths")
+        if np.unique(free).size != free.size or set(free.tolist()) != set(np.flatnonzero(~alive).tolist()):
+            raise StateError("map state: free ids are not exactly the removed places")
+        # Each place's words strictly increasing, and the postings exactly the (word, place) pairs.
+        place_of = np.repeat(np.arange(n, dtype=np.int64), rows)
+        if words.size > 1:
+            same = place_of[1:] == place_of[:-1]
+            if np.any(words[1:][same] <= words[:-1][same]):
+                raise StateError("map state: a place's word ids are not sorted and unique")
+        word_of = np.repeat(np.arange(v, dtype=np.int64), lens)
+        a = np.lexsort((place_of, words))
+        b = np.lexsort((postings, word_of))
+        if words.size != postings.size or np.any(words[a] != word_of[b]) or np.any(place_of[a] != postings[b]):
+            raise StateError("map state: postings do not match the places' words")
+        self.n_places, self.n_alive = n, int(alive.sum())
+        self._alive = np.zeros(cap, bool)
+        self._alive[:n] = alive
+        self._default = np.zeros(cap, np.float64)
+        self._words = [None] * n
+        self._buffer_bytes = 0
+        for pid in np.flatnonzero(alive).tolist():
+            w = words[wptr[pid]:wptr[pid + 1]]
+            self._words[pid] = w.astype(self._word_dtype)
+            self._buffer_bytes += self._words[pid].nbytes
+            self._default[pid] = default(w)
+        self._buf = [None] * v
+        self._len = lens.astype(np.int64)
+        for q in np.flatnonzero(post_cap).tolist():
+            b = np.empty(int(post_cap[q]), np.intp)
+            b[: lens[q]] = postings[pptr[q]:pptr[q + 1]]
+            self._buf[q] = b
+            self._buffer_bytes += b.nbytes
+        self._free = free.tolist()
+
     def nbytes(self) -> int:
         """Bytes held by posting buffers, per-place word lists and per-place arrays (O(1))."""
         # 8 bytes per list slot of self._words, plus the fixed per-word arrays.
@@ -396,6 +462,26 @@ class FabMap2:
     def nbytes(self) -> int:
         """Memory held by the place index (postings, word lists, per-place arrays)."""
         return self.places.nbytes()
+
+    def state(self) -> MapState:
+        """The places (not the bundle's training index) and the motion model's last posterior."""
+        st = MapState()
+        st.put("places", self.places.state())
+        st.scalars["has_prior"] = self._prior is not None
+        if self._prior is not None:
+            st.arrays["prior"] = self._prior.copy()
+        return st
+
+    def load_state(self, st: MapState) -> None:
+        """Replace the places by a checked state (place defaults are recomputed from the words)."""
+        d1 = self.tables.d1
+        self.places.load_state(st.part("places"), lambda w: float(d1[w].sum()))
+        self._prior = None
+        if st.scalar("has_prior", bool):
+            prior = st.array("prior", "f", (None,))
+            if prior.size > self.places.n_places + 1:
+                raise StateError("map state: motion prior is longer than the place range")
+            self._prior = prior.astype(np.float64)
 
 
 def _logsumexp(x: np.ndarray) -> float:

@@ -25,8 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aefabmap.errors import InputError
+from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.feature_kinds import FeatureKind
+from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 
 # numpy array header (~112 B) + PlaceKeypoints object + dict slot + shape tuple, rounded up.
 PLACE_OVERHEAD_BYTES = 256
@@ -83,6 +84,7 @@ class KeypointStore:
         word_type = np.uint16 if vocabulary_size <= 65536 else np.int32
         self.dtype = np.dtype([("xy", np.uint16, (2,)), ("word", word_type), ("desc", np.uint8, (kind.store_bytes,))])
         self.max_keypoints = max_keypoints
+        self.vocabulary_size = vocabulary_size
         self._places: dict[int, PlaceKeypoints] = {}
         self._nbytes = 0
 
@@ -130,6 +132,61 @@ class KeypointStore:
 
     def __contains__(self, place_id: int) -> bool:
         return int(place_id) in self._places
+
+    def state(self) -> MapState:
+        """Stored places as arrays: ids (P,), their keypoints packed (pack_places).
+
+        Deferred (MapState.resolve): only references are taken now; records are never changed
+        in place once stored (put replaces, remove drops), so packing them later is safe."""
+        places = list(self._places.items())
+
+        def pack() -> MapState:
+            st = self.pack_places([p for _, p in places])
+            st.arrays["place_ids"] = np.array([pid for pid, _ in places], np.int64)
+            return st
+
+        return MapState(deferred=[("", pack)])
+
+    def pack_places(self, places: list[PlaceKeypoints | None]) -> MapState:
+        """Keypoints of several places (None: a frame without keypoints kept) as flat arrays:
+        has (P,) bool, image_shape (P, 2), ptr (P + 1,), xy (K, 2) uint16, word (K,), desc (K, B) uint8."""
+        st = MapState()
+        st.arrays["has"] = np.array([p is not None for p in places], bool)
+        st.arrays["image_shape"] = np.array([p.image_shape if p is not None else (0, 0) for p in places], np.int64).reshape(-1, 2)
+        st.arrays["ptr"], rec = pack_ragged([None if p is None else p.records for p in places], self.dtype)
+        st.arrays["xy"], st.arrays["word"], st.arrays["desc"] = rec["xy"].copy(), rec["word"].copy(), rec["desc"].copy()
+        return st
+
+    def unpack_places(self, st: MapState, n_places: int) -> list[PlaceKeypoints | None]:
+        """Checked inverse of pack_places for ``n_places`` places; raises StateError."""
+        has = st.array("has", "b", (n_places,))
+        shape = st.array("image_shape", "iu", (n_places, 2), lo=0, hi=1 << 16)
+        word = st.array("word", "iu", (None,), lo=0, hi=self.vocabulary_size, as_int64=False)
+        k = word.size
+        ptr = check_ptr(st, "ptr", n_places, k)
+        xy = st.array("xy", "iu", (k, 2), lo=0, hi=int(_XY_SCALE) + 1, as_int64=False)
+        desc = st.array("desc", "u", (k, self.kind.store_bytes), as_int64=False)
+        counts = np.diff(ptr)
+        if np.any(counts[~has] != 0) or (self.max_keypoints is not None and np.any(counts > self.max_keypoints)):
+            raise StateError("map state: keypoint counts do not fit the store's settings")
+        rec = np.zeros(k, self.dtype)
+        rec["xy"], rec["word"], rec["desc"] = xy, word, desc
+        return [
+            PlaceKeypoints(rec[ptr[i]:ptr[i + 1]].copy(), (int(shape[i, 0]), int(shape[i, 1]))) if has[i] else None
+            for i in range(n_places)
+        ]
+
+    def load_state(self, st: MapState, n_places: int) -> None:
+        """Replace the contents by a checked state; place ids must lie below ``n_places``."""
+        pids = st.array("place_ids", "iu", (None,), lo=0, hi=max(n_places, 1))
+        if np.unique(pids).size != pids.size or (pids.size and n_places == 0):
+            raise StateError("map state: keypoint store place ids repeat or lie outside the map")
+        places = self.unpack_places(st, pids.size)
+        if not all(p is not None for p in places):
+            raise StateError("map state: a stored place has no keypoints record")
+        self._places, self._nbytes = {}, 0
+        for pid, place in zip(pids.tolist(), places):
+            self.put(pid, place)
 
     def nbytes(self) -> int:
         """Bytes held by every stored place (records + PLACE_OVERHEAD_BYTES each)."""

@@ -16,6 +16,7 @@ import numpy as np
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.fabmap import FabMap2
+from aefabmap.runtime.core.map_state import MapState
 
 FABMAP_SCORES = ("probability", "llr")
 
@@ -77,6 +78,14 @@ class Scorer(Protocol):
         """Bytes held per place by the index (what the detector's memory cap accounts)."""
         ...
 
+    def state(self) -> MapState:
+        """The stored places as arrays (runtime/core/map_state.py)."""
+        ...
+
+    def load_state(self, state: MapState) -> None:
+        """Replace the stored places by a checked state; raises StateError."""
+        ...
+
 
 class FabMapScorer:
     """FAB-MAP 2.0 (FabMap2) as a Scorer.
@@ -121,6 +130,12 @@ class FabMapScorer:
     def nbytes(self) -> int:
         return self.fabmap.nbytes()
 
+    def state(self) -> MapState:
+        return self.fabmap.state()
+
+    def load_state(self, state: MapState) -> None:
+        self.fabmap.load_state(state)
+
 
 class BowScorer:
     """tf-idf cosine bag of words (BowIndex) as a Scorer; Ranking.score is the cosine similarity."""
@@ -158,3 +173,9 @@ class BowScorer:
 
     def nbytes(self) -> int:
         return self.index.nbytes()
+
+    def state(self) -> MapState:
+        return self.index.state()
+
+    def load_state(self, state: MapState) -> None:
+        self.index.load_state(state)

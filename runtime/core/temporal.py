@@ -15,7 +15,10 @@ from __future__ import annotations
 
 from collections import deque
 
-from aefabmap.errors import ConfigError
+import numpy as np
+
+from aefabmap.errors import ConfigError, StateError
+from aefabmap.runtime.core.map_state import MapState
 
 
 class TemporalFilter:
@@ -43,6 +46,17 @@ class TemporalFilter:
         )
         self._history.append(matched_frame)
         return bool(ok)
+
+    def state(self) -> MapState:
+        """The matched frames of the last queries, oldest first (-1: no verified match)."""
+        return MapState({"history": np.array([-1 if h is None else h for h in self._history], np.int64)})
+
+    def load_state(self, st: MapState) -> None:
+        history = st.array("history", "iu", (None,), lo=-1)
+        if history.size > self._history.maxlen:
+            raise StateError(f"map state: temporal history holds {history.size} frames, at most {self._history.maxlen}")
+        self._history.clear()
+        self._history.extend(None if h < 0 else int(h) for h in history.tolist())
 
     def reset(self) -> None:
         self._history.clear()

@@ -148,12 +148,18 @@ def public(metrics: dict) -> dict:
     return {k: public(v) if isinstance(v, dict) else v for k, v in metrics.items() if not k.startswith("_")}
 
 
-def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | None = None, tolerance: int = 10, show_progress: bool = True) -> tuple[dict, SequenceRun]:
-    """Run a bundle over an image directory and score it against gt_path."""
+def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | None = None, tolerance: int = 10,
+                    show_progress: bool = True, after_run=None) -> tuple[dict, SequenceRun]:
+    """Run a bundle over an image directory and score it against gt_path.
+
+    after_run: called with the detector once every frame went through (e.g. to save its map).
+    """
     images = list_images(images_dir)
     gt = load_ground_truth(gt_path, len(images))
     detector = load_detector(bundle_path, config)
     run = run_sequence(detector, images, show_progress=show_progress)
+    if after_run is not None:
+        after_run(detector)
     if detector.store is not None:
         store = detector.store
         run.extra["verified"] = {
