@@ -126,6 +126,36 @@ class DetectorConfig:
 
 
 @dataclass
+class Candidate:
+    """One place the detector considered for a frame (evidence for evaluation and logs).
+
+    place / frame: place id and the sequence number of the frame that made it. rank: 0-based
+    position in the FAB-MAP log-likelihood (or BoW similarity) ranking of all places.
+    probability: FAB-MAP posterior; llr: log-likelihood ratio against the new place (nats);
+    similarity: BoW cosine (None for the other scorer). checked: geometrically verified this
+    frame, source: why ("track", "fabmap" or "island"; None when not checked). verified,
+    inliers, matches, model ("F" / "H"), nfa (the geometric check's chance figure when it
+    gives one): outcome of that check. inlier_points: (inliers, 4) float32 rows
+    (x_q, y_q, x_p, y_p), only with `VerificationConfig.keep_inlier_points`.
+    """
+
+    place: int
+    frame: int
+    rank: int
+    probability: float | None = None
+    llr: float | None = None
+    similarity: float | None = None
+    checked: bool = False
+    source: str | None = None
+    verified: bool = False
+    inliers: int = 0
+    matches: int = 0
+    model: str | None = None
+    nfa: float | None = None
+    inlier_points: np.ndarray | None = None
+
+
+@dataclass
 class FrameResult:
     """What the detector says about one frame.
 
@@ -147,6 +177,8 @@ class FrameResult:
         x_q ~ H x_p); None unless verified. candidates_tried: places verified this frame.
     geometry_ok: the geometric check passed (before the temporal check); temporal_ok: the
         temporal check passed (None when it is off).
+    candidates: the top places of the ranking (VerificationConfig.top_k of them) and every
+        other place checked this frame (track, island), see Candidate.
     """
 
     sequence: int
@@ -175,6 +207,7 @@ class FrameResult:
     candidates_tried: int = 0
     geometry_ok: bool = False
     temporal_ok: bool | None = None
+    candidates: list[Candidate] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -285,6 +318,7 @@ class LoopClosureDetector:
                     self.store.put(inserted_place, pending_kps)
         uniq = np.unique(words)
         probability = llr = None
+        p_places = loglik_new = None
         if self.fabmap is not None:
             loc = self.fabmap.localize(uniq, add=False)
             best, p_new = loc.best_place, loc.p_new
@@ -294,6 +328,7 @@ class LoopClosureDetector:
             score = (llr if self.config.fabmap_score == "llr" else probability) if best is not None else 0.0
             self._last_scores = loc.p_places
             ranking = loc.loglik
+            p_places, loglik_new = loc.p_places, loc.loglik_new
         else:
             sims = self.bow.similarity(words)
             best = int(np.argmax(sims)) if sims.size else None
@@ -334,7 +369,33 @@ class LoopClosureDetector:
         )
         if check is not None:
             check.fill(res, self._place_frame)
+        res.candidates = self._candidates(ranking, p_places, loglik_new, check)
         return res
+
+    def _candidates(self, ranking: np.ndarray, p_places, loglik_new, check: "_Check | None") -> list[Candidate]:
+        """The top places of `ranking` (log-likelihood or similarity) and every place checked."""
+        finite = np.flatnonzero(np.isfinite(ranking))
+        k = min(self.config.verification.top_k, finite.size)
+        top = finite[np.argsort(-ranking[finite], kind="stable")[:k]] if k else finite[:0]
+        attempts = {pid: (source, g) for pid, source, g in (check.attempts if check is not None else [])}
+        pids = [int(p) for p in top] + [p for p in attempts if p not in set(top.tolist())]
+        out = []
+        for pid in pids:
+            c = Candidate(place=pid, frame=int(self._place_frame[pid]), rank=int(np.sum(ranking > ranking[pid])))
+            if p_places is not None:
+                c.probability = float(p_places[pid])
+                c.llr = float(ranking[pid] - loglik_new)
+            else:
+                c.similarity = float(ranking[pid])
+            if pid in attempts:
+                c.source, g = attempts[pid]
+                c.checked, c.verified = True, bool(g.verified)
+                c.inliers, c.matches, c.model = int(g.inliers), int(g.matches), g.model
+                nfa = getattr(g, "nfa", None)
+                c.nfa = None if nfa is None else float(nfa)
+                c.inlier_points = g.inlier_points
+            out.append(c)
+        return out
 
     def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, seq: int) -> "_Check":
         """Geometric (+ temporal) verification of one query.
@@ -363,6 +424,7 @@ class LoopClosureDetector:
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                 place.image_shape, v, bruteforce=bruteforce)
+                check.attempts.append((int(pid), source, g))
                 if check.best is None or g.verified or g.inliers > check.best.inliers:
                     check.best, check.best_place, check.source = g, int(pid), source
                 return g.verified
@@ -470,6 +532,7 @@ class _Check:
     temporal_ok: bool | None = None
     verified: bool = False
     timing_ms: float = 0.0
+    attempts: list = field(default_factory=list)  # (place id, source, GeometryResult) in order
 
     def fill(self, res: FrameResult, place_frame: np.ndarray) -> None:
         res.verified = bool(self.verified)
