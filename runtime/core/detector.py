@@ -372,7 +372,7 @@ class LoopClosureDetector:
         res.candidates = self._candidates(ranking, p_places, loglik_new, check)
         return res
 
-    def _candidates(self, ranking: np.ndarray, p_places, loglik_new, check: "_Check | None") -> list[Candidate]:
+    def _candidates(self, ranking: np.ndarray, p_places, loglik_new, check: _Check | None) -> list[Candidate]:
         """The top places of `ranking` (log-likelihood or similarity) and every place checked."""
         finite = np.flatnonzero(np.isfinite(ranking))
         k = min(self.config.verification.top_k, finite.size)

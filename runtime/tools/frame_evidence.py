@@ -165,9 +165,9 @@ def match_image(query: np.ndarray, place: np.ndarray, points: np.ndarray | None,
     canvas[band : band + q.shape[0], : q.shape[1]] = q
     canvas[band : band + p.shape[0], q.shape[1] :] = p
     if points is not None:
-        for xq, yq, xp, yp in np.asarray(points, np.float64):
-            a = (int(round(xq)), int(round(yq)) + band)
-            b = (int(round(xp)) + q.shape[1], int(round(yp)) + band)
+        for xq, yq, xp, yp in np.rint(np.asarray(points, np.float64)).astype(int).tolist():
+            a = (xq, yq + band)
+            b = (xp + q.shape[1], yp + band)
             cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)
             cv2.circle(canvas, a, 2, colour, -1, cv2.LINE_AA)
             cv2.circle(canvas, b, 2, colour, -1, cv2.LINE_AA)
