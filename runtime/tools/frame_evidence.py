@@ -155,17 +155,29 @@ def failure_cases(results: Sequence[FrameResult], records: Sequence[dict], toler
     return cases
 
 
+#: failure images narrower than this are scaled up (small-board cameras give 160 px frames,
+#: too small to read the caption or see the lines).
+MIN_IMAGE_WIDTH = 640
+
+
 def match_image(query: np.ndarray, place: np.ndarray, points: np.ndarray | None, caption: str, colour: tuple[int, int, int]) -> np.ndarray:
-    """Query (left) beside place (right), inlier pairs (K, 4) (x_q, y_q, x_p, y_p) as lines, caption on top."""
-    q = cv2.cvtColor(query, cv2.COLOR_GRAY2BGR) if query.ndim == 2 else query
-    p = cv2.cvtColor(place, cv2.COLOR_GRAY2BGR) if place.ndim == 2 else place
+    """Query (left) beside place (right), inlier pairs (K, 4) (x_q, y_q, x_p, y_p) as lines, caption on top.
+
+    The pair is scaled up by an integer factor until it is at least MIN_IMAGE_WIDTH px wide.
+    """
+    scale = max(1, -(-MIN_IMAGE_WIDTH // (query.shape[1] + place.shape[1])))
+    q, p = (cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) if scale > 1 else im for im in (query, place))
+    q = cv2.cvtColor(q, cv2.COLOR_GRAY2BGR) if q.ndim == 2 else q
+    p = cv2.cvtColor(p, cv2.COLOR_GRAY2BGR) if p.ndim == 2 else p
     h = max(q.shape[0], p.shape[0])
     band = 22
     canvas = np.zeros((h + band, q.shape[1] + p.shape[1], 3), np.uint8)
     canvas[band : band + q.shape[0], : q.shape[1]] = q
     canvas[band : band + p.shape[0], q.shape[1] :] = p
     if points is not None:
-        for xq, yq, xp, yp in np.rint(np.asarray(points, np.float64)).astype(int).tolist():
+        # Pixel centres: x in the original image is at (x + 0.5) * scale - 0.5 in the scaled one.
+        xy = np.rint((np.asarray(points, np.float64) + 0.5) * scale - 0.5).astype(int)
+        for xq, yq, xp, yp in xy.tolist():
             a = (xq, yq + band)
             b = (xp + q.shape[1], yp + band)
             cv2.line(canvas, a, b, colour, 1, cv2.LINE_AA)

@@ -85,14 +85,14 @@ def test_failures_are_false_positives_and_misses_with_their_true_place(hand_made
     written = write_failure_images(tmp_path / "fail", images, cases)
     assert [p.name for p in written] == ["000003_false_positive_000002.png", "000004_miss_000000.png"]
     fp = cv2.imread(str(written[0]))
-    assert fp.shape == (120 + 22, 320, 3)
+    assert fp.shape == (22 + 240, 640, 3)  # 160-px frames are shown twice as large
     red = (fp[..., 2] > 200) & (fp[..., 1] < 60) & (fp[..., 0] < 60)
     assert red.sum() > 50  # the inlier lines are drawn
 
 
 def test_match_image_without_points_is_just_the_pair():
-    img = match_image(np.zeros((50, 60), np.uint8), np.zeros((40, 70), np.uint8), None, "x", (0, 0, 255))
-    assert img.shape == (50 + 22, 130, 3) and img[22:].max() == 0
+    img = match_image(np.zeros((250, 360), np.uint8), np.zeros((240, 370), np.uint8), None, "x", (0, 0, 255))
+    assert img.shape == (250 + 22, 730, 3) and img[22:].max() == 0
 
 
 def test_table_leads_with_given_order_and_labels_strict_and_tolerant():
