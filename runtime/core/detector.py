@@ -374,11 +374,12 @@ class LoopClosureDetector:
 
     def _candidates(self, ranking: np.ndarray, p_places, loglik_new, check: _Check | None) -> list[Candidate]:
         """The top places of `ranking` (log-likelihood or similarity) and every place checked."""
-        finite = np.flatnonzero(np.isfinite(ranking))
+        finite = np.flatnonzero(np.isfinite(ranking))  # removed places are -inf
         k = min(self.config.verification.top_k, finite.size)
-        top = finite[np.argsort(-ranking[finite], kind="stable")[:k]] if k else finite[:0]
+        top = finite[np.argpartition(-ranking[finite], k - 1)[:k]] if 0 < k < finite.size else finite
+        top = [int(p) for p in top[np.argsort(-ranking[top], kind="stable")]]
         attempts = {pid: (source, g) for pid, source, g in (check.attempts if check is not None else [])}
-        pids = [int(p) for p in top] + [p for p in attempts if p not in set(top.tolist())]
+        pids = top + [p for p in attempts if p not in top]
         out = []
         for pid in pids:
             c = Candidate(place=pid, frame=int(self._place_frame[pid]), rank=int(np.sum(ranking > ranking[pid])))
@@ -391,7 +392,7 @@ class LoopClosureDetector:
                 c.source, g = attempts[pid]
                 c.checked, c.verified = True, bool(g.verified)
                 c.inliers, c.matches, c.model = int(g.inliers), int(g.matches), g.model
-                nfa = getattr(g, "nfa", None)
+                nfa = getattr(g, "nfa", None)  # a chance figure, when the geometric check computes one
                 c.nfa = None if nfa is None else float(nfa)
                 c.inlier_points = g.inlier_points
             out.append(c)
