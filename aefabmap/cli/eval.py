@@ -6,6 +6,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
 from aefabmap.runtime.core.verification import VerificationConfig
 
@@ -53,6 +54,8 @@ def run(args) -> int:
 
     if args.plot:
         require_plotting()  # fail before a long run, not after it
+    if args.failures and args.no_verify:
+        raise ConfigError("--failures shows verified matches and misses: it needs verification (drop --no-verify)")
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
     verification = VerificationConfig(enabled=not args.no_verify)
     if args.verify_top_k is not None:

@@ -128,3 +128,9 @@ def test_eval_writes_frames_and_failures_consistent_with_its_json(tmp_path):
             assert r["inliers"] == chosen[0]["inliers"]
     expected = {r["frame"] for r in recs if r["outcome"] == "false_positive" or (r["outcome"] == "miss" and r["true_place_candidate"])}
     assert {int(p.name[:6]) for p in fail.glob("*.png")} == expected
+
+
+def test_failures_need_verification(tmp_path):
+    code = main(["eval", "--model", str(REPO / "aefabmap" / "data" / "default_bundle"), "--images", str(tmp_path),
+                 "--gt", str(tmp_path / "gt.npy"), "--no-verify", "--failures", str(tmp_path / "f")])
+    assert code == 2 and not (tmp_path / "f").exists()
