@@ -36,6 +36,10 @@ def register(sub) -> None:
     p.add_argument("--temporal-tolerance", type=int, default=10, metavar="F",
                    help="frames by which agreeing matches may differ (default 10)")
     p.add_argument("--json", type=Path, metavar="OUT.json")
+    p.add_argument("--frames", type=Path, metavar="OUT.jsonl",
+                   help="per-frame evidence, one JSON line per frame (candidates, checks, choice, correctness)")
+    p.add_argument("--failures", type=Path, metavar="DIR",
+                   help="match images (PNG) of every false positive and every miss whose true place was a candidate")
     p.add_argument("--plot", type=Path, metavar="PR.png", help="PR curves (needs matplotlib)")
     p.add_argument("--score-matrix", type=Path, metavar="M.png", help="score matrix as an image")
     p.add_argument("--no-progress", action="store_true")
@@ -56,6 +60,8 @@ def run(args) -> int:
 
     if args.plot:
         require_plotting()  # fail before a long run, not after it
+    if args.failures and args.no_verify:
+        raise ConfigError("--failures shows verified matches and misses: it needs verification (drop --no-verify)")
     scorers = SCORERS if args.scorer == "both" else (args.scorer,)
     save_state = None
     if getattr(args, "state", None) is not None:
@@ -65,6 +71,8 @@ def run(args) -> int:
     verification = VerificationConfig(enabled=not args.no_verify, camera=getattr(args, "camera", None))
     if args.verify_top_k is not None:
         verification = dataclasses.replace(verification, top_k=args.verify_top_k)
+    if args.failures:
+        verification = dataclasses.replace(verification, keep_inlier_points=True)
     rows, runs, table = {}, {}, {}
     for scorer in scorers:
         config = DetectorConfig(
@@ -81,11 +89,14 @@ def run(args) -> int:
         )
         rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance,
                                                      not args.no_progress, after_run=save_state)
-        # Raw and verified rows side by side.
-        table[scorer] = rows[scorer]
+        # The product's output (verified) first, then the raw score it starts from.
         if "verified" in rows[scorer]:
-            table[f"{scorer}+verified"] = rows[scorer]["verified"]
+            table[f"{scorer} verified (output)"] = rows[scorer]["verified"]
+        raw_score = args.fabmap_score if scorer == "fabmap" else "cosine"
+        table[f"{scorer} raw ({raw_score})"] = rows[scorer]
     print(format_table(table))
+    if args.frames or args.failures:
+        write_evidence(args, runs[scorers[0]], verification)
     main = rows[scorers[0]]
     if args.json:
         doc = public(main)
@@ -118,3 +129,25 @@ def _state_saver(path):
                                                 info.path, info.n_places, info.nbytes)
 
     return save
+
+
+def write_evidence(args, run, verification: VerificationConfig) -> None:
+    """--frames / --failures of the first scorer's run."""
+    from aefabmap.runtime.adapters.image_folder import list_images
+    from aefabmap.runtime.tools.frame_evidence import (
+        failure_cases,
+        frame_records,
+        min_evidence_keypoints,
+        write_failure_images,
+        write_frames_jsonl,
+    )
+    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+
+    images = list_images(args.images)
+    gt = load_ground_truth(args.gt, len(images))
+    records = list(frame_records(run.results, gt, args.tolerance, min_evidence_keypoints(verification)))
+    if args.frames:
+        write_frames_jsonl(args.frames, records)
+    if args.failures:
+        written = write_failure_images(args.failures, images, failure_cases(run.results, records, args.tolerance))
+        print(f"{len(written)} failure images in {args.failures}")

@@ -21,8 +21,8 @@ from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
-from aefabmap.runtime.core.messages import FrameResult  # the result record lives with the wire messages
-from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Scorer
+from aefabmap.runtime.core.messages import Candidate, FrameResult  # records live with the wire messages
+from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Ranking, Scorer
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.tree import ChowLiuTree
 from aefabmap.runtime.core.verification import (
@@ -280,7 +280,34 @@ class LoopClosureDetector:
         )
         if check is not None:
             check.fill(res, self._place_frame)
+        res.candidates = self._candidates(ranked, check)
         return res
+
+    def _candidates(self, ranked: Ranking, check: _Check | None) -> list[Candidate]:
+        """The top places of the ranking (log-likelihood or similarity) and every place checked."""
+        ranking = ranked.order
+        finite = np.flatnonzero(np.isfinite(ranking))  # removed places are -inf
+        k = min(self.config.verification.top_k, finite.size)
+        top = finite[np.argpartition(-ranking[finite], k - 1)[:k]] if 0 < k < finite.size else finite
+        top = [int(p) for p in top[np.argsort(-ranking[top], kind="stable")]]
+        attempts = {pid: (source, g) for pid, source, g in (check.attempts if check is not None else [])}
+        pids = top + [p for p in attempts if p not in top]
+        out = []
+        for pid in pids:
+            c = Candidate(place=pid, frame=int(self._place_frame[pid]), rank=int(np.sum(ranking > ranking[pid])))
+            if ranked.loglik_new is not None:  # FAB-MAP: order is the log-likelihood
+                c.probability = float(ranked.scores[pid])
+                c.llr = float(ranking[pid] - ranked.loglik_new)
+            else:
+                c.similarity = float(ranking[pid])
+            if pid in attempts:
+                c.source, g = attempts[pid]
+                c.checked, c.verified = True, bool(g.verified)
+                c.inliers, c.matches, c.model = int(g.inliers), int(g.matches), g.model
+                c.nfa = float(g.nfa) if np.isfinite(g.nfa) else None
+                c.inlier_points = None if g.inlier_points is None else g.inlier_points.tolist()
+            out.append(c)
+        return out
 
     def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, seq: int) -> "_Check":
         """Geometric (+ temporal) verification of one query.
@@ -311,6 +338,7 @@ class LoopClosureDetector:
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                 place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance)
+                check.attempts.append((int(pid), source, g))
                 # Keep the accepted attempt, else the most significant one (diagnostics).
                 if check.best is None or g.verified or g.nfa < check.best.nfa:
                     check.best, check.best_place, check.source = g, int(pid), source
@@ -495,6 +523,7 @@ class _Check:
     verified: bool = False
     timing_ms: float = 0.0
     reason: str | None = None
+    attempts: list = field(default_factory=list)  # (place id, source, GeometryResult) in order
 
     def fill(self, res: FrameResult, place_frame: np.ndarray) -> None:
         res.verified = bool(self.verified)

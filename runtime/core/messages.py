@@ -164,6 +164,28 @@ def _coerce(hint: Any, value: Any) -> Any:
 
 
 @dataclass
+class Candidate:
+    """One place the detector considered for a frame (evidence for evaluation and logs)."""
+
+    place: int = _f(description="place id")
+    frame: int = _f(description="sequence of the frame that made the place")
+    rank: int = _f(description="0-based position in the FAB-MAP log-likelihood (or BoW similarity) ranking")
+    probability: float | None = _f(None, "FAB-MAP posterior (null with BoW)")
+    llr: float | None = _f(None, "log-likelihood ratio against the new place, nats (null with BoW)")
+    similarity: float | None = _f(None, "BoW cosine similarity (null with FAB-MAP)")
+    checked: bool = _f(False, "geometrically verified this frame")
+    source: str | None = _f(None, "why it was checked: track, fabmap or island (null: not checked)")
+    verified: bool = _f(False, "its geometric check passed")
+    inliers: int = _f(0, "inliers of its check")
+    matches: int = _f(0, "putative matches of its check")
+    model: str | None = _f(None, "geometry model of its check", enum=("F", "E", "H"))
+    nfa: float | None = _f(None, "log10 number of false alarms of its check (null: no model fitted)")
+    inlier_points: list[list[float]] | None = _f(None, (
+        "inlier pairs [x_q, y_q, x_p, y_p], original pixels; only with VerificationConfig.keep_inlier_points "
+        "(evaluation), null otherwise"))
+
+
+@dataclass
 class FrameResult(_Message):
     """What the detector says about one frame (+ the transport fields of a live run).
 
@@ -214,6 +236,9 @@ class FrameResult(_Message):
         "why verification failed: '' when verified, else no_evidence (too few keypoints or matches to fit a "
         "model), chance, degenerate, collinear, clustered, cheirality, temporal, ...; null: nothing verified"),
         since="1.3")
+    candidates: list[Candidate] = field(default_factory=list, metadata=_meta(
+        "the top places of the ranking (VerificationConfig.top_k) and every other place checked (track, "
+        "island)", since="1.3"))
     score_kind: str | None = _f(None, "what score holds (null: not told, logs before format 1.1)",
                                 enum=SCORE_KINDS, since="1.1")
     frame_seq: int | None = _f(None, "publisher sequence number of the frame (live runs only)")

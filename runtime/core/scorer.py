@@ -33,6 +33,8 @@ class Ranking:
         (0.0 when there is none).
     probability, llr, p_new: FAB-MAP's posterior of `best`, its log-likelihood ratio against
         the new place (nats) and the new-place probability; None for BoW.
+    loglik_new: FAB-MAP's log-likelihood of the new place (order[i] - loglik_new is place i's
+        LLR); None for BoW.
     """
 
     order: np.ndarray
@@ -42,6 +44,7 @@ class Ranking:
     probability: float | None = None
     llr: float | None = None
     p_new: float | None = None
+    loglik_new: float | None = None
 
 
 class Scorer(Protocol):
@@ -122,10 +125,11 @@ class FabMapScorer:
         loc = self.fabmap.localize(words, add=False)
         best = loc.best_place
         if best is None:
-            return Ranking(loc.loglik, loc.p_places, None, 0.0, p_new=loc.p_new)
+            return Ranking(loc.loglik, loc.p_places, None, 0.0, p_new=loc.p_new, loglik_new=float(loc.loglik_new))
         llr = float(loc.loglik[best] - loc.loglik_new)
         score = llr if self.score == "llr" else loc.best_probability
-        return Ranking(loc.loglik, loc.p_places, best, score, loc.best_probability, llr, loc.p_new)
+        return Ranking(loc.loglik, loc.p_places, best, score, loc.best_probability, llr, loc.p_new,
+                       float(loc.loglik_new))
 
     def nbytes(self) -> int:
         return self.fabmap.nbytes()

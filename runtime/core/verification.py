@@ -144,6 +144,8 @@ class VerificationConfig:
     island_candidates: how many of the FAB-MAP candidates (best first) get island neighbours.
     max_trials: cap on candidates verified per frame (track + FAB-MAP + island), bounding the
         worst-case cost; None: no cap.
+    keep_inlier_points: return the inlier point pairs (`GeometryResult.inlier_points`), for
+        evaluation evidence (match images); off in the runtime, where nothing reads them.
     """
 
     enabled: bool = True
@@ -179,6 +181,7 @@ class VerificationConfig:
     island: int = 0
     island_candidates: int = 1
     max_trials: int | None = None
+    keep_inlier_points: bool = False
 
     def __post_init__(self) -> None:
         if self.track_memory < 1:
@@ -239,6 +242,9 @@ class GeometryResult:
     spread: min over both images of the occupied grid-cell fraction of the inliers of `model`
     (f_spread / h_spread: of each model). reason: "" when verified, else why not, one of
     REJECT_REASONS ("no_evidence": too few matches to fit a model).
+    inlier_points: (inliers, 4) float32 rows (x_q, y_q, x_p, y_p) of the inliers of `model` in
+    original pixels, only from `verify_pair` with `VerificationConfig.keep_inlier_points`
+    (None otherwise).
     """
 
     verified: bool = False
@@ -259,6 +265,7 @@ class GeometryResult:
     h_spread: float = 0.0
     reason: str = "no_evidence"
     inlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    inlier_points: np.ndarray | None = None
 
 
 def parse_camera(value) -> tuple[float, float, float, float]:
@@ -719,6 +726,7 @@ def verify_pair(
     res = GeometryResult()
     if pairs.shape[0]:
         res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
+        _keep_points(res, pairs, q_xy, p_xy, c)
     if res.verified or not bruteforce:
         return res
     pairs = match_all(q_desc, p_desc, c, distance=distance)
@@ -727,4 +735,12 @@ def verify_pair(
     # Same criterion: the NFA grows with the number of matches, so the extra chance matches of
     # all-pairs matching raise the support a model needs by themselves.
     retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
+    _keep_points(retry, pairs, q_xy, p_xy, c)
     return retry if retry.verified or retry.nfa < res.nfa else res
+
+
+def _keep_points(res: GeometryResult, pairs: np.ndarray, q_xy: np.ndarray, p_xy: np.ndarray, c: VerificationConfig) -> None:
+    """Attach the inlier point pairs of res (its mask indexes `pairs`) when the config asks for them."""
+    if c.keep_inlier_points and res.inlier_mask.shape[0] == pairs.shape[0]:
+        inl = pairs[res.inlier_mask]
+        res.inlier_points = np.c_[q_xy[inl[:, 0]], p_xy[inl[:, 1]]].astype(np.float32)

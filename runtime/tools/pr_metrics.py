@@ -82,6 +82,10 @@ def evaluate_predictions(best_frame, scores, gt, tolerance: int = TOLERANCE_FRAM
 
     best_frame: (N,) int best candidate frame per query (-1: no loop); scores: (N,) float;
     gt: (N, N) bool ground truth (gt[i, j]: frame i revisits frame j, j < i).
+    false_positives: predicted loops (every frame with best_frame >= 0, whatever its score)
+    whose frame is not a true match within the tolerance; false_positives_strict: not an exact
+    true match. For a verified output (only verified frames predict) that is the count of
+    wrong loop closures the product would have published.
     """
     best_frame = np.asarray(best_frame, np.int64)
     scores = np.asarray(scores, np.float64)
@@ -95,7 +99,7 @@ def evaluate_predictions(best_frame, scores, gt, tolerance: int = TOLERANCE_FRAM
     n_relevant = int(gt.any(axis=1).sum())
     has = best_frame >= 0
     out = {"frames": int(n), "relevant_frames": n_relevant, "predictions": int(has.sum())}
-    for suffix, tol in (("", 0), ("_tolerant", tolerance)):
+    for suffix, tol, fp_key in (("", 0, "false_positives_strict"), ("_tolerant", tolerance, "false_positives")):
         correct = correct_predictions(best_frame, gt, tol)
         curve = pr_curve(scores, has, correct, n_relevant)
         r100, t100 = curve.recall_at_full_precision()
@@ -106,5 +110,6 @@ def evaluate_predictions(best_frame, scores, gt, tolerance: int = TOLERANCE_FRAM
         out[f"max_f1{suffix}"] = f1
         out[f"threshold_at_max_f1{suffix}"] = tf1
         out[f"_curve{suffix}"] = curve
+        out[fp_key] = int((has & ~correct).sum())
     out["tolerance_frames"] = tolerance
     return out

@@ -9,25 +9,36 @@ import numpy as np
 
 from aefabmap.errors import ConfigError, InputError
 
+# (column, metric key, percent?): tolerant metrics first (a match within the tolerance counts),
+# then strict (the exact frame), then false positives (predicted loops that are wrong).
 TABLE_KEYS = (
-    ("R@100P tol", "recall_at_100p_tolerant"),
-    ("AUC tol", "auc_tolerant"),
-    ("maxF1 tol", "max_f1_tolerant"),
-    ("R@100P", "recall_at_100p"),
-    ("AUC", "auc"),
-    ("maxF1", "max_f1"),
+    ("R@100P tolerant", "recall_at_100p_tolerant", True),
+    ("AUC tolerant", "auc_tolerant", True),
+    ("maxF1 tolerant", "max_f1_tolerant", True),
+    ("R@100P strict", "recall_at_100p", True),
+    ("AUC strict", "auc", True),
+    ("maxF1 strict", "max_f1", True),
+    ("FP tolerant", "false_positives", False),
+    ("FP strict", "false_positives_strict", False),
 )
 
 
 def format_table(rows: dict[str, dict]) -> str:
-    """Markdown table of the headline metrics (percent) and median total ms per frame."""
-    head = "| method | " + " | ".join(k for k, _ in TABLE_KEYS) + " | ms/frame |"
+    """Markdown table of the headline metrics (percent; false positives as counts) and median
+    total ms per frame, one row per method in the order given (the product's output first)."""
+    head = "| method | " + " | ".join(k for k, _, _ in TABLE_KEYS) + " | ms/frame |"
     lines = [head, "|" + "---|" * (len(TABLE_KEYS) + 2)]
     for name, m in rows.items():
-        vals = " | ".join(f"{100 * m[key]:.1f}" for _, key in TABLE_KEYS)
+        vals = " | ".join(_cell(m.get(key), pct) for _, key, pct in TABLE_KEYS)
         ms = m.get("ms_per_frame", {}).get("total", {}).get("median", float("nan"))
         lines.append(f"| {name} | {vals} | {ms:.1f} |")
     return "\n".join(lines)
+
+
+def _cell(value, percent: bool) -> str:
+    if value is None:
+        return "-"
+    return f"{100 * value:.1f}" if percent else str(int(value))
 
 
 def require_plotting():

@@ -177,6 +177,7 @@ def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | N
             "model": str(bundle_path),
             "images": str(images_dir),
             "scorer": detector.config.scorer,
+            "fabmap_score": detector.config.fabmap_score,
             "exclude": detector.config.exclude,
             "quantizer": detector.bundle.quantizer_type,
             "quantizer_variant": detector.config.quantizer_variant,

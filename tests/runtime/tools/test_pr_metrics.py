@@ -60,3 +60,17 @@ def test_ties_count_as_one_threshold():
 def test_shape_mismatch_is_an_error():
     with pytest.raises(InputError, match="ground truth"):
         evaluate_predictions(np.zeros(5, int), np.zeros(5), np.zeros((4, 4), bool))
+
+
+def test_false_positives_count_wrong_predictions_whatever_their_score():
+    gt = make_gt()
+    best = np.full(40, -1)
+    best[30:40] = np.arange(10, 20)  # frame i predicts i - 20: inside its band i-20..i-16
+    best[5] = 0  # frame 5 has no loop at all
+    best[36] = 2  # band 16..20: 14 frames off, beyond the tolerance
+    scores = np.linspace(0.0, 1.0, 40)
+    m = evaluate_predictions(best, scores, gt, tolerance=10)
+    assert (m["false_positives"], m["false_positives_strict"]) == (2, 2)
+    best[31] = 8  # band 11..15: 3 frames off, right only with the tolerance
+    m = evaluate_predictions(best, scores, gt, tolerance=10)
+    assert (m["false_positives"], m["false_positives_strict"]) == (2, 3)
