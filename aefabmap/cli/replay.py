@@ -34,11 +34,15 @@ def register(subparsers) -> argparse.ArgumentParser:
     from aefabmap.cli.state_options import add_state_options
 
     add_state_options(p)
+    from aefabmap.cli.run import add_foxglove_options
+
+    add_foxglove_options(p)
     p.set_defaults(func=main)
     return p
 
 
 def main(args: argparse.Namespace) -> int:
+    from aefabmap.cli.run import start_live_view
     from aefabmap.cli.state_options import open_state
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.log_set import log_files
@@ -50,19 +54,25 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.ros_bag import is_ros_bag
     from aefabmap.runtime.core.detector import DetectorConfig
 
-    state_dir = None
+    state_dir = view = None
     try:
         # Replay with the detector options of the logged run (max places, memory budget).
         bag = len(args.log) == 1 and is_ros_bag(args.log[0])
         source = args.log[0] if bag else log_files(args.log)
         logged = {} if bag else read_log_metadata(source[0]).get(RUN_CONFIG_METADATA) or {}
+        from aefabmap.runtime.core.verification import VerificationConfig
+
+        # --foxglove draws the inlier matches (kept only then; they do not change any decision).
+        verification = VerificationConfig(keep_inlier_points=getattr(args, "foxglove", None) is not None)
         detector = load_detector(
-            args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"))
+            args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"),
+                                       verification=verification)
         )
         if getattr(args, "state", None) is not None:
             state_dir = open_state(args.state, detector, log)
+        view = start_live_view(args)
         summary = replay(detector, source, out_path=args.out, check=args.check,
-                         image_topic=getattr(args, "topic", None))
+                         image_topic=getattr(args, "topic", None), view=view)
         if state_dir is not None:
             info = state_dir.save(detector.state())
             log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
@@ -70,6 +80,8 @@ def main(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return exc.exit_code
     finally:
+        if view is not None:
+            view.close()
         if state_dir is not None:
             state_dir.close()
     log.info("%s", summary.status.describe())

@@ -53,6 +53,29 @@ def log_rotation_config(args: argparse.Namespace):
                              **free)
 
 
+def add_foxglove_options(p: argparse.ArgumentParser) -> None:
+    """--foxglove [PORT] and --foxglove-host: the live view (runtime/adapters/foxglove_view.py)."""
+    p.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
+                   help="serve a live view over the Foxglove WebSocket protocol on PORT (default 8765; 0: any free "
+                   "port): camera image, inlier matches, matched place, result and stats plots (layout: "
+                   "deploy/foxglove_layout.json; needs aefabmap[foxglove])")
+    p.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
+                   help="address the Foxglove server binds (default 127.0.0.1: this machine only; the protocol "
+                   "has no authentication)")
+
+
+def start_live_view(args: argparse.Namespace):
+    """The LiveView of the parsed options (None without --foxglove); ConfigError without foxglove-sdk."""
+    port = getattr(args, "foxglove", None)
+    if port is None:
+        return None
+    from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer, LiveView
+
+    server = FoxgloveServer(port=port, host=getattr(args, "foxglove_host", "127.0.0.1"))
+    log.info("Foxglove live view on ws://%s:%d", server.host, server.port)
+    return LiveView(server)
+
+
 def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "run",
@@ -89,6 +112,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     from aefabmap.cli.state_options import add_state_options
 
     add_state_options(p, snapshots=True)
+    add_foxglove_options(p)
     p.set_defaults(func=main)
     return p
 
@@ -102,7 +126,7 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.core.verification import VerificationConfig
 
     stop = threading.Event()
-    state_dir = snapshotter = None
+    state_dir = snapshotter = view = None
     try:
         ros_topic = getattr(args, "ros_topic", None)
         if (args.key is None) == (ros_topic is None):
@@ -118,7 +142,9 @@ def main(args: argparse.Namespace) -> int:
         if ros is not None and not args.config and not args.listen:
             # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
             session = dataclasses.replace(session, mode="client")
-        verification = VerificationConfig(camera=getattr(args, "camera", None))
+        # The live view draws the inlier matches: keep them (a few hundred floats a frame).
+        verification = VerificationConfig(camera=getattr(args, "camera", None),
+                                          keep_inlier_points=getattr(args, "foxglove", None) is not None)
         detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb,
                                                             verification=verification))
         # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
@@ -152,8 +178,10 @@ def main(args: argparse.Namespace) -> int:
                 background=True,
             )
 
+        view = start_live_view(args)
         with stop_on_signals(stop):
-            summary = run_node(detector, options, stop_event=stop, on_stats=on_stats, snapshotter=snapshotter)
+            summary = run_node(detector, options, stop_event=stop, on_stats=on_stats, snapshotter=snapshotter,
+                               view=view)
         if snapshotter is not None and snapshotter.saved:
             last = snapshotter.saved[-1]
             log.info("map state saved to %s: %d places, %d bytes", last.path, last.n_places, last.nbytes)
@@ -161,6 +189,8 @@ def main(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return exc.exit_code
     finally:
+        if view is not None:
+            view.close()
         if snapshotter is not None:
             snapshotter.join()  # a snapshot being written when the run failed
         if state_dir is not None:

@@ -9,6 +9,10 @@ topic          schema / encoding                       content
                                                        raw frames are stored as gray PNG)
 /lcd/result    ``aefabmap.LcdResult`` (jsonschema/json) one per processed frame
 /lcd/stats     ``aefabmap.LcdStats`` (jsonschema/json)  periodic run statistics
+/lcd/annotations ``foxglove.ImageAnnotations`` (protobuf) with the live view only (``--foxglove``):
+                                                       inlier points + a text line on /camera/image
+/lcd/place_image ``foxglove.CompressedImage`` (protobuf) with the live view only: the matched
+                                                       place's thumbnail (never replayed)
 ============== ====================================== ===============================
 
 The topics are McapLogConfig's (defaults above). The JSON schemas and messages are those of
@@ -50,6 +54,7 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from aefabmap.errors import ConfigError, ImageDecodeError, InputError, LogError
+from aefabmap.runtime.adapters.foxglove_view import PLACE_IMAGE_TOPIC, VIEW_PROTOBUF
 from aefabmap.runtime.adapters.frames import (
     FrameError,
     classify_encoding,
@@ -222,6 +227,7 @@ class McapLogWriter:
             raise LogError(f"cannot write MCAP log {self.path}: {exc.strerror or exc}") from exc
         self._last_flush = time.monotonic()
         self._seq = {self._image_channel: 0, self._result_channel: 0, self._stats_channel: 0}
+        self._view_channels: dict[str, int] = {}  # registered at first use (live view on)
 
     # ------------------------------------------------------------------ setup
     def _register_image_channel(self) -> int:
@@ -232,6 +238,13 @@ class McapLogWriter:
         return self._writer.register_channel(
             topic=self.config.image_topic, message_encoding="protobuf", schema_id=schema_id
         )
+
+    def _register_protobuf_channel(self, topic: str, cls) -> int:
+        fds = build_file_descriptor_set(cls)
+        schema_id = self._writer.register_schema(
+            name=cls.DESCRIPTOR.full_name, encoding="protobuf", data=fds.SerializeToString()
+        )
+        return self._writer.register_channel(topic=topic, message_encoding="protobuf", schema_id=schema_id)
 
     def _register_json_channel(self, topic: str, schema: dict) -> int:
         schema_id = self._writer.register_schema(
@@ -302,6 +315,18 @@ class McapLogWriter:
             stamp if isinstance(stamp, int) else None,
             seq if isinstance(seq, int) else None,
         )
+
+    def write_view(self, topic: str, data: bytes, stamp_ns: int, *, sequence: int | None = None,
+                   log_time_ns: int | None = None) -> bool:
+        """Log one serialised message of the live view (runtime/adapters/foxglove_view.py
+        VIEW_PROTOBUF: place thumbnail, image annotations); its channel is registered at first use."""
+        if topic not in self._view_channels:
+            if topic not in VIEW_PROTOBUF:
+                raise ConfigError(f"{topic!r} is not a live-view topic ({sorted(VIEW_PROTOBUF)})")
+            channel = self._register_protobuf_channel(topic, VIEW_PROTOBUF[topic])
+            self._view_channels[topic], self._seq[channel] = channel, 0
+        self._add(self._view_channels[topic], data, log_time_ns, _checked_time_ns(stamp_ns, "view stamp"), sequence)
+        return True
 
     def write_stats(self, stats: StatsMessage | dict, *, data: bytes | None = None,
                     log_time_ns: int | None = None) -> None:
@@ -519,6 +544,8 @@ class McapLogReader:
                     channels[record.id] = record
                     schema = schemas.get(record.schema_id)
                     kind = IMAGE_SCHEMAS.get(schema.name) if schema is not None else None
+                    if record.topic == PLACE_IMAGE_TOPIC and record.topic != self.image_topic:
+                        kind = None  # the live view's place thumbnails: not the camera
                     if kind is not None:
                         kinds[record.id] = kind
                         chosen = self._choose(record, chosen, channels)

@@ -163,8 +163,8 @@ class StatsEmitter:
 
     def __init__(self, period_s: float, t0: float, loop: FrameLoop, stats: RunStats, drops,
                  pub: ResultPublisher, log: McapLogWriter | RotatingLog,
-                 on_stats: Callable[[StatsMessage], None] | None = None) -> None:
-        self.period_s, self.t0 = period_s, t0
+                 on_stats: Callable[[StatsMessage], None] | None = None, view=None) -> None:
+        self.period_s, self.t0, self.view = period_s, t0, view
         self.loop, self.stats, self.drops = loop, stats, drops
         self.pub, self.log, self.on_stats = pub, log, on_stats
         self.next = t0 + period_s
@@ -188,16 +188,19 @@ class StatsEmitter:
         data = msg.to_json_bytes()
         self.pub.publish_stats(data)
         self.log.write_stats(msg, data=data)
+        if self.view is not None:
+            self.view.on_stats(data, msg.stamp_ns)
         if self.on_stats is not None:
             self.on_stats(msg)
 
 
 class ResultOutput:
     """Where a frame's result goes: its transport fields added, serialised once, published on
-    the results key and logged to MCAP with the frame's image."""
+    the results key and logged to MCAP with the frame's image; shown by the live view when one
+    is given (runtime/adapters/foxglove_view.py LiveView)."""
 
-    def __init__(self, pub: ResultPublisher, log: McapLogWriter | RotatingLog, stats: RunStats) -> None:
-        self.pub, self.log, self.stats = pub, log, stats
+    def __init__(self, pub: ResultPublisher, log: McapLogWriter | RotatingLog, stats: RunStats, view=None) -> None:
+        self.pub, self.log, self.stats, self.view = pub, log, stats, view
 
     def send(self, frame: ReceivedFrame, out: FrameOutcome) -> None:
         if out.result is None:
@@ -212,6 +215,8 @@ class ResultOutput:
         self.stats.latencies_ms.append(latency_ms)
         self.log.write_image(frame.payload, frame.encoding, frame.stamp_ns, sequence=result.sequence,
                              gray=out.gray, log_time_ns=frame.recv_ns)
+        if self.view is not None:
+            self.view.on_frame(frame.payload, frame.encoding, out.gray, result, data)
         self.log.write_result(result, data=data)
 
 
@@ -254,13 +259,16 @@ def run_node(
     on_stats: Callable[[StatsMessage], None] | None = None,
     ready_event: threading.Event | None = None,
     snapshotter=None,
+    view=None,
 ) -> RunSummary:
     """Run the streaming loop until ``stop_event`` is set (or ``options.max_frames`` processed).
 
     on_stats: called with each stats message. ready_event: set once subscribed (tests and
     supervisors wait on it). snapshotter: keeps the map on disk (runtime/adapters/map_state.py
     Snapshotter): ``after_frame()`` between frames, ``final()`` on the normal stop path
-    (stop_event / max_frames; StateError when that last snapshot cannot be written). Raises
+    (stop_event / max_frames; StateError when that last snapshot cannot be written). view: a
+    foxglove_view.LiveView shown every result and stats message (its log is set to the run's).
+    Raises
     LogError (MCAP target not writable: checked before any network activity; the first file is
     created once the session is up, so a start that fails leaves no file behind and no existing
     file is ever overwritten), TransportError (session), ConfigError. Once running, log errors
@@ -273,8 +281,10 @@ def run_node(
     with _Transport(options) as io, log.open():
         if ready_event is not None:
             ready_event.set()
-        emitter = StatsEmitter(options.stats_period_s, t0, loop, stats, io.sub.drops, io.pub, log, on_stats)
-        output = ResultOutput(io.pub, log, stats)
+        if view is not None:
+            view.attach_log(log)
+        emitter = StatsEmitter(options.stats_period_s, t0, loop, stats, io.sub.drops, io.pub, log, on_stats, view)
+        output = ResultOutput(io.pub, log, stats, view)
         while not stop_event.is_set() and (options.max_frames is None or loop.processed < options.max_frames):
             frame = io.sub.receive(emitter.tick(), stop_event)
             if frame is not None:

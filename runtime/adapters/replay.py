@@ -186,6 +186,7 @@ def replay(
     image_topic: str | None = None,
     log_config: McapLogConfig | None = None,
     on_result: Callable[[dict], None] | None = None,
+    view=None,
 ) -> ReplaySummary:
     """Run ``detector`` (see frame_loop.Detector) over the images of ``mcap_path``: an aefabmap
     log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/adapters/ros_bag.py).
@@ -198,6 +199,7 @@ def replay(
     and fields added to the message format after the log's version).
     image_topic: which image topic to read (default: the log's image topic, else the first found).
     on_result: called with each replayed result's dict.
+    view: a foxglove_view.LiveView shown every replayed frame (its log is set to ``out_path``'s).
     Raises LogError when the source cannot be read (or is of a newer format) or the output
     not written.
     """
@@ -215,6 +217,8 @@ def replay(
             manifest=manifest if isinstance(manifest, dict) else None,
             run_config={"replay_of": source, "image_topic": image_topic, "started_ns": time.time_ns()},
         )
+    if view is not None and writer is not None:
+        view.attach_log(writer)
     try:
         for image in reader.frames():
             out = loop.step(image.payload, image.encoding, image.stamp_ns)
@@ -227,6 +231,9 @@ def replay(
             if writer is not None:
                 writer.write_image(image.payload, image.encoding, image.stamp_ns, sequence=result.sequence,
                                    gray=out.gray)
+            if view is not None:
+                view.on_frame(image.payload, image.encoding, out.gray, result)
+            if writer is not None:
                 writer.write_result(result)
         duration = time.monotonic() - t0
         if writer is not None:

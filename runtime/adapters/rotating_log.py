@@ -319,6 +319,16 @@ class RotatingLog:
                     lambda w: w.write_result(result, data=data, log_time_ns=log_time_ns) or True)
         self._in_frame = False
 
+    def write_view(self, topic: str, data: bytes, stamp_ns: int, *, sequence: int | None = None,
+                   log_time_ns: int | None = None) -> bool:
+        """Log a live-view message (see McapLogWriter.write_view), in the file of its frame;
+        skipped like images when disk space is low."""
+        in_frame = self._in_frame
+        done = self._write(True, len(data),
+                           lambda w: w.write_view(topic, data, stamp_ns, sequence=sequence, log_time_ns=log_time_ns))
+        self._in_frame = in_frame
+        return done
+
     def write_stats(self, stats, *, data: bytes | None = None, log_time_ns: int | None = None) -> None:
         self._write(False, len(data or b""),
                     lambda w: w.write_stats(stats, data=data, log_time_ns=log_time_ns) or True)

@@ -1,0 +1,152 @@
+"""The Foxglove live view: thumbnail store, a real WebSocket client on the live server, the log."""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+
+import cv2
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+
+from aefabmap.runtime.adapters.foxglove_view import (
+    ANNOTATIONS_TOPIC,
+    IMAGE_TOPIC,
+    PLACE_IMAGE_TOPIC,
+    RESULT_TOPIC,
+    LiveView,
+    LiveViewConfig,
+    PlaceThumbnails,
+)
+from aefabmap.runtime.adapters.mcap_log import McapLogReader, McapLogWriter
+from aefabmap.runtime.core.messages import Candidate, FrameResult
+
+
+def _gray(seed: int, shape=(192, 240)) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.integers(0, 256, shape, dtype=np.uint8), (5, 5), 0)
+
+
+def _result(seq: int, *, inserted: int | None = None, evicted: int | None = None, best: int | None = None,
+            points: int = 0) -> FrameResult:
+    cands = []
+    if best is not None:
+        pts = [[float(i), float(i + 1), 2.0 * i, 3.0] for i in range(points)]
+        cands = [Candidate(place=best, frame=best, rank=0, checked=True, verified=points > 0, inliers=points,
+                           inlier_points=pts or None)]
+    return FrameResult(sequence=seq, stamp_ns=1_700_000_000_000_000_000 + seq * 10**8, n_keypoints=100,
+                       n_words=50, best_place=best, best_frame=best, score=0.9 if best is not None else 0.0,
+                       p_new=0.1, loop=points > 0, inserted_frame=None if inserted is None else seq,
+                       inserted_place=inserted, evicted_place=evicted, n_places=seq + 1, candidates=cands,
+                       verified_place=best if points else None, inliers=points)
+
+
+def test_thumbnails_follow_the_map_and_stay_within_bytes():
+    config = LiveViewConfig(thumb_px=64, max_bytes=3000)
+    store = PlaceThumbnails(config)
+    store.observe(_gray(0), _result(0, inserted=0))
+    one = store.get(0)
+    assert one is not None and cv2.imdecode(np.frombuffer(one, np.uint8), 0).shape == (51, 64)
+    store.observe(_gray(1), _result(1, inserted=1, evicted=0))
+    assert store.get(0) is None and store.get(1) is not None  # evicted with the map
+    for i in range(2, 20):
+        store.observe(_gray(i), _result(i, inserted=i))
+    assert 0 < store.nbytes <= 3000 and store.get(19) is not None and store.get(2) is None  # oldest dropped
+    store.observe(_gray(50), _result(20, inserted=19))  # an id reused: the new frame's thumbnail
+    assert store.get(19) == store.thumbnail(_gray(50))
+
+
+class _FoxgloveClient:
+    """A plain Foxglove WebSocket protocol client (subprotocol foxglove.sdk.v1, which foxglove-sdk 0.30 speaks; the
+    former foxglove.websocket.v1 has the same advertise/subscribe/message-data frames): advertise -> subscribe."""
+
+    def __init__(self, port: int) -> None:
+        import websocket  # websocket-client (dev extra)
+
+        self.ws = websocket.create_connection(f"ws://127.0.0.1:{port}", timeout=5,
+                                              subprotocols=["foxglove.sdk.v1"])
+        self.channels: dict[str, dict] = {}
+        self.received: dict[str, list[bytes]] = {}
+
+    def wait_advertised(self, topics: set[str], timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not topics <= set(self.channels) and time.monotonic() < deadline:
+            msg = self.ws.recv()
+            if isinstance(msg, str):
+                doc = json.loads(msg)
+                if doc.get("op") == "advertise":
+                    self.channels.update({c["topic"]: c for c in doc["channels"]})
+        assert topics <= set(self.channels), sorted(self.channels)
+
+    def subscribe(self, topics) -> None:
+        self.sub_topic = {i: t for i, t in enumerate(topics, 1)}
+        subs = [{"id": i, "channelId": self.channels[t]["id"]} for i, t in self.sub_topic.items()]
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def receive_until(self, topics: set[str], timeout_s: float = 5.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not topics <= set(self.received) and time.monotonic() < deadline:
+            msg = self.ws.recv()
+            if isinstance(msg, bytes) and msg[:1] == b"\x01":  # message data: op, sub id, log time, payload
+                sub_id, _log_time = struct.unpack_from("<IQ", msg, 1)
+                self.received.setdefault(self.sub_topic[sub_id], []).append(msg[13:])
+
+
+def test_live_server_serves_image_annotations_place_and_result(tmp_path):
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websocket")
+    from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer
+
+    view = LiveView(FoxgloveServer(port=0))
+    client = _FoxgloveClient(view.server.port)
+    try:
+        topics = [IMAGE_TOPIC, ANNOTATIONS_TOPIC, PLACE_IMAGE_TOPIC, RESULT_TOPIC]
+        client.wait_advertised(set(topics))
+        assert client.channels[ANNOTATIONS_TOPIC]["schemaName"] == "foxglove.ImageAnnotations"
+        client.subscribe(topics)
+        deadline = time.monotonic() + 5
+        while not view.server.subscribed(RESULT_TOPIC) and time.monotonic() < deadline:
+            time.sleep(0.01)  # the server registers the subscription asynchronously
+        first = _gray(0)
+        _ok, jpeg = cv2.imencode(".jpg", first)
+        view.on_frame(jpeg.tobytes(), "image/jpeg", first, _result(0, inserted=0))
+        raw = _gray(1)
+        view.on_frame(raw.tobytes(), "mono8;240x192", raw, _result(1, best=0, points=12))
+        client.receive_until(set(topics))
+    finally:
+        client.ws.close()
+        view.close()
+    images = [CompressedImage.FromString(b) for b in client.received[IMAGE_TOPIC]]
+    assert [m.format for m in images] == ["jpeg", "jpeg"]  # the raw frame encoded
+    assert cv2.imdecode(np.frombuffer(images[1].data, np.uint8), 0).shape == (192, 240)
+    notes = [ImageAnnotations.FromString(b) for b in client.received[ANNOTATIONS_TOPIC]]
+    assert len(notes[-1].points) == 1 and len(notes[-1].points[0].points) == 12
+    assert notes[-1].points[0].points[3].x == 3.0 and "LOOP place 0" in notes[-1].texts[0].text
+    place = CompressedImage.FromString(client.received[PLACE_IMAGE_TOPIC][0])
+    assert place.format == "jpeg" and max(cv2.imdecode(np.frombuffer(place.data, np.uint8), 0).shape) == 160
+    assert FrameResult.from_json(client.received[RESULT_TOPIC][-1]).inliers == 12
+
+
+def test_view_channels_in_the_log_keep_the_reader_working(tmp_path):
+    path = tmp_path / "view.mcap"
+    with McapLogWriter(path) as log:
+        view = LiveView(log=log)
+        for i, result in enumerate([_result(0, inserted=0), _result(1, best=0, points=5)]):
+            gray = _gray(i)
+            _ok, png = cv2.imencode(".png", gray)
+            log.write_image(png.tobytes(), "image/png", result.stamp_ns, sequence=i, gray=gray)
+            view.on_frame(png.tobytes(), "image/png", gray, result)
+            log.write_result(result)
+    reader = McapLogReader(path)
+    frames = list(reader.frames())
+    assert len(frames) == 2 and reader.status.image_topic == IMAGE_TOPIC
+    assert reader.status.ignored_image_topics == []  # the place thumbnails are not a camera
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        topics = {ch.topic: s.name for s, ch, _m in make_reader(f).iter_messages()}
+    assert topics[ANNOTATIONS_TOPIC] == "foxglove.ImageAnnotations"
+    assert topics[PLACE_IMAGE_TOPIC] == "foxglove.CompressedImage"
