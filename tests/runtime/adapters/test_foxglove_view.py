@@ -150,3 +150,26 @@ def test_view_channels_in_the_log_keep_the_reader_working(tmp_path):
         topics = {ch.topic: s.name for s, ch, _m in make_reader(f).iter_messages()}
     assert topics[ANNOTATIONS_TOPIC] == "foxglove.ImageAnnotations"
     assert topics[PLACE_IMAGE_TOPIC] == "foxglove.CompressedImage"
+
+
+def test_layout_names_only_served_topics_and_existing_fields():
+    from pathlib import Path
+
+    from aefabmap.runtime.adapters.foxglove_view import STATS_TOPIC
+    from aefabmap.runtime.core.messages import StatsMessage
+
+    doc = json.loads((Path(__file__).parents[3] / "deploy" / "foxglove_layout.json").read_text())
+    fields = {RESULT_TOPIC: FrameResult.json_schema()["properties"], STATS_TOPIC: StatsMessage.json_schema()["properties"]}
+    served = {IMAGE_TOPIC, ANNOTATIONS_TOPIC, PLACE_IMAGE_TOPIC, *fields}
+    seen = set()
+    for panel, config in doc["configById"].items():
+        image = config.get("imageMode", {})
+        for topic in [image.get("imageTopic"), *image.get("annotations", {}), config.get("topicPath")]:
+            if topic:
+                assert topic in served, (panel, topic)
+                seen.add(topic)
+        for path in config.get("paths", []):
+            topic, _, field = path["value"].partition(".")
+            assert field.split(".")[0] in fields[topic], (panel, path)
+            seen.add(topic)
+    assert seen == served
