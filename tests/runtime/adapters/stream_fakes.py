@@ -133,7 +133,7 @@ class JsonCollector:
 class NodeThread:
     """Runs run_node in a thread; .summary / .error after join."""
 
-    def __init__(self, detector, session_config, **options) -> None:
+    def __init__(self, detector, session_config, *, view=None, **options) -> None:
         from aefabmap.runtime.adapters.node import NodeOptions, run_node
 
         self.stop = threading.Event()
@@ -144,7 +144,7 @@ class NodeThread:
         def target() -> None:
             try:
                 self.summary = run_node(detector, NodeOptions(session=session_config, **options),
-                                        stop_event=self.stop, ready_event=self.ready)
+                                        stop_event=self.stop, ready_event=self.ready, view=view)
             except BaseException as exc:  # reported to the test
                 self.error = exc
             finally:

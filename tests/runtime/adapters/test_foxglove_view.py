@@ -173,3 +173,83 @@ def test_layout_names_only_served_topics_and_existing_fields():
             assert field.split(".")[0] in fields[topic], (panel, path)
             seen.add(topic)
     assert seen == served
+
+
+@pytest.mark.timeout(90)
+def test_live_node_with_view_serves_a_client_and_logs_the_view(tmp_path):
+    """run_node + LiveView: frames over Zenoh -> a Foxglove client gets image, annotations, result,
+    stats; the run's MCAP log gets the annotations too."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websocket")
+    from aefabmap.runtime.adapters.foxglove_view import STATS_TOPIC, FoxgloveServer
+    from aefabmap.runtime.adapters.zenoh_transport import open_session
+    from aefabmap.runtime.tools.publisher import array_source, publish_frames
+
+    from .stream_fakes import FakeDetector, JsonCollector, NodeThread, sample_images, session_pair
+
+    view = LiveView(FoxgloveServer(port=0))
+    client = _FoxgloveClient(view.server.port)
+    topics = [IMAGE_TOPIC, ANNOTATIONS_TOPIC, RESULT_TOPIC, STATS_TOPIC]
+    try:
+        client.wait_advertised(set(topics))
+        client.subscribe(topics)
+        deadline = time.monotonic() + 5
+        while not all(view.server.subscribed(t) for t in topics) and time.monotonic() < deadline:
+            time.sleep(0.01)  # the server registers the subscription asynchronously
+        listen, connect = session_pair()
+        path = tmp_path / "live.mcap"
+        with NodeThread(detector=FakeDetector(), session_config=listen, key="robot/camera/image", mcap_path=path,
+                        queue_size=32, stats_period_s=0.2, view=view) as node:
+            with open_session(connect) as s:
+                results = JsonCollector(s, "robot/camera/lcd")
+                publish_frames(connect, "robot/camera/image", array_source(sample_images(6, size=(96, 72)), "jpeg"),
+                               rate_hz=100, wait_for_subscriber_s=10)
+                results.wait_for(lambda d: d["sequence"] == 5, timeout_s=30)
+                results.close()
+            client.receive_until(set(topics), timeout_s=10)
+            summary = node.finish()
+    finally:
+        client.ws.close()
+        view.close()
+    assert summary.frames_processed == 6
+    assert set(topics) <= set(client.received)
+    assert CompressedImage.FromString(client.received[IMAGE_TOPIC][0]).format == "jpeg"
+    assert FrameResult.from_json(client.received[RESULT_TOPIC][0]).sequence == 0
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        counts: dict[str, int] = {}
+        for _s, ch, _m in make_reader(f).iter_messages():
+            counts[ch.topic] = counts.get(ch.topic, 0) + 1
+    assert counts[ANNOTATIONS_TOPIC] == 6 and counts[RESULT_TOPIC] == 6
+
+
+def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, monkeypatch, capsys):
+    pytest.importorskip("foxglove")
+    import argparse
+
+    from aefabmap.cli import replay as cli_replay
+    from tests.conftest import make_synthetic_bundle
+
+    from .stream_fakes import sample_images
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    src = tmp_path / "src.mcap"
+    images = sample_images(12, size=(160, 120))
+    with McapLogWriter(src) as log:
+        for i, img in enumerate(images):
+            _ok, png = cv2.imencode(".png", img)
+            log.write_image(png.tobytes(), "image/png", 1_700_000_000_000_000_000 + i * 10**8, sequence=i)
+    out = tmp_path / "out.mcap"
+    args = argparse.Namespace(log=[str(src)], model=str(bundle), out=str(out), check=False, foxglove=0,
+                              foxglove_host="127.0.0.1")
+    assert cli_replay.main(args) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_processed"] == 12
+    from mcap.reader import make_reader
+
+    with open(out, "rb") as f:
+        topics = [ch.topic for _s, ch, _m in make_reader(f).iter_messages()]
+    assert topics.count(ANNOTATIONS_TOPIC) == 12
+
+    monkeypatch.setitem(__import__("sys").modules, "foxglove", None)  # foxglove-sdk absent
+    assert cli_replay.main(args) == 2  # ConfigError: one line, "install aefabmap[foxglove]"
