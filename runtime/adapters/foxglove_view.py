@@ -155,6 +155,8 @@ class FoxgloveServer:
     """
 
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "aefabmap") -> None:
+        if not isinstance(port, int) or not 0 <= port <= 65535:
+            raise ConfigError(f"Foxglove port must be 0..65535, got {port!r}")
         try:
             import foxglove
         except ImportError as exc:
@@ -218,7 +220,8 @@ class LiveView:
         if gray is not None:
             self.thumbnails.observe(gray, result)
         if self.server is not None:  # the log has the camera image and the result already
-            if image := self._camera_image(payload, encoding, gray, stamp):
+            # (no client watching the image: do not build it; a raw frame costs a JPEG encode)
+            if self.server.subscribed(IMAGE_TOPIC) and (image := self._camera_image(payload, encoding, gray, stamp)):
                 self.server.log(IMAGE_TOPIC, image, stamp)
             self.server.log(RESULT_TOPIC, data if data is not None else result.to_json_bytes(), stamp)
         self._send(ANNOTATIONS_TOPIC, annotations_for(result, self.config.frame_id).SerializeToString(), stamp, seq)

@@ -240,10 +240,16 @@ def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, mon
         for i, img in enumerate(images):
             _ok, png = cv2.imencode(".png", img)
             log.write_image(png.tobytes(), "image/png", 1_700_000_000_000_000_000 + i * 10**8, sequence=i)
+    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+
+    configs, real_load = [], bundle_reader_mod.load_detector
+    monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda path, config: configs.append(config)
+                        or real_load(path, config))
     out = tmp_path / "out.mcap"
     args = argparse.Namespace(log=[str(src)], model=str(bundle), out=str(out), check=False, foxglove=0,
                               foxglove_host="127.0.0.1")
     assert cli_replay.main(args) == 0
+    assert configs[0].verification.keep_inlier_points  # the view draws them
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_processed"] == 12
     from mcap.reader import make_reader
 
