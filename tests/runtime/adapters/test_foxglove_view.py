@@ -185,7 +185,13 @@ def test_live_node_with_view_serves_a_client_and_logs_the_view(tmp_path):
     from aefabmap.runtime.adapters.zenoh_transport import open_session
     from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
-    from .stream_fakes import FakeDetector, JsonCollector, NodeThread, sample_images, session_pair
+    from .stream_fakes import (
+        FakeDetector,
+        JsonCollector,
+        NodeThread,
+        sample_images,
+        session_pair,
+    )
 
     view = LiveView(FoxgloveServer(port=0))
     client = _FoxgloveClient(view.server.port)
