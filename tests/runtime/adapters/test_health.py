@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import queue
+import time
 
 import pytest
 import zenoh
@@ -117,3 +118,21 @@ def test_no_runtime_gives_an_empty_list():
     assert query_status(watch, ["0123456789abcdef"], 0.5) == {"0123456789abcdef": "no answer"}
     watch.close()
     peer.close()
+
+
+def test_status_does_not_wait_for_a_slow_frame(tmp_path):
+    listen, connect = session_pair()
+    with NodeThread(FakeDetector(delay_s=1.5), listen, key=KEY, mcap_path=tmp_path / "run.mcap") as node:
+        watch = open_session(connect)
+        assert wait_for_peer(watch, 10)
+        (zid,) = find_runtimes(watch, 5)
+        pub = publish_frames(connect, KEY, array_source(sample_images(1), "jpeg"), rate_hz=100,
+                             wait_for_subscriber_s=10)
+        assert pub.published == 1
+        t0 = time.monotonic()
+        (status,) = query_status(watch, [zid], 5).values()
+        elapsed_s = time.monotonic() - t0
+        watch.close()
+        node.finish()
+    assert not isinstance(status, str) and status.frames_processed == 0  # the frame was in the detector (or not yet taken)
+    assert elapsed_s < 0.5
