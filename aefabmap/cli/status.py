@@ -44,8 +44,15 @@ def _line(zid: str, st) -> str:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.health import find_runtimes, query_status, wait_for_peer
-    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config, open_session
+    from aefabmap.runtime.adapters.health import (
+        find_runtimes,
+        query_status,
+        wait_for_peer,
+    )
+    from aefabmap.runtime.adapters.zenoh_transport import (
+        cli_session_config,
+        open_session,
+    )
 
     if not args.timeout > 0:
         raise ConfigError(f"--timeout must be > 0 s, got {args.timeout}")

@@ -11,7 +11,12 @@ import pytest
 from aefabmap.runtime.core.messages import StatusMessage
 from aefabmap.runtime.tools.node_process import free_tcp_port
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
-from tests.runtime.adapters.stream_fakes import FakeDetector, NodeThread, sample_images, session_pair
+from tests.runtime.adapters.stream_fakes import (
+    FakeDetector,
+    NodeThread,
+    sample_images,
+    session_pair,
+)
 
 pytestmark = pytest.mark.timeout(90)
 KEY = "robot/camera/image"
@@ -19,7 +24,7 @@ KEY = "robot/camera/image"
 
 def _status(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "aefabmap.cli.main", "status", *args],
-                          capture_output=True, text=True, timeout=60)
+                          check=False, capture_output=True, text=True, timeout=60)
 
 
 def test_status_finds_a_running_node(tmp_path):

@@ -23,7 +23,13 @@ from aefabmap.runtime.core.json_schema import validate
 from aefabmap.runtime.core.messages import MESSAGE_FORMAT_VERSION, StatusMessage
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
-from .stream_fakes import FakeDetector, JsonCollector, NodeThread, sample_images, session_pair
+from .stream_fakes import (
+    FakeDetector,
+    JsonCollector,
+    NodeThread,
+    sample_images,
+    session_pair,
+)
 
 pytestmark = pytest.mark.timeout(60)
 KEY = "robot/camera/image"
@@ -91,9 +97,9 @@ def test_hostile_queries_never_hurt_the_node(tmp_path):
         assert wait_for_peer(watch, 10)
         (zid,) = find_runtimes(watch, 5)
         hostile = [
-            dict(selector=f"{status_key(zid)}?;;;=&&x=%00%ff;_time=[..garbage]", payload=b"\xff" * 65536),
-            dict(selector="aefabmap/status/**", payload=b"{\"frames\": -1}", attachment=b"\x00" * 2048),
-            dict(selector=f"{status_key(zid)}?" + "k=v;" * 2000, encoding=zenoh.Encoding.APPLICATION_JSON),
+            {"selector": f"{status_key(zid)}?;;;=&&x=%00%ff;_time=[..garbage]", "payload": b"\xff" * 65536},
+            {"selector": "aefabmap/status/**", "payload": b"{\"frames\": -1}", "attachment": b"\x00" * 2048},
+            {"selector": f"{status_key(zid)}?" + "k=v;" * 2000, "encoding": zenoh.Encoding.APPLICATION_JSON},
         ]
         handlers = [watch.get(timeout=5, **h) for h in hostile for _ in range(20)]
         answers = [r for h in handlers for r in h]
