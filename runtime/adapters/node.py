@@ -17,12 +17,13 @@ result, i.e. decode + detector; ``age_ms``, capture stamp -> result, meaningful 
 the publisher's clock is synchronised with ours) serialised once (runtime/core/messages.py)
 -> published on the results key and logged to MCAP with the image. Every
 ``stats_period_s`` seconds a StatsMessage (frames, drops, bad by reason, RSS in MB, latency
-p50/p95 in ms) is published on ``<results key>/stats`` and logged.
+p50/p95 in ms) is published on ``<results key>/stats`` and logged. While it runs the node
+holds the liveliness token ``aefabmap/runtime/<zid>`` and answers status queries on
+``aefabmap/status/<zid>`` (runtime/adapters/health.py).
 """
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections import deque
@@ -35,6 +36,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop, FrameOutcome
+from aefabmap.runtime.adapters.health import HealthEndpoint, StatusBoard, rss_mb
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
 from aefabmap.runtime.adapters.rmw_zenoh import (
     RosFrameSubscriber,
@@ -54,16 +56,6 @@ from aefabmap.runtime.adapters.zenoh_transport import (
 from aefabmap.runtime.core.messages import LatencySummary, RunSummary, StatsMessage
 
 __all__ = ["Detector", "NodeOptions", "RunStats", "RunSummary", "rss_mb", "run_node", "stop_on_signals"]
-
-
-def rss_mb() -> float | None:
-    """Resident set size of this process in MB (from /proc/self/statm; None elsewhere)."""
-    try:
-        with open("/proc/self/statm", "rb") as f:
-            pages = int(f.read().split()[1])
-        return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 def _percentile(values, q: float) -> float | None:
@@ -278,7 +270,9 @@ def run_node(
     loop, stats, t0 = FrameLoop(detector), RunStats(), time.monotonic()
     log = RotatingLog(options.mcap_path, options.mcap_config(), options.log_rotation,
                       run_config=options.log_metadata(), manifest=manifest if isinstance(manifest, dict) else None)
-    with _Transport(options) as io, log.open():
+    board = StatusBoard(image_key=options.key, results_key=options.results_key,
+                        manifest=manifest if isinstance(manifest, dict) else None, log=log, t0=t0)
+    with _Transport(options) as io, log.open(), _health(io.session, board):
         if ready_event is not None:
             ready_event.set()
         if view is not None:
@@ -291,9 +285,11 @@ def run_node(
                 if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)
                     loop.bad.count("bad_attachment", frame.meta.problem)
                 if frame.error is not None:
-                    output.send(frame, loop.refuse(frame.error))
+                    outcome = loop.refuse(frame.error)
                 else:
-                    output.send(frame, loop.step(frame.payload, frame.encoding, frame.stamp_ns))
+                    outcome = loop.step(frame.payload, frame.encoding, frame.stamp_ns)
+                board.after_frame(loop, io.sub.drops, outcome.result, detector)  # before the result goes out
+                output.send(frame, outcome)
                 if snapshotter is not None:
                     snapshotter.after_frame()
         emitter.emit()
@@ -308,6 +304,20 @@ def run_node(
         result_key=options.results_key, stats_key=options.stats_key,
         log_files=[str(p) for p in log.files], log_files_deleted=log.deleted_count, log_errors=log.errors,
     )
+
+
+class _health:
+    """The node's liveliness token and status queryable (runtime/adapters/health.py), for the run."""
+
+    def __init__(self, session, board: StatusBoard) -> None:
+        self.session, self.board = session, board
+
+    def __enter__(self) -> HealthEndpoint:
+        self.endpoint = HealthEndpoint(self.session, self.board)
+        return self.endpoint
+
+    def __exit__(self, *exc_info) -> None:
+        self.endpoint.close()
 
 
 class stop_on_signals:

@@ -330,6 +330,46 @@ class RunSummary(_Message):
         self.bad_total = sum(self.bad.values())
 
 
+# ============================================================================ status
+
+
+@dataclass(kw_only=True)
+class StatusMessage(_Message):
+    """A running node's health, the answer to a query on its status key
+    (runtime/adapters/health.py). Counters are cumulative since the node started."""
+
+    TITLE = "aefabmap.RuntimeStatus"
+    DESCRIPTION = "health of one running aefabmap node, answered on demand (Zenoh queryable)"
+
+    stamp_ns: int = _f(description="wall-clock time of the answer, ns since the Unix epoch")
+    zid: str = _f(description="Zenoh id of the node's session (its liveliness token is aefabmap/runtime/<zid>)")
+    aefabmap_version: str = _f(description="version of the aefabmap package running")
+    message_format_version: str = _f(description="MESSAGE_FORMAT_VERSION of the node's messages")
+    bundle_id: str | None = _f(None, "sha256 of the bundle manifest in canonical JSON (null: no manifest)")
+    uptime_s: float = _f(description="seconds since the node started")
+    image_key: str = _f(description="Zenoh key the node subscribes to for frames")
+    results_key: str = _f(description="Zenoh key of its results (stats on <results_key>/stats)")
+    frames_received: int = _f(description="frames taken from the transport")
+    frames_processed: int = _f(description="frames that gave a result")
+    dropped: int = _f(description="frames lost: sequence gaps (ring overflow or network)")
+    bad: dict[str, int] = field(metadata=_meta("frames refused, by reason"))
+    bad_total: int = _f(init=False, description="sum of bad")
+    loops: int = _f(0, "loop closures so far")
+    places: int | None = _f(None, "places in the map (null: before the first frame)")
+    map_mb: float | None = _f(None, "memory of the map as the detector accounts it, MB (null: not told)")
+    rss_mb: float | None = _f(None, "resident memory of the process, MB (null where unknown)")
+    stage_ms: dict[str, float] = field(default_factory=dict, metadata=_meta(
+        "median detector time per stage over the recent frames, ms (the results' timings_ms)"))
+    recent_frames: int = _f(0, "frames behind stage_ms")
+    log_files: int = _f(0, "MCAP files of this run still on disk")
+    log_bytes: int = _f(0, "bytes of those files")
+    log_errors: int = _f(0, "log write errors so far (never fatal)")
+    log_state: str | None = _f(None, "the log now (see StatsMessage.log_state)", enum=LOG_STATES)
+
+    def __post_init__(self) -> None:
+        self.bad_total = sum(self.bad.values())
+
+
 __all__ = [
     "LOG_STATES",
     "MESSAGE_FORMAT_VERSION",
@@ -339,6 +379,7 @@ __all__ = [
     "LatencySummary",
     "RunSummary",
     "StatsMessage",
+    "StatusMessage",
     "check_readable",
     "parse_version",
 ]

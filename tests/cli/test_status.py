@@ -1,0 +1,57 @@
+"""``aefabmap status`` as a subprocess against a real node on loopback (aefabmap/cli/status.py)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from aefabmap.runtime.core.messages import StatusMessage
+from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap.runtime.tools.publisher import array_source, publish_frames
+from tests.runtime.adapters.stream_fakes import (
+    FakeDetector,
+    NodeThread,
+    sample_images,
+    session_pair,
+)
+
+pytestmark = pytest.mark.timeout(90)
+KEY = "robot/camera/image"
+
+
+def _status(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "aefabmap.cli.main", "status", *args],
+                          check=False, capture_output=True, text=True, timeout=60)
+
+
+def test_status_finds_a_running_node(tmp_path):
+    listen, connect = session_pair()
+    (endpoint,) = connect.connect
+    with NodeThread(FakeDetector(), listen, key=KEY, mcap_path=tmp_path / "run.mcap", queue_size=16) as node:
+        pub = publish_frames(connect, KEY, array_source(sample_images(3), "jpeg"), rate_hz=100,
+                             wait_for_subscriber_s=10)
+        assert pub.published == 3
+        machine = _status("--connect", endpoint, "--timeout", "5", "--json")
+        human = _status("--connect", endpoint, "--timeout", "5")
+        node.finish()
+    assert machine.returncode == 0, machine.stderr
+    (doc,) = json.loads(machine.stdout)
+    status = StatusMessage.from_json(doc)
+    assert status.results_key == "robot/camera/lcd" and status.frames_received <= 3
+    assert human.returncode == 0, human.stderr
+    assert human.stdout.count("\n") == 1 and status.zid in human.stdout and "robot/camera/lcd" in human.stdout
+
+
+def test_status_without_a_node_says_so():
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    done = _status("--connect", endpoint, "--timeout", "1")
+    assert done.returncode == 1, done.stderr
+    assert done.stdout.strip() == f"no aefabmap runtime found on {endpoint}"
+
+
+def test_status_refuses_a_bad_endpoint():
+    done = _status("--connect", "nonsense", "--timeout", "1")
+    assert done.returncode == 2 and "endpoint" in done.stderr and "Traceback" not in done.stderr
