@@ -556,19 +556,23 @@ def estimate_geometry(
 
 
 def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: float) -> np.ndarray:
-    """Indices of matches xq (K, 2) -> xp (K, 2) keeping one per location.
+    """Indices of matches xq (K, 2) -> xp (K, 2) keeping one per location in EITHER image.
 
-    Two matches are copies when their query points share a radius_q cell and their place
-    points a radius_p cell of a grid (a cheap stand-in for "within the radius in both
-    images"); the first is kept. A radius <= 0 keeps everything. Returns sorted int64 indices.
+    The a-contrario count treats matches as independent pieces of evidence. Matches that share
+    a location in one image are not: copies of one corner (ORB detects it at several pyramid
+    levels; an upsampled image gives several keypoints per corner), or several query points
+    sent to one place point, which any model that contracts a region onto that point "explains".
+    A location is a radius_q (query) or radius_p (place) cell of a grid, a cheap stand-in for
+    "within the radius"; a match is kept when it is the first of its query cell and the first of
+    its place cell. A radius <= 0 keeps everything. Returns sorted int64 indices.
     """
     if radius_q <= 0 or radius_p <= 0 or xq.shape[0] < 2:
         return np.arange(xq.shape[0], dtype=np.int64)
-    # Four cell indices (each clipped to 15 bits: images up to ~98k cells a side) in one int64.
+    # Two cell indices per image (each clipped to 15 bits: images up to ~32k cells a side) in one int64.
     cells = np.clip(np.floor(np.c_[xq / radius_q, xp / radius_p]), 0, 2**15 - 1).astype(np.int64)
-    key = ((cells[:, 0] * 2**15 + cells[:, 1]) * 2**15 + cells[:, 2]) * 2**15 + cells[:, 3]
-    _, first = np.unique(key, return_index=True)
-    return np.sort(first).astype(np.int64)
+    _, first_q = np.unique(cells[:, 0] * 2**15 + cells[:, 1], return_index=True)
+    _, first_p = np.unique(cells[:, 2] * 2**15 + cells[:, 3], return_index=True)
+    return np.intersect1d(first_q, first_p).astype(np.int64)
 
 
 def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> float:
