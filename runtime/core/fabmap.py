@@ -11,6 +11,7 @@ import numpy as np
 
 from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
+from aefabmap.runtime.core.scatter import scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
 
 
@@ -133,28 +134,6 @@ def as_word_set(obs, vocabulary_size: int) -> np.ndarray:
     if arr[0] < 0 or arr[-1] >= vocabulary_size:
         raise InputError(f"word ids must lie in [0, {vocabulary_size}), got range [{arr[0]}, {arr[-1]}]")
     return arr
-
-
-def scatter_scores(defaults: np.ndarray, rows: list[np.ndarray], weights: np.ndarray, lens: np.ndarray) -> np.ndarray:
-    """defaults[p] + the weights of every posting of p, as one bincount, shape (defaults.size,).
-
-    rows: posting arrays (place ids, any integer type), row i getting weights[i]; lens[i] = len(rows[i]).
-    The defaults go first in the scatter so that each place's sum is accumulated in the same
-    order as ``acc = defaults.copy(); acc[row] += w`` row after row: the results are bit-identical
-    to the per-word fancy-index adds this replaces (one bincount instead of one numpy call per word).
-    """
-    n = defaults.size
-    total = int(lens.sum()) if lens.size else 0
-    if total == 0:
-        return defaults.copy()
-    ids = np.empty(n + total, np.intp)
-    ids[:n] = np.arange(n, dtype=np.intp)
-    # Concatenating straight into the intp buffer widens int32 postings in the same pass.
-    np.concatenate(rows, out=ids[n:])
-    w = np.empty(n + total, np.float64)
-    w[:n] = defaults
-    w[n:] = np.repeat(weights, lens)
-    return np.bincount(ids, w, minlength=n)
 
 
 def _grown(n: int) -> int:
