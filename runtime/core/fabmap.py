@@ -11,6 +11,7 @@ import numpy as np
 
 from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
+from aefabmap.runtime.core.scatter import prepare as prepare_scatter
 from aefabmap.runtime.core.scatter import scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -156,7 +157,7 @@ class InvertedIndex:
     def __init__(self, vocabulary_size: int) -> None:
         self.vocabulary_size = vocabulary_size
         self._buf: list[np.ndarray | None] = [None] * vocabulary_size
-        self._len = np.zeros(vocabulary_size, np.int64)
+        self._len = np.zeros(vocabulary_size, np.int32)  # postings per word (< 2^31: one per place)
         self._alive = np.zeros(0, bool)
         self._default = np.zeros(0, np.float64)
         self._words: list[np.ndarray | None] = []  # each place's word ids, for removal
@@ -301,7 +302,7 @@ class InvertedIndex:
             self._buffer_bytes += self._words[pid].nbytes
             self._default[pid] = default(w)
         self._buf = [None] * v
-        self._len = lens.astype(np.int64)
+        self._len = lens.astype(np.int32)
         for q in np.flatnonzero(post_cap).tolist():
             b = np.empty(int(post_cap[q]), np.int32)
             b[: lens[q]] = postings[pptr[q]:pptr[q + 1]]
@@ -414,6 +415,7 @@ class FabMap2:
         self._training = StaticPostings(training, defaults, tree.size)
         if self._training.n_places == 0:
             raise InputError("FAB-MAP needs at least one training observation for the new-place model")
+        prepare_scatter()
         self._prior: np.ndarray | None = None
 
     @property
@@ -469,6 +471,9 @@ class FabMap2:
     def _normalise(self, l_new: float, l_places: np.ndarray) -> np.ndarray:
         logs = np.concatenate([[l_new], l_places])
         alive = np.isfinite(logs)
+        if alive.all():
+            # Every place alive (the usual case): the same arithmetic without two masked copies.
+            return self.smoothing * np.exp(logs - _logsumexp(logs)) + (1.0 - self.smoothing) / logs.size
         n_alive = int(alive.sum())
         probs = np.zeros_like(logs)
         probs[alive] = self.smoothing * np.exp(logs[alive] - _logsumexp(logs[alive])) + (1.0 - self.smoothing) / n_alive

@@ -35,8 +35,20 @@ def use_compiled(flag: bool) -> bool:
     return previous
 
 
+def active() -> str:
+    """The implementation in use: "compiled" or "numpy"."""
+    return "compiled" if _use_compiled else "numpy"
+
+
+def prepare() -> None:
+    """Compile the kernel now if it is in use (once per process, under a second), so that the
+    first query does not pay for it."""
+    if _use_compiled:
+        _get_kernel()
+
+
 def _get_kernel():
-    """Compile the kernel on first use (about a second, once per process)."""
+    """Compile the kernel on first use (once per process)."""
     global _kernel
     if _kernel is None:
         def scatter(acc, ids, weights, lens):

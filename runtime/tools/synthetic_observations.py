@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aefabmap.runtime.core import scatter
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -63,6 +64,7 @@ class InferenceBenchResult:
     add_ms_median: float
     bytes_per_place: float
     index_bytes: int
+    scatter: str  # "compiled" (numba kernel) or "numpy"
 
 
 def bench_inference(places: int, words: int, *, queries: int = 200, training: int = 1000, words_per_place: int = 300, seed: int = 0) -> InferenceBenchResult:
@@ -78,6 +80,7 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
             add_times.append(time.perf_counter() - t0)
     del obs
     qs = synthetic_observations(queries, words, words_per_place, seed + 3)
+    engine.localize(qs[0], add=False)  # untimed: first-call costs (allocations, a lazy compile)
     load = os.getloadavg()[0]
     times, cpu_times = [], []
     for q in qs:
@@ -103,4 +106,5 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
         add_ms_median=float(np.median(add_times) * 1e3),
         bytes_per_place=nbytes / max(1, places),
         index_bytes=nbytes,
+        scatter=scatter.active(),
     )
