@@ -75,8 +75,12 @@ def run_inference(args) -> int:
     from aefabmap.runtime.core import scatter
     from aefabmap.runtime.tools.synthetic_observations import bench_inference
 
-    scatter.use_compiled(args.scatter == "auto")
-    results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place)) for n in args.places]
+    previous = scatter.use_compiled(args.scatter == "auto")
+    try:
+        results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place))
+                   for n in args.places]
+    finally:
+        scatter.use_compiled(previous)
     _emit(results[0] if len(results) == 1 else results, args.json)
     return 0
 
