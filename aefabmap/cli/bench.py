@@ -15,6 +15,8 @@ def register(sub) -> None:
     inf.add_argument("--words", type=int, default=10_000, metavar="V")
     inf.add_argument("--queries", type=int, default=200)
     inf.add_argument("--words-per-place", type=int, default=300)
+    inf.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
+                     help="scoring scatter: the compiled kernel when numba is installed (auto, default) or numpy")
     inf.add_argument("--json", type=Path, metavar="OUT")
     inf.set_defaults(func=run_inference)
     cl = bsub.add_parser("chowliu", help="Chow-Liu learning time and peak memory on synthetic observations")
@@ -70,9 +72,15 @@ def _emit(doc, path: Path | None) -> None:
 
 
 def run_inference(args) -> int:
+    from aefabmap.runtime.core import scatter
     from aefabmap.runtime.tools.synthetic_observations import bench_inference
 
-    results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place)) for n in args.places]
+    previous = scatter.use_compiled(args.scatter == "auto")
+    try:
+        results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place))
+                   for n in args.places]
+    finally:
+        scatter.use_compiled(previous)
     _emit(results[0] if len(results) == 1 else results, args.json)
     return 0
 

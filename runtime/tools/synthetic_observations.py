@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
+from aefabmap.runtime.core import scatter
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -56,9 +58,13 @@ class InferenceBenchResult:
     median_ms: float
     p95_ms: float
     mean_ms: float
+    cpu_median_ms: float  # thread CPU time per query: less sensitive to other jobs than wall time
+    cpu_p95_ms: float
+    load_average: float  # 1-minute load average when the queries started
     add_ms_median: float
     bytes_per_place: float
     index_bytes: int
+    scatter: str  # "compiled" (numba kernel) or "numpy"
 
 
 def bench_inference(places: int, words: int, *, queries: int = 200, training: int = 1000, words_per_place: int = 300, seed: int = 0) -> InferenceBenchResult:
@@ -74,12 +80,16 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
             add_times.append(time.perf_counter() - t0)
     del obs
     qs = synthetic_observations(queries, words, words_per_place, seed + 3)
-    times = []
+    engine.localize(qs[0], add=False)  # untimed: first-call costs (allocations, a lazy compile)
+    load = os.getloadavg()[0]
+    times, cpu_times = [], []
     for q in qs:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         engine.localize(q, add=False)
         times.append(time.perf_counter() - t0)
+        cpu_times.append(time.thread_time() - c0)
     t = np.array(times) * 1e3
+    c = np.array(cpu_times) * 1e3
     nbytes = engine.nbytes()
     return InferenceBenchResult(
         places=places,
@@ -90,7 +100,11 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
         median_ms=float(np.median(t)),
         p95_ms=float(np.percentile(t, 95)),
         mean_ms=float(t.mean()),
+        cpu_median_ms=float(np.median(c)),
+        cpu_p95_ms=float(np.percentile(c, 95)),
+        load_average=round(load, 2),
         add_ms_median=float(np.median(add_times) * 1e3),
         bytes_per_place=nbytes / max(1, places),
         index_bytes=nbytes,
+        scatter=scatter.active(),
     )

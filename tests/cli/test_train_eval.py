@@ -90,6 +90,9 @@ def test_eval_refuses_a_missing_bundle(tmp_path, caplog):
 def test_bench_inference_json(tmp_path):
     out = tmp_path / "b.json"
     assert main(["bench", "inference", "--places", "200", "--words", "2000", "--queries", "20", "--json", str(out)]) == 0
+    assert main(["bench", "inference", "--places", "50", "--words", "500", "--queries", "5", "--scatter", "numpy",
+                 "--json", str(tmp_path / "n.json")]) == 0
+    assert json.loads((tmp_path / "n.json").read_text())["scatter"] == "numpy"
     doc = json.loads(out.read_text())
     assert {"median_ms", "p95_ms", "bytes_per_place"} <= set(doc)
     assert doc["places"] == 200 and doc["bytes_per_place"] > 0

@@ -175,3 +175,47 @@ def test_tree_validation():
         ChowLiuTree([0, 0], [0.2, 1.0], [0.2, 0.6], [0.2, 0.05])
     with pytest.raises(InputError, match="shape"):
         ChowLiuTree([0, 0], [0.2], [0.2, 0.6], [0.2, 0.05])
+
+
+def test_places_cost_at_most_2kb_at_300_words():
+    """int32 postings grown by a quarter plus uint16 word lists: <= 2 KB per 300-word place."""
+    from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
+
+    words = 2000
+    engine = FabMap2(random_tree(words, 3), synthetic_observations(20, words, 300, 4))
+    places = synthetic_observations(3000, words, 300, 5)
+    for obs in places:
+        engine.add(obs)
+    assert engine.places.place_words(0).dtype == np.uint16
+    assert all(b is None or b.dtype == np.int32 for b in engine.places._buf)
+    assert engine.nbytes() / len(places) <= 2048
+
+
+def test_removal_then_reuse_scores_like_a_fresh_map():
+    """Postings compacted on removal: a reused id scores only its new words."""
+    words = 300
+    tree = random_tree(words, 7)
+    rng = np.random.default_rng(7)
+    obs = [rng.choice(words, 40, replace=False) for _ in range(30)]
+    training = [rng.choice(words, 40, replace=False) for _ in range(10)]
+    a = FabMap2(tree, training)
+    for o in obs[:20]:
+        a.add(o)
+    for pid in (3, 11, 0):
+        a.remove(pid)
+    for o in obs[20:23]:
+        a.add(o)  # free ids are reused last-removed first: 0, 11, 3
+    b = FabMap2(tree, training)
+    kept = [o for i, o in enumerate(obs[:20]) if i not in (3, 11, 0)]
+    for o in kept:
+        b.add(o)
+    q = obs[25]
+    la, lb = a.loglik(q), b.loglik(q)
+    assert la.size == 20 and lb.size == 17
+    expected = {0: obs[20], 11: obs[21], 3: obs[22]}
+    for pid, o in expected.items():
+        c = FabMap2(tree, training)
+        c.add(o)
+        assert la[pid] == pytest.approx(c.loglik(q)[0], rel=1e-12, abs=1e-9)
+    assert np.allclose(np.delete(la, [0, 3, 11]), lb, rtol=1e-12)
+    assert a.loglik_new(q) == b.loglik_new(q)
