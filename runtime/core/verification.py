@@ -94,8 +94,8 @@ class VerificationConfig:
         the expected number of chance loop closures of a whole run below one. (NFA < 1, the
         textbook default, let 2 of ~1500 unrelated training pairs through, at log10 NFA -0.5
         and -1.9; none came below -2.6, and 0 -> -4 cost ~1 of 140 training positives.)
-    duplicate_radius: matches whose points fall in the same duplicate_radius x duplicate_radius
-        cell (ORIGINAL pixels of each image) in both images count once. ORB finds one corner at
+    duplicate_radius: matches that share a duplicate_radius x duplicate_radius cell (ORIGINAL
+        pixels) in either image count once (see `distinct_matches`). ORB finds one corner at
         several pyramid levels, and an image upsampled to the 640-px detection scale yields
         several keypoints per native corner; FAST's test circle has a radius of 3 pixels, so
         corners closer than that share their evidence. The a-contrario count assumes
