@@ -46,6 +46,7 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     DropCounter,
     FrameMeta,
     ReceivedFrame,
+    poll_ring,
     result_key_for,
 )
 
@@ -226,21 +227,9 @@ class RosFrameSubscriber:
             raise TransportError(f"cannot subscribe to {self.key!r}: {exc}") from exc
 
     def receive(self, timeout_s: float, stop_event: threading.Event | None = None) -> ReceivedFrame | None:
-        deadline = time.monotonic() + max(0.0, timeout_s)
-        wait = 0.0002
-        waiter = stop_event if stop_event is not None else self._wake
-        while True:
-            try:
-                sample = self._sub.try_recv()
-            except zenoh.ZError as exc:
-                raise TransportError(f"subscriber on {self.key!r} failed: {exc}") from exc
-            if sample is not None:
-                return self._to_frame(sample)
-            now = time.monotonic()
-            if now >= deadline or (stop_event is not None and stop_event.is_set()):
-                return None
-            waiter.wait(min(wait, deadline - now))
-            wait = min(wait * 2, self.poll_s)
+        """Return the oldest frame still in the ring, or None after timeout_s (or stop)."""
+        sample = poll_ring(self._sub, self.key, timeout_s, stop_event or self._wake, self.poll_s)
+        return None if sample is None else self._to_frame(sample)
 
     def _to_frame(self, sample: zenoh.Sample) -> ReceivedFrame:
         key = str(sample.key_expr)

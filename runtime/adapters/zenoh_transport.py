@@ -326,6 +326,33 @@ class DropCounter:
         return gap
 
 
+def poll_ring(sub, key: str, timeout_s: float, waiter: threading.Event, max_poll_s: float,
+              accept=None) -> zenoh.Sample | None:
+    """The oldest sample of a RingChannel subscriber that ``accept`` takes (all when None), or
+    None after ``timeout_s`` or once ``waiter`` is set.
+
+    The ring handler has no blocking receive with a timeout, so it is polled with an exponential
+    back-off from 0.2 ms to ``max_poll_s``, waiting on ``waiter`` (a stop event wakes it at once).
+    Raises TransportError when the subscriber fails.
+    """
+    deadline = time.monotonic() + max(0.0, timeout_s)
+    wait = 0.0002
+    while True:
+        try:
+            sample = sub.try_recv()
+        except zenoh.ZError as exc:
+            raise TransportError(f"subscriber on {key!r} failed: {_short(exc)}") from exc
+        if sample is not None:
+            if accept is None or accept(sample):
+                return sample
+            continue
+        now = time.monotonic()
+        if now >= deadline or waiter.is_set():
+            return None
+        waiter.wait(min(wait, deadline - now))
+        wait = min(wait * 2, max_poll_s)
+
+
 class FrameSubscriber:
     """Subscriber on the image key with a ``RingChannel(queue_size)``: newest frames win.
 
@@ -361,25 +388,14 @@ class FrameSubscriber:
 
     def receive(self, timeout_s: float, stop_event: threading.Event | None = None) -> ReceivedFrame | None:
         """Return the oldest frame still in the ring, or None after timeout_s (or stop)."""
-        deadline = time.monotonic() + max(0.0, timeout_s)
-        wait = 0.0002
-        waiter = stop_event if stop_event is not None else self._wake
-        while True:
-            try:
-                sample = self._sub.try_recv()
-            except zenoh.ZError as exc:
-                raise TransportError(f"subscriber on {self.key!r} failed: {_short(exc)}") from exc
-            if sample is not None:
-                key = str(sample.key_expr)
-                if key in self._ignore:
-                    self.ignored += 1
-                    continue
-                return self._to_frame(sample, key)
-            now = time.monotonic()
-            if now >= deadline or (stop_event is not None and stop_event.is_set()):
-                return None
-            waiter.wait(min(wait, deadline - now))
-            wait = min(wait * 2, self.poll_s)
+        sample = poll_ring(self._sub, self.key, timeout_s, stop_event or self._wake, self.poll_s, self._accept)
+        return None if sample is None else self._to_frame(sample, str(sample.key_expr))
+
+    def _accept(self, sample: zenoh.Sample) -> bool:
+        if str(sample.key_expr) in self._ignore:
+            self.ignored += 1
+            return False
+        return True
 
     def _to_frame(self, sample: zenoh.Sample, key: str) -> ReceivedFrame:
         att = sample.attachment
