@@ -243,6 +243,7 @@ class LoopClosureDetector:
                     self.store.put(inserted_place, pending_kps)
         uniq = np.unique(words)
         ranked = self.scorer.rank(words)
+        top = _top_places(ranked.order, self.config.verification.top_k)  # verification and evidence share it
         best, score = ranked.best, ranked.score
         self._last_scores = ranked.scores
         loop = best is not None and score >= self.config.loop_threshold
@@ -254,7 +255,7 @@ class LoopClosureDetector:
                     raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
                 query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape)
             t0 = time.perf_counter()
-            check = self._verify(features, words, ranked.order, seq)
+            check = self._verify(features, words, ranked.order, top, seq)
             check.timing_ms = (time.perf_counter() - t0) * 1e3
             loop = check.verified
         if loop:
@@ -280,16 +281,13 @@ class LoopClosureDetector:
         )
         if check is not None:
             check.fill(res, self._place_frame)
-        res.candidates = self._candidates(ranked, check)
+        res.candidates = self._candidates(ranked, top, check)
         return res
 
-    def _candidates(self, ranked: Ranking, check: _Check | None) -> list[Candidate]:
+    def _candidates(self, ranked: Ranking, top_places: np.ndarray, check: _Check | None) -> list[Candidate]:
         """The top places of the ranking (log-likelihood or similarity) and every place checked."""
         ranking = ranked.order
-        finite = np.flatnonzero(np.isfinite(ranking))  # removed places are -inf
-        k = min(self.config.verification.top_k, finite.size)
-        top = finite[np.argpartition(-ranking[finite], k - 1)[:k]] if 0 < k < finite.size else finite
-        top = [int(p) for p in top[np.argsort(-ranking[top], kind="stable")]]
+        top = [int(p) for p in top_places if np.isfinite(ranking[p])]  # removed places are -inf
         attempts = {pid: (source, g) for pid, source, g in (check.attempts if check is not None else [])}
         pids = top + [p for p in attempts if p not in top]
         out = []
@@ -309,7 +307,8 @@ class LoopClosureDetector:
             out.append(c)
         return out
 
-    def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, seq: int) -> "_Check":
+    def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, top: np.ndarray,
+                seq: int) -> "_Check":
         """Geometric (+ temporal) verification of one query.
 
         Candidates, in order, the first that passes is taken: the tracked places (stored frames
@@ -352,9 +351,6 @@ class LoopClosureDetector:
                         done = True
                         break
             if not done:
-                k = min(v.top_k, ranking.size)
-                top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
-                top = top[np.argsort(-ranking[top], kind="stable")]
                 for rank, pid in enumerate(top):
                     if not np.isfinite(ranking[pid]) or check.tried >= cap:
                         break  # removed places (-inf) sort last
@@ -507,6 +503,16 @@ class LoopClosureDetector:
             if self.store is not None:
                 self.store.remove(evicted)
         return evicted
+
+
+def _top_places(ranking: np.ndarray, k: int) -> np.ndarray:
+    """Ids of the k best places of `ranking` (n,), best first, stable among ties; removed places
+    (-inf) sort last and are included only when fewer than k places remain."""
+    k = min(k, ranking.size)
+    if k <= 0:
+        return np.zeros(0, np.int64)
+    top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
+    return top[np.argsort(-ranking[top], kind="stable")]
 
 
 @dataclass
