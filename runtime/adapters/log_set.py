@@ -31,9 +31,10 @@ import os
 import re
 import stat
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from aefabmap.errors import ConfigError, LogError
 from aefabmap.runtime.adapters.mcap_log import (
@@ -43,6 +44,8 @@ from aefabmap.runtime.adapters.mcap_log import (
     read_log_metadata,
 )
 from aefabmap.runtime.core.messages import FrameResult, StatsMessage
+
+T = TypeVar("T")
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: Metadata record of each file of a set: {"run_started_ns", "index" (1-based, in the run),
@@ -124,6 +127,25 @@ class LogSet:
             if n is not None:
                 highest = max(highest, n)
         return highest + 1
+
+    def create_next(self, open_file: Callable[[Path, int], T]) -> tuple[Path, T]:
+        """Create the next new file of the set, never replacing an existing entry.
+
+        open_file(path, opened_ns) must create `path` exclusively (LogError caused by
+        FileExistsError when the name is taken, e.g. by another writer between listing and
+        creating: the next number is tried). Returns (path, what open_file returned).
+        """
+        number = self.first_number()
+        for _ in range(100):
+            opened_ns = time.time_ns()
+            path = self.directory / self.name_for(number, opened_ns)
+            try:
+                return path, open_file(path, opened_ns)
+            except LogError as exc:
+                if not isinstance(exc.__cause__, FileExistsError):
+                    raise
+                number += 1
+        raise LogError(f"cannot create MCAP log in {self.directory}: no free name after 100 tries")
 
     def _names(self) -> list[str]:
         try:

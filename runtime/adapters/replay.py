@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
-from aefabmap.runtime.adapters.log_set import LogSetReader
+from aefabmap.runtime.adapters.log_set import LogSet, LogSetReader
 from aefabmap.runtime.adapters.mcap_log import (
     McapLogConfig,
     McapLogWriter,
@@ -211,12 +211,14 @@ def replay(
     t0 = time.monotonic()
     manifest = getattr(detector, "manifest", None)
     if out_path is not None:
-        writer = McapLogWriter(
-            out_path,
+        # Like `run`, never overwrite: an existing NEW.mcap gets NEW-0001.mcap beside it.
+        out_path, writer = LogSet(out_path).create_next(lambda path, opened_ns: McapLogWriter(
+            path,
             log_config or McapLogConfig(),
             manifest=manifest if isinstance(manifest, dict) else None,
             run_config={"replay_of": source, "image_topic": image_topic, "started_ns": time.time_ns()},
-        )
+            exclusive=True,
+        ))
     if view is not None and writer is not None:
         view.attach_log(writer)
     try:

@@ -175,30 +175,24 @@ class RotatingLog:
         """Open the next file of the set (LogError on failure), after trimming the set to the
         budget (first: on a full disk, deleting our oldest files is what makes room)."""
         self._trim()
-        number = self.set.first_number()
-        for _ in range(100):  # another writer may take a name between listing and creating
-            opened_ns = time.time_ns()
-            path = self.set.directory / self.set.name_for(number, opened_ns)
+
+        def open_file(path: Path, opened_ns: int):
             meta = {"run_started_ns": self.run_started_ns, "index": self._opened + 1,
                     "opened_ns": opened_ns, "previous": self.files[-1].name if self.files else None}
             try:
-                writer = self._factory(path, self.config, manifest=self.manifest, run_config=self.run_config,
-                                       extra_metadata={LOG_FILE_METADATA: meta}, exclusive=True)
+                return self._factory(path, self.config, manifest=self.manifest, run_config=self.run_config,
+                                     extra_metadata={LOG_FILE_METADATA: meta}, exclusive=True)
             except LogError as exc:
-                if isinstance(exc.__cause__, FileExistsError):
-                    number += 1
-                    continue
-                if path.exists() and not path.is_symlink():  # created by us just now: don't leave debris
-                    try:
+                if not isinstance(exc.__cause__, FileExistsError) and path.exists() and not path.is_symlink():
+                    try:  # created by us just now: don't leave debris
                         path.unlink()
                     except OSError:
                         pass
                 raise
-            self._writer = writer
-            self._opened += 1
-            self.files = [*self.files[-(MAX_LISTED_FILES - 1):], path]
-            return
-        raise LogError(f"cannot create MCAP log in {self.set.directory}: no free name after 100 tries")
+
+        path, self._writer = self.set.create_next(open_file)
+        self._opened += 1
+        self.files = [*self.files[-(MAX_LISTED_FILES - 1):], path]
 
     def _trim(self) -> None:
         budget = self.rotation.budget_mb

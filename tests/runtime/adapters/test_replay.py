@@ -67,6 +67,11 @@ def test_replay_of_a_live_log_checks_ok_and_writes_a_new_log(live_log, tmp_path)
     # the new log replays to the same results again
     again = replay(FakeDetector(), out, check=True)
     assert again.check.ok and again.check.compared == 16
+    # A second replay into the same --out never overwrites the first: it writes beside it.
+    before = out.read_bytes()
+    second = replay(FakeDetector(), live_log, out_path=out)
+    assert second.out_path == str(tmp_path / "replayed-0001.mcap") and out.read_bytes() == before
+    assert replay(FakeDetector(), second.out_path, check=True).check.ok
 
 
 def test_check_reports_differences(live_log):
