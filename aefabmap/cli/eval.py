@@ -133,7 +133,6 @@ def _state_saver(path):
 
 def write_evidence(args, run, verification: VerificationConfig) -> None:
     """--frames / --failures of the first scorer's run."""
-    from aefabmap.runtime.adapters.image_folder import list_images
     from aefabmap.runtime.tools.frame_evidence import (
         failure_cases,
         frame_records,
@@ -141,10 +140,7 @@ def write_evidence(args, run, verification: VerificationConfig) -> None:
         write_failure_images,
         write_frames_jsonl,
     )
-    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
-
-    images = list_images(args.images)
-    gt = load_ground_truth(args.gt, len(images))
+    images, gt = run.images, run.ground_truth
     records = list(frame_records(run.results, gt, args.tolerance, min_evidence_keypoints(verification)))
     if args.frames:
         write_frames_jsonl(args.frames, records)

@@ -52,6 +52,8 @@ class SequenceRun:
     peak_rss_mb: float = 0.0
     wall_s: float = 0.0
     extra: dict = field(default_factory=dict)
+    images: list[Path] = field(default_factory=list)  # the frames, in order (evidence images)
+    ground_truth: np.ndarray | None = None  # (N, N) bool, when the run was scored
 
     @property
     def best_frames(self) -> np.ndarray:
@@ -171,6 +173,7 @@ def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | N
             "store_bytes_per_place": store.nbytes() / max(len(store), 1),
             "store_bytes_per_keypoint": store.bytes_per_keypoint,
         }
+    run.images, run.ground_truth = images, gt
     metrics = evaluate_run(run, gt, tolerance)
     metrics.update(
         {
