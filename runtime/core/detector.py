@@ -28,6 +28,7 @@ from aefabmap.runtime.core.tree import ChowLiuTree
 from aefabmap.runtime.core.verification import (
     GeometryResult,
     VerificationConfig,
+    independence_radius,
     verify_pair,
 )
 
@@ -324,6 +325,7 @@ class LoopClosureDetector:
             check.reason = "no_evidence"  # texture-poor frame: nothing to verify with
         elif features is not None and len(features) and ranking.size:
             q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
+            radius = independence_radius(self.kind.window_radius(features.sizes), v)
             tried: set[int] = set()
             cap = v.max_trials if v.max_trials is not None else np.inf
 
@@ -336,7 +338,8 @@ class LoopClosureDetector:
                     return False
                 check.tried += 1
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
-                                place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance)
+                                place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance,
+                                radius=radius)
                 check.attempts.append((int(pid), source, g))
                 # Keep the accepted attempt, else the most significant one (diagnostics).
                 if check.best is None or g.verified or g.nfa < check.best.nfa:

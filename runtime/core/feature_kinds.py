@@ -40,12 +40,18 @@ class FeatureKind:
     name: manifest / CLI name. width: columns of a raw descriptor row.
     create: max_features -> an OpenCV Feature2D with detectAndCompute.
     options: names of the FeatureConfig flags this kind accepts.
+    window_scale: radius of the image window a descriptor is computed from, in keypoint sizes
+        (OpenCV's KeyPoint.size, a diameter): ORB samples its tests inside the keypoint's
+        patch, so 0.5; SIFT's 4 x 4 histogram cells of 3 sigma each (size = 2 sigma), rotated,
+        reach 3 * (size / 2) * sqrt(2) * (4 + 1) / 2 = 5.3 sizes. Verification counts matches
+        whose windows mostly overlap as one piece of evidence (`VerificationConfig.independence`).
     """
 
     name: str
     width: int
     create: Callable[[int], Any]
     options: tuple[str, ...] = ()
+    window_scale: float = 0.5
 
     # Declared by the family (class attributes of the subclasses).
     dtype = np.dtype(np.uint8)
@@ -57,6 +63,12 @@ class FeatureKind:
             raise ConfigError(f"feature kind name must be a non-empty string, got {self.name!r}")
         if not isinstance(self.width, int) or self.width < 1:
             raise ConfigError(f"feature kind {self.name}: width must be a positive integer, got {self.width!r}")
+        if not (isinstance(self.window_scale, (int, float)) and 0 < self.window_scale < 100):
+            raise ConfigError(f"feature kind {self.name}: window_scale must lie in (0, 100), got {self.window_scale!r}")
+
+    def window_radius(self, sizes: np.ndarray) -> np.ndarray:
+        """Radius of each keypoint's descriptor window (N,), in the units of `sizes` (N,)."""
+        return np.asarray(sizes, np.float64) * self.window_scale
 
     @property
     def vector_length(self) -> int:
@@ -202,5 +214,5 @@ def kind_names() -> tuple[str, ...]:
 
 
 register(BinaryKind("orb", 32, lambda n: cv2.ORB_create(nfeatures=n)))
-register(FloatKind("sift", 128, lambda n: cv2.SIFT_create(nfeatures=n), options=("rootsift",)))
+register(FloatKind("sift", 128, lambda n: cv2.SIFT_create(nfeatures=n), options=("rootsift",), window_scale=5.3))
 BUILTIN_KINDS = ("orb", "sift")

@@ -101,6 +101,16 @@ class VerificationConfig:
         corners closer than that share their evidence. The a-contrario count assumes
         independent matches: on training pairs 3 s apart a third to two thirds of the inliers
         were such copies. 0 disables.
+    independence: matches whose query keypoints lie closer than `independence` times the
+        typical (median) descriptor window radius of the query's keypoints
+        (`FeatureKind.window_radius`) count once as well, when that is more than
+        duplicate_radius. At half a radius two windows share over two thirds of their pixels,
+        so their descriptors, and whether they match, are not independent: several keypoints
+        on one object (a ceiling light, a sign) found again on a similar object elsewhere are
+        one coincidence, not several. It matters where windows are large against the image
+        (SIFT windows span ~5 keypoint sizes; small images upsampled for detection): on the
+        corridor validation sequence (160 x 120) the wrong SIFT loops were 8-9 inliers of which
+        4-5 lay within 5 pixels on one ceiling fixture. 0 disables.
     min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
         fewer is not used as a loop closure whatever its NFA: too few points to trust it).
     min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
@@ -163,6 +173,7 @@ class VerificationConfig:
     h_threshold: float = 8.0
     max_log10_nfa: float = -4.0
     duplicate_radius: float = 3.0
+    independence: float = 0.5
     min_inliers: int = 12
     min_inliers_h: int = 8
     min_f_sigma_ratio: float = 0.005
@@ -212,6 +223,8 @@ class VerificationConfig:
             raise ConfigError("verification min_extent must lie in [0, 1) and min_cheirality in [0, 1]")
         if self.duplicate_radius < 0:
             raise ConfigError(f"verification duplicate_radius must be >= 0, got {self.duplicate_radius}")
+        if not (0.0 <= self.independence <= 4.0):
+            raise ConfigError(f"verification independence must lie in [0, 4], got {self.independence}")
         if not np.isfinite(self.max_log10_nfa):
             raise ConfigError(f"verification max_log10_nfa must be finite, got {self.max_log10_nfa}")
         if self.camera is not None:
@@ -442,11 +455,14 @@ def estimate_geometry(
     shape_p: tuple[int, int],
     config: VerificationConfig | None = None,
     full: bool = False,
+    radius: float | None = None,
 ) -> GeometryResult:
     """Fit H and F (or E with a camera) to matched points and decide acceptance.
 
     xq, xp: (K, 2) float matched positions in original pixels of the query / place image;
     shape_q, shape_p: (height, width) of those images. Returned matrices are in original pixels.
+    radius: matches closer than this (query pixels; the place side scaled by the image sizes)
+    in either image count once (`independence_radius`); None: `duplicate_radius`.
 
     A model is accepted when it is well conditioned (`conditioning.py`), its inliers are not
     explained by a line in either image, and its a-contrario significance (`acontrario.py`)
@@ -464,7 +480,9 @@ def estimate_geometry(
     # keypoints per corner of an image upsampled for detection), and copies
     # of a match agree with any model the original agrees with. The a-contrario count assumes
     # independent matches, so copies must not count twice (in k or in n).
-    distinct = distinct_matches(nq, np_, c.duplicate_radius * sq, c.duplicate_radius * sp)
+    r_q = c.duplicate_radius if radius is None else radius
+    r_p = r_q * max(shape_p) / max(max(shape_q), 1)
+    distinct = distinct_matches(nq, np_, r_q * sq, r_p * sp)
     if distinct.size < nq.shape[0]:
         xq, xp, nq, np_ = xq[distinct], xp[distinct], nq[distinct], np_[distinct]
     k = int(nq.shape[0])
@@ -555,24 +573,43 @@ def estimate_geometry(
     return res
 
 
+def independence_radius(window_radii: np.ndarray, config: VerificationConfig) -> float:
+    """Radius (original pixels) within which a query's matches count once (see `independence`).
+
+    window_radii: (N,) descriptor window radius of each query keypoint (`FeatureKind.window_radius`).
+    """
+    c = config
+    if c.independence <= 0 or window_radii.size == 0:
+        return float(c.duplicate_radius)
+    return max(float(c.duplicate_radius), c.independence * float(np.median(window_radii)))
+
+
 def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: float) -> np.ndarray:
     """Indices of matches xq (K, 2) -> xp (K, 2) keeping one per location in EITHER image.
 
     The a-contrario count treats matches as independent pieces of evidence. Matches that share
     a location in one image are not: copies of one corner (ORB detects it at several pyramid
-    levels; an upsampled image gives several keypoints per corner), or several query points
-    sent to one place point, which any model that contracts a region onto that point "explains".
-    A location is a radius_q (query) or radius_p (place) cell of a grid, a cheap stand-in for
-    "within the radius"; a match is kept when it is the first of its query cell and the first of
-    its place cell. A radius <= 0 keeps everything. Returns sorted int64 indices.
+    levels; an upsampled image gives several keypoints per corner), keypoints whose descriptor
+    windows overlap, or several query points sent to one place point, which any model that
+    contracts a region onto it "explains". A location is a cell of a radius_q (query) or radius_p
+    (place) grid; four grids offset by half a cell, so that two points closer than half a
+    radius along each axis always share a cell of one of them (a single grid splits close
+    points that straddle a cell border). A match is kept when it is the first of its cell in
+    every grid of both images. A radius <= 0 keeps everything. Returns sorted int64 indices.
     """
-    if radius_q <= 0 or radius_p <= 0 or xq.shape[0] < 2:
-        return np.arange(xq.shape[0], dtype=np.int64)
-    # Two cell indices per image (each clipped to 15 bits: images up to ~32k cells a side) in one int64.
-    cells = np.clip(np.floor(np.c_[xq / radius_q, xp / radius_p]), 0, 2**15 - 1).astype(np.int64)
-    _, first_q = np.unique(cells[:, 0] * 2**15 + cells[:, 1], return_index=True)
-    _, first_p = np.unique(cells[:, 2] * 2**15 + cells[:, 3], return_index=True)
-    return np.intersect1d(first_q, first_p).astype(np.int64)
+    k = xq.shape[0]
+    if radius_q <= 0 or radius_p <= 0 or k < 2:
+        return np.arange(k, dtype=np.int64)
+    keep = np.ones(k, bool)
+    for x, r in ((xq, radius_q), (xp, radius_p)):
+        for offset in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
+            # Cell indices (clipped to 15 bits per axis: ~32k cells a side) in one int64.
+            cells = np.clip(np.floor(x / r + offset), 0, 2**15 - 1).astype(np.int64)
+            _, first = np.unique(cells[:, 0] * 2**15 + cells[:, 1], return_index=True)
+            firsts = np.zeros(k, bool)
+            firsts[first] = True
+            keep &= firsts
+    return np.flatnonzero(keep).astype(np.int64)
 
 
 def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> float:
@@ -717,6 +754,7 @@ def verify_pair(
     bruteforce: bool = False,
     *,
     distance: str,
+    radius: float | None = None,
 ) -> GeometryResult:
     """Match a query with one place and verify the geometry.
 
@@ -724,12 +762,13 @@ def verify_pair(
     *_desc: descriptors and distance: the feature kind's ("hamming" | "l2", see
     `match_keypoints`); shape_*: (height, width) of each image.
     bruteforce: when same-word matching does not pass, retry with all-pairs matching.
+    radius: the query's `independence_radius` (None: `duplicate_radius`).
     """
     c = config or VerificationConfig()
     pairs = match_keypoints(q_words, q_desc, p_words, p_desc, c, distance=distance)
     res = GeometryResult()
     if pairs.shape[0]:
-        res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
+        res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c, radius=radius)
         _keep_points(res, pairs, q_xy, p_xy, c)
     if res.verified or not bruteforce:
         return res
@@ -738,7 +777,7 @@ def verify_pair(
         return res
     # Same criterion: the NFA grows with the number of matches, so the extra chance matches of
     # all-pairs matching raise the support a model needs by themselves.
-    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c)
+    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c, radius=radius)
     _keep_points(retry, pairs, q_xy, p_xy, c)
     return retry if retry.verified or retry.nfa < res.nfa else res
 

@@ -13,8 +13,11 @@ from aefabmap.runtime.core.conditioning import (
     homography_is_plausible,
     rank2_fundamental,
 )
+from aefabmap.runtime.core.feature_kinds import get_kind
 from aefabmap.runtime.core.verification import (
     VerificationConfig,
+    distinct_matches,
+    independence_radius,
     epipolar_errors,
     estimate_geometry,
     match_all,
@@ -166,3 +169,50 @@ def test_copies_of_a_match_count_once():
     # Counting the copies would claim far more significance than the 60 points carry.
     assert counted.nfa < copied.nfa - 20
     assert abs(copied.nfa - once.nfa) < 0.5 * abs(once.nfa)
+
+
+def one_object_and_chance(seed=0):
+    """160 x 120 views: 22 chance matches, and 8 matches that agree on one shift (3, 2.6) px,
+    6 of them keypoints 2.5 px apart on one small object (a ceiling fixture found again on a
+    similar fixture elsewhere: the corridor validation sequence's wrong SIFT loops)."""
+    rng = np.random.default_rng(seed)
+    xq = np.c_[rng.uniform(0, 160, 22), rng.uniform(0, 120, 22)]
+    xp = np.c_[rng.uniform(0, 160, 22), rng.uniform(0, 120, 22)]
+    obj = np.array([[112, 5], [114.5, 5], [117, 5], [112, 7.5], [114.5, 7.5], [117, 7.5], [8, 44], [60, 100]], float)
+    shifted = obj + [3.0, 2.6] + rng.normal(0, 0.1, obj.shape)
+    return np.r_[xq, shifted], np.r_[xp, obj]
+
+
+def test_keypoints_on_one_object_count_once():
+    xq, xp = one_object_and_chance()
+    cfg = VerificationConfig()
+    # Counted as 8 independent matches, the shift is far beyond chance...
+    as_points = estimate_geometry(xq, xp, (120, 160), (120, 160), cfg, radius=1.0)
+    assert as_points.verified and as_points.inliers == 8
+    # ...but the six keypoints whose descriptor windows overlap are one coincidence.
+    as_objects = estimate_geometry(xq, xp, (120, 160), (120, 160), cfg, radius=8.0)
+    assert not as_objects.verified
+    assert as_objects.distinct_matches <= as_points.distinct_matches - 3
+
+
+def test_close_matches_on_either_side_of_a_cell_border_count_once():
+    # 0.2 px apart across the border x = 6 of a 3-px grid: one location.
+    xq = np.array([[5.9, 10.0], [6.1, 10.0], [40.0, 40.0]])
+    xp = np.array([[50.0, 50.0], [80.0, 20.0], [90.0, 90.0]])
+    assert distinct_matches(xq, xp, 3.0, 3.0).tolist() == [0, 2]
+    assert distinct_matches(xp, xq, 3.0, 3.0).tolist() == [0, 2]  # either image
+    assert distinct_matches(xq, xp, 0.0, 3.0).tolist() == [0, 1, 2]
+
+
+def test_independence_radius_follows_the_descriptor_window():
+    orb, sift = get_kind("orb"), get_kind("sift")
+    sizes = np.array([2.0, 2.0, 4.0])
+    # ORB computes its descriptor inside the keypoint's patch (size = diameter); SIFT's window
+    # is 5.3 keypoint sizes in radius.
+    assert np.allclose(orb.window_radius(sizes), [1.0, 1.0, 2.0])
+    assert np.allclose(sift.window_radius(sizes), [10.6, 10.6, 21.2])
+    cfg = VerificationConfig()
+    assert independence_radius(sift.window_radius(sizes), cfg) == pytest.approx(0.5 * 10.6)  # median, halved
+    assert independence_radius(orb.window_radius(sizes), cfg) == cfg.duplicate_radius  # floored
+    assert independence_radius(sift.window_radius(sizes), VerificationConfig(independence=0)) == cfg.duplicate_radius
+    assert independence_radius(np.zeros(0), cfg) == cfg.duplicate_radius
