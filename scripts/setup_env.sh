@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create (or reuse) the project virtualenv and install aefabmap into it.
-# Usage: scripts/setup_env.sh runtime|full   (runtime: the board set; full: + trainer + tests)
+# Usage: scripts/setup_env.sh runtime|full   (runtime: the board set; full: + trainer, tests, slam)
 # The venv lives in $AEFABMAP_VENV (default: .venv in the repo); $PYTHON picks the interpreter (>= 3.11).
 # Prints the venv path on its last line.
 set -euo pipefail
@@ -27,7 +27,7 @@ case "$profile" in
         if ! "$venv/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '${torch_pin#torch==}')" 2>/dev/null; then
             "${pip[@]}" --index-url "$torch_index" "$torch_pin"
         fi
-        "${pip[@]}" -c constraints.txt -e ".[train,plot,dev,ros,foxglove]" ;;
+        "${pip[@]}" -c constraints.txt -e ".[train,plot,dev,ros,foxglove,slam]" ;;
     *) echo "usage: $0 runtime|full" >&2; exit 2 ;;
 esac
 echo "$venv"

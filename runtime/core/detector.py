@@ -552,3 +552,6 @@ class _Check:
             res.verified_place = int(self.place)
             res.verified_frame = int(place_frame[self.place])
             res.geometry = [[float(x) for x in row] for row in self.best.matrix]
+            if self.best.rotation is not None and self.best.translation is not None:
+                res.relative_rotation = [[float(x) for x in row] for row in self.best.rotation]
+                res.relative_translation = [float(x) for x in self.best.translation]

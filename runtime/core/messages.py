@@ -28,8 +28,9 @@ from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 
 #: Format of the messages (and of the log layout that carries them): "major.minor".
 #: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``; 1.2: the log's health in
-#: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...).
-MESSAGE_FORMAT_VERSION = "1.3"
+#: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...); 1.3: ``nfa``,
+#: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``.
+MESSAGE_FORMAT_VERSION = "1.4"
 
 #: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
 LOG_STATES = ("ok", "images_stopped", "stopped", "failed", "closed")
@@ -225,6 +226,13 @@ class FrameResult(_Message):
                                     enum=("F", "E", "H"))
     geometry: list[list[float]] | None = field(default=None, metadata=_meta(
         "3x3 row-major matrix mapping the place image to the query image, original pixels; null unless verified"))
+    relative_rotation: list[list[float]] | None = field(default=None, metadata=_meta(
+        "verified with an essential matrix (calibrated camera, geometry_model E) only, else null: 3x3 row-major "
+        "rotation R_pq of the QUERY camera relative to the matched PLACE camera (columns: the query camera's axes "
+        "in place-camera coordinates; X_place = R_pq X_query + t_pq)", since="1.4"))
+    relative_translation: list[float] | None = _f(None, (
+        "with relative_rotation: direction of t_pq, the query camera's centre in place-camera coordinates, unit "
+        "length (two views give no scale); null otherwise"), since="1.4")
     candidates_tried: int = _f(0, "places verified for this frame")
     geometry_ok: bool = _f(False, "geometric check passed (before the temporal check)")
     temporal_ok: bool | None = _f(None, "temporal check passed (null: the check is off)")

@@ -258,6 +258,14 @@ class GeometryResult:
     inlier_points: (inliers, 4) float32 rows (x_q, y_q, x_p, y_p) of the inliers of `model` in
     original pixels, only from `verify_pair` with `VerificationConfig.keep_inlier_points`
     (None otherwise).
+    rotation / translation: model "E" only (calibrated camera), else None: the pose of the QUERY
+    camera in the PLACE camera's frame from the essential matrix (cv2.recoverPose on the E
+    inliers, the decomposition that puts most points in front of both cameras).
+    rotation (3, 3): R_pq, columns are the query camera's axes in place-camera coordinates (a
+    point X_q in query-camera coordinates is R_pq X_q + t_pq in place-camera coordinates);
+    translation (3,): the direction of t_pq, the query camera's centre in place-camera
+    coordinates, unit length (two views fix no scale). A back-end adds the edge
+    T_w_query = T_w_place [R_pq | s t_pq] with the scale s from elsewhere (depth, odometry).
     """
 
     verified: bool = False
@@ -279,6 +287,8 @@ class GeometryResult:
     reason: str = "no_evidence"
     inlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     inlier_points: np.ndarray | None = None
+    rotation: np.ndarray | None = None
+    translation: np.ndarray | None = None
 
 
 def parse_camera(value) -> tuple[float, float, float, float]:
@@ -549,7 +559,7 @@ def estimate_geometry(
         consider("H", H, err_h, h_conditioning)
     if (full or not res.verified) and k > SAMPLE_SIZE["F"] and (full or k >= c.min_inliers):
         if c.camera is not None:
-            res.f_sigma_ratio = _consider_essential(nq, np_, xq, xp, sq, sp, c, consider)
+            res.f_sigma_ratio = _consider_essential(nq, np_, xq, xp, sq, sp, c, consider, res)
         else:
             F = _fit_fundamental(np_, nq, c)
             if F is not None:
@@ -612,10 +622,11 @@ def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: 
     return np.flatnonzero(keep).astype(np.int64)
 
 
-def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider) -> float:
+def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider, res: GeometryResult) -> float:
     """Calibrated camera: essential matrix, cheirality-checked, judged as the F it implies.
 
-    Returns sigma2 / sigma1 of the normalised matrix (0.0 when no E was found).
+    When E becomes res's model, res.rotation / res.translation get its relative pose
+    (GeometryResult). Returns sigma2 / sigma1 of the normalised matrix (0.0 when no E was found).
     """
     fx, fy, cx, cy = c.camera
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -636,21 +647,36 @@ def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider
     F = np.diag([1.0 / sq, 1.0 / sq, 1.0]) @ F_px @ np.diag([1.0 / sp, 1.0 / sp, 1.0])
     F, ratio = rank2_fundamental(F, nq, np_)
     err = epipolar_errors(F, nq, np_)
+    pose: list[np.ndarray] = []
 
     def e_conditioning() -> str:
         if ratio < c.min_f_sigma_ratio:
             return "degenerate"
         inl = err <= c.f_threshold
         try:
-            front, _, _, _ = cv2.recoverPose(E, np.ascontiguousarray(xp[inl], np.float64),
+            # Place = camera 1, query = camera 2: X_q = R X_p + t.
+            front, R, t, _ = cv2.recoverPose(E, np.ascontiguousarray(xp[inl], np.float64),
                                              np.ascontiguousarray(xq[inl], np.float64), K)
         except cv2.error:
-            front = 0
+            front, R, t = 0, None, None
+        if R is not None and t is not None:
+            pose[:] = [R, t]
         # The points must lie in front of both cameras: most inliers, not a chance few.
         return "" if front >= c.min_cheirality * int(inl.sum()) else "cheirality"
 
     consider("E", F, err, e_conditioning)
+    if res.model == "E" and pose:
+        res.rotation, res.translation = relative_pose_from_recover(*pose)
     return ratio
+
+
+def relative_pose_from_recover(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.recoverPose's (R, t) of place (camera 1) -> query (camera 2), X_q = R X_p + t, as the
+    query camera's pose in the place frame: (R_pq = R^T (3, 3), unit t_pq = -R^T t (3,))."""
+    R_pq = np.asarray(R, np.float64).T
+    c = -R_pq @ np.asarray(t, np.float64).reshape(3)
+    n = float(np.linalg.norm(c))
+    return R_pq, (c / n if n > 0 else c)
 
 
 def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[float, float]:

@@ -1,7 +1,8 @@
 """The runtime's shape, checked by reading imports (no module is executed).
 
 core/ is pure (no adapters, no tools, no I/O libraries); adapters/ wrap it (never tools);
-tools/ sit beside. The board runtime never imports torch, onnx or the trainer.
+tools/ sit beside. The board runtime never imports torch, onnx or the trainer; nothing under
+runtime/ imports the offline SLAM tool (aefabmap.slam) or its libraries (gtsam, evo).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ CORE_FORBIDDEN = ("zenoh", "mcap", "mcap_protobuf", "foxglove", "foxglove_schema
                   "subprocess", "tqdm", "matplotlib", "torch", "onnx", "rosbags")
 # What the board runtime (core + adapters) must never pull in.
 BOARD_FORBIDDEN = ("torch", "onnx", "onnxscript", "scipy", "matplotlib", "aefabmap.trainer", "aefabmap.export")
+# The SLAM extra (aefabmap[slam]): an offline laptop tool on top of the runtime, never under it.
+SLAM_ONLY = ("gtsam", "evo", "aefabmap.slam")
 
 
 def _imports(path: Path) -> set[str]:
@@ -60,6 +63,11 @@ def test_adapters_never_import_tools():
 @pytest.mark.parametrize("layer", ["core", "adapters"])
 def test_board_runtime_never_imports_the_trainer_stack(layer):
     assert not (bad := _violations(layer, BOARD_FORBIDDEN)), "\n".join(bad)
+
+
+@pytest.mark.parametrize("layer", ["core", "adapters", "tools"])
+def test_runtime_never_imports_the_slam_tool_or_its_libraries(layer):
+    assert not (bad := _violations(layer, SLAM_ONLY)), "\n".join(bad)
 
 
 def test_no_modules_left_in_the_flat_runtime_folder():

@@ -48,3 +48,36 @@ def test_inlier_points_on_request_fit_the_accepted_geometry(tmp_path):
         lines = hp @ G.T
         err = np.abs(np.sum(np.c_[pts[:, :2], np.ones(len(pts))] * lines, axis=1)) / np.hypot(lines[:, 0], lines[:, 1])
     assert np.median(err) < 5.0
+
+
+def test_a_calibrated_verified_loop_carries_the_query_pose_relative_to_the_place(tmp_path):
+    """Two frames of one 3-D point cloud (not planar: the essential matrix wins), fed as keypoints:
+    the result's relative_rotation / relative_translation are the query camera's pose in the place frame."""
+    from aefabmap.runtime.core.features import Features
+
+    rng = np.random.default_rng(2)
+    n = 300
+    X = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 25, n)]
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
+    R_pq, _ = cv2.Rodrigues(np.array([0.02, 0.25, 0.0]))
+    centre = np.array([1.2, 0.0, 0.4])
+
+    def frame(points, d=desc):
+        x = points @ K.T
+        xy = (x[:, :2] / x[:, 2:]).astype(np.float32)
+        return Features(xy, np.full(n, 31, np.float32), np.zeros(n, np.float32), d, (480, 640))
+
+    # min_inliers_h=1000: no homography, the epipolar model decides (exclude 2: the third frame sees the first).
+    det = _detector(tmp_path, verification=VerificationConfig(camera=(400.0, 400.0, 320.0, 240.0), min_inliers_h=1000))
+    words = np.arange(n) % det.bundle.vocabulary_size
+    det.process_words(words, features=frame(X))
+    other = det.process_words(words, features=frame(X, rng.integers(0, 256, (n, 32), dtype=np.uint8)))
+    assert other.relative_rotation is None  # nothing verified
+    r = det.process_words(words, features=frame((X - centre) @ R_pq))
+    assert r.verified and r.verified_frame == 0 and r.geometry_model == "E"
+    R = np.asarray(r.relative_rotation)
+    assert np.degrees(np.arccos(np.clip((np.trace(R.T @ R_pq) - 1) / 2, -1, 1))) < 0.5
+    t = np.asarray(r.relative_translation)
+    assert np.allclose(t, centre / np.linalg.norm(centre), atol=0.01)
+    assert json.loads(r.to_json_bytes())["relative_translation"] == r.relative_translation

@@ -216,3 +216,40 @@ def test_independence_radius_follows_the_descriptor_window():
     assert independence_radius(orb.window_radius(sizes), cfg) == cfg.duplicate_radius  # floored
     assert independence_radius(sift.window_radius(sizes), VerificationConfig(independence=0)) == cfg.duplicate_radius
     assert independence_radius(np.zeros(0), cfg) == cfg.duplicate_radius
+
+def _rot(rvec) -> np.ndarray:
+    R, _ = cv2.Rodrigues(np.asarray(rvec, np.float64))
+    return R
+
+
+@pytest.mark.parametrize("rvec, centre", [
+    ((0.0, 0.2, 0.05), (1.0, 0.1, -0.5)),    # turn left, move right and back
+    ((0.1, -0.3, 0.0), (-0.8, 0.0, 1.5)),    # turn right, move left and forward
+])
+def test_essential_matrix_gives_the_query_pose_relative_to_the_place(rvec, centre):
+    """Place camera at the origin, query camera at `centre` with orientation R_pq (its axes in place
+    coordinates): the result's rotation is R_pq and its translation the unit direction of `centre`."""
+    rng = np.random.default_rng(5)
+    X = np.c_[rng.uniform(-4, 4, 200), rng.uniform(-3, 3, 200), rng.uniform(6, 20, 200)]  # place frame
+    R_pq, c = _rot(rvec), np.asarray(centre, np.float64)
+    Xq = (X - c) @ R_pq  # R_pq^T (X - c) row by row: the points in query-camera coordinates
+
+    def project(P):
+        x = P @ K.T
+        return x[:, :2] / x[:, 2:]
+
+    xq, xp = project(Xq) + rng.normal(0, 0.3, (200, 2)), project(X)
+    cfg = VerificationConfig(min_inliers_h=1000, camera=(400.0, 400.0, 320.0, 240.0))
+    g = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg)
+    assert g.verified and g.model == "E"
+    angle = np.degrees(np.arccos(np.clip((np.trace(g.rotation.T @ R_pq) - 1) / 2, -1, 1)))
+    assert angle < 0.5, angle
+    assert abs(np.linalg.norm(g.translation) - 1.0) < 1e-9
+    assert np.degrees(np.arccos(np.clip(g.translation @ (c / np.linalg.norm(c)), -1, 1))) < 2.0
+
+
+def test_only_the_essential_matrix_carries_a_relative_pose():
+    xq, xp = two_views()
+    for cfg in (VerificationConfig(min_inliers_h=1000), VerificationConfig()):  # F; H or F, no camera
+        g = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg)
+        assert g.verified and g.model != "E" and g.rotation is None and g.translation is None

@@ -54,6 +54,9 @@ def test_result_schema_nullability_enums_and_score_description():
     assert props["geometry_model"]["enum"] == ["F", "E", "H", None]
     assert props["geometry"]["items"] == {"type": "array", "items": {"type": "number"}}
     assert props["timings_ms"]["additionalProperties"] == {"type": "number"}
+    assert props["relative_rotation"]["type"] == ["array", "null"]
+    assert props["relative_translation"]["items"] == {"type": "number"}
+    assert "QUERY camera relative to the matched PLACE camera" in props["relative_rotation"]["description"]
 
 
 def test_stats_schema_covers_what_the_node_sends_including_the_first_message_nulls():
@@ -67,7 +70,9 @@ def test_stats_schema_covers_what_the_node_sends_including_the_first_message_nul
 
 
 def test_round_trips_and_transport_fields_only_when_set():
-    replayed = _result(timings_ms={"features": 1.5}, geometry=[[1.0, 0, 0], [0, 1, 0], [0, 0, 1]], score_kind="llr")
+    replayed = _result(timings_ms={"features": 1.5}, geometry=[[1.0, 0, 0], [0, 1, 0], [0, 0, 1]], score_kind="llr",
+                       geometry_model="E", relative_rotation=[[1.0, 0, 0], [0, 1, 0], [0, 0, 1]],
+                       relative_translation=[0.6, 0.0, 0.8])
     doc = json.loads(replayed.to_json_bytes())
     assert not set(TRANSPORT_FIELDS) & set(doc)
     assert FrameResult.from_json(replayed.to_json_bytes()) == replayed
@@ -143,6 +148,8 @@ def test_versions():
     for bad in ("", "one", "1.2.3", "-1"):
         with pytest.raises(InputError, match="malformed"):
             parse_version(bad)
-    assert set(FrameResult.fields_since((1, 0))) == {"score_kind", "nfa", "geometry_reason", "candidates"}
-    assert set(FrameResult.fields_since((1, 2))) == {"nfa", "geometry_reason", "candidates"}
+    pose = {"relative_rotation", "relative_translation"}
+    assert set(FrameResult.fields_since((1, 0))) == {"score_kind", "nfa", "geometry_reason", "candidates"} | pose
+    assert set(FrameResult.fields_since((1, 2))) == {"nfa", "geometry_reason", "candidates"} | pose
+    assert set(FrameResult.fields_since((1, 3))) == pose
     assert FrameResult.fields_since(parse_version(MESSAGE_FORMAT_VERSION)) == ()

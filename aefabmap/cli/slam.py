@@ -1,0 +1,58 @@
+"""`aefabmap slam`: trajectory of a TUM RGB-D folder with aefabmap's loop closures (extra aefabmap[slam])."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from aefabmap.errors import ConfigError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("slam", help="RGB-D odometry + loop closures + pose graph on a TUM folder (needs aefabmap[slam])")
+    p.add_argument("--rgbd", required=True, type=Path, metavar="DIR",
+                   help="TUM RGB-D folder: rgb.txt + depth.txt or associations.txt, camera.yaml, groundtruth.txt (optional)")
+    p.add_argument("--model", required=True, type=Path, metavar="BUNDLE")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR",
+                   help="writes odometry.txt, optimized.txt (TUM format), metrics.json, trajectory.png")
+    p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY", help="intrinsics (default: DIR/camera.yaml)")
+    p.add_argument("--min-gap-s", type=float, default=10.0,
+                   help="loops join frames at least this many seconds apart (default 10)")
+    p.add_argument("--kernel", choices=("cauchy", "huber", "none"), default="cauchy",
+                   help="robust kernel of the loop edges (default cauchy, scale 3 sigma)")
+    p.add_argument("--min-inliers-h", type=int, default=6, metavar="N",
+                   help="detector's floor on homography inliers of a loop (runtime default 8; default here 6, see docs/slam.md)")
+    p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
+    p.set_defaults(func=run)
+
+
+def _require_extra() -> None:
+    missing = []
+    for name in ("gtsam", "evo"):
+        try:
+            __import__(name)
+        except ImportError:
+            missing.append(name)
+    if missing:
+        raise ConfigError(f"aefabmap slam needs {', '.join(missing)}: pip install 'aefabmap[slam]'")
+
+
+def run(args) -> int:
+    _require_extra()
+    from aefabmap.runtime.core.verification import parse_camera
+    from aefabmap.slam.pipeline import SlamConfig, run_slam, write_outputs
+    from aefabmap.slam.pose_graph import PoseGraphConfig
+    from aefabmap.slam.tum_io import read_rgbd_folder
+
+    camera = parse_camera(args.camera) if args.camera else None
+    config = SlamConfig(min_gap_s=args.min_gap_s, graph=PoseGraphConfig(kernel=args.kernel),
+                        min_inliers_h=args.min_inliers_h)
+    seq = read_rgbd_folder(args.rgbd, camera)
+    run_ = run_slam(seq, args.model, config)
+    summary = write_outputs(seq, run_, args.out, config, args.model, plot=not args.no_plot)
+    brief = {k: v for k, v in summary.items() if k not in ("config", "loop_edge_checks")}
+    print(json.dumps(brief, indent=2))
+    return 0
+
+
+
