@@ -56,7 +56,9 @@ def training_pairs(train: Path, seed: int = 0):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=Path(os.environ.get("AEFABMAP_DATA", "../shared/data")))
+    repo = Path(__file__).resolve().parents[1]
+    ap.add_argument("--data", type=Path, default=Path(os.environ.get("AEFABMAP_DATA", repo.parent / "shared" / "data")),
+                    help="data root with train/ (default: $AEFABMAP_DATA, else shared/data beside the checkout)")
     ap.add_argument("--features", default="orb")
     ap.add_argument("--keypoints", type=int, default=500)
     ap.add_argument("--independence", type=float, nargs="+", default=[0.0, 0.5])

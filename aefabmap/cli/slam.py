@@ -20,8 +20,9 @@ def register(sub) -> None:
                    help="loops join frames at least this many seconds apart (default 10)")
     p.add_argument("--kernel", choices=("cauchy", "huber", "none"), default="cauchy",
                    help="robust kernel of the loop edges (default cauchy, scale 3 sigma)")
-    p.add_argument("--min-inliers-h", type=int, default=6, metavar="N",
-                   help="detector's floor on homography inliers of a loop (runtime default 8; default here 6, see docs/slam.md)")
+    p.add_argument("--min-inliers-h", type=int, default=None, metavar="N",
+                   help="detector's floor on homography inliers of a loop (runtime default 8; here 5: every edge is "
+                        "re-checked in 3-D by PnP, see docs/slam.md)")
     p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     p.set_defaults(func=run)
 
@@ -45,8 +46,8 @@ def run(args) -> int:
     from aefabmap.slam.tum_io import read_rgbd_folder
 
     camera = parse_camera(args.camera) if args.camera else None
-    config = SlamConfig(min_gap_s=args.min_gap_s, graph=PoseGraphConfig(kernel=args.kernel),
-                        min_inliers_h=args.min_inliers_h)
+    floor = {} if args.min_inliers_h is None else {"min_inliers_h": args.min_inliers_h}
+    config = SlamConfig(min_gap_s=args.min_gap_s, graph=PoseGraphConfig(kernel=args.kernel), **floor)
     seq = read_rgbd_folder(args.rgbd, camera)
     run_ = run_slam(seq, args.model, config)
     summary = write_outputs(seq, run_, args.out, config, args.model, plot=not args.no_plot)

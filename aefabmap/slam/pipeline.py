@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap.errors import ConfigError
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
 from aefabmap.slam.loops import LoopEdge, exclusion_frames, loop_edge
 from aefabmap.slam.odometry import OdometryConfig, OrbExtractor, run_odometry
 from aefabmap.slam.pose_graph import Edge, PoseGraphConfig, optimize
@@ -44,11 +45,15 @@ class SlamConfig:
         by more than either is counted wrong: about one frame step of this data (0.15 m, 7 deg).
     camera_verification: verify loops with the camera's essential matrix (else a fundamental matrix).
     min_inliers_h: the detector's floor on homography inliers (VerificationConfig.min_inliers_h,
-        runtime default 8). The a-contrario test (NFA < 1e-4) still decides significance; the
-        floor only asks for a minimum support. On the TUM cabinet subsample (~130 ORB keypoints
-        per frame) both true revisits the detector finds have 6-7 inliers (NFA 1e-4.5, 1e-9.6),
-        so the tool uses 6: PnP with depth re-estimates every edge, and the robust kernel guards
-        the graph. Chosen after looking at that sequence (docs/slam.md says so).
+        runtime default 8: a minimum support for a pose known only from two images). Here every
+        loop edge's pose is re-estimated from the place's metric 3-D points by PnP, with its own
+        floor (`OdometryConfig`), so the 2-D floor is redundant: the tool sets it to the least
+        the a-contrario test can judge (one more than the 4-point sample), and significance
+        (NFA < 1e-4) plus the 3-D check decide. For the same reason the detector counts
+        neighbouring matches as separate evidence here (`VerificationConfig.independence` = 0;
+        copies at one location still count once): the 2-D test only proposes loops, and a
+        proposal becomes an edge only if the place's metric 3-D points confirm it. Not fitted to
+        any sequence.
     """
 
     min_gap_s: float = 10.0
@@ -62,7 +67,7 @@ class SlamConfig:
     wrong_trans_m: float = 0.2
     wrong_rot_deg: float = 10.0
     camera_verification: bool = True
-    min_inliers_h: int = 6
+    min_inliers_h: int = SAMPLE_SIZE["H"] + 1
 
     def __post_init__(self) -> None:
         if self.min_gap_s <= 0 or self.sigma_rot <= 0 or self.sigma_trans <= 0 or self.reference_inliers < 1:
@@ -99,7 +104,7 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     c = config or SlamConfig()
     exclude = exclusion_frames(seq.stamps, c.min_gap_s)
     verification = VerificationConfig(keep_inlier_points=True, camera=seq.camera if c.camera_verification else None,
-                                      min_inliers_h=c.min_inliers_h)
+                                      min_inliers_h=c.min_inliers_h, independence=0.0)
     detector = load_detector(bundle, DetectorConfig(exclude=exclude, verification=verification))
     K = seq.K
     results, det_ms = [], []
