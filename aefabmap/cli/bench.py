@@ -231,10 +231,10 @@ def run_soak(args) -> int:
         for s in ph["checkpoints"]:
             print(f"  {s[count]:>9}  {s['rss_mb']:>8}  places {s['places']}"
                   + (f"  log files {s['log_files']} bytes {s['log_bytes']}" if name == "pipeline" else ""))
-        f = ph["rss_flat"]
-        verdict = {True: "FLAT", False: "NOT FLAT", None: "too short to judge"}[f["met"]]
-        print(f"  after {f['warmup']} {count}: range {f['range_mb']} MB, growth {f['growth_mb']} MB over "
-              f"{f['samples']} samples -> {verdict} (within {f['flat_mb']} MB)")
+        for label, f in (("warm-up", ph["rss_flat"]), ("map full", ph["rss_flat_at_cap"])):
+            verdict = {True: "FLAT", False: "NOT FLAT", None: "too short to judge"}[f["met"]]
+            print(f"  {label}, from {f['warmup']} {count}: range {f['range_mb']} MB, growth {f['growth_mb']} MB over "
+                  f"{f['samples']} samples -> {verdict} (within {f['flat_mb']} MB)")
         if ph["stopped_at_max_seconds"]:
             print("  stopped at --max-minutes")
         if name == "pipeline":

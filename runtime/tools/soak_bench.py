@@ -18,7 +18,8 @@ Pure of argparse; :func:`bench_soak` returns a JSON-able dict with up to two pha
   ``observation_checkpoints`` and every 1/200 of the run.
 
 Flatness: RSS samples from ``warmup_*`` on (the cap is reached after max_places + exclude
-frames); ``range_mb`` = max - min of them, ``met`` when range_mb <= ``flat_mb``.
+frames); ``range_mb`` = max - min of them, ``met`` when range_mb <= ``flat_mb``
+(``rss_flat``); ``rss_flat_at_cap``: the same from the first sample with the map full.
 """
 
 from __future__ import annotations
@@ -133,6 +134,15 @@ def flatness(samples: list[dict], count_key: str, warmup: int, flat_mb: float) -
     return {"warmup": warmup, "samples": len(rss), "first": rss[0], "last": rss[-1], "min": min(rss),
             "max": max(rss), "growth_mb": round(rss[-1] - rss[0], 2), "range_mb": round(max(rss) - min(rss), 2),
             "flat_mb": flat_mb, "met": max(rss) - min(rss) <= flat_mb}
+
+
+def flatness_at_cap(samples: list[dict], count_key: str, cap: int, flat_mb: float) -> dict:
+    """:func:`flatness` from the first sample with the map at its cap (``places`` >= cap) on;
+    ``cap_reached_at``: that sample's count (None: never reached)."""
+    at = next((s[count_key] for s in samples if (s.get("places") or 0) >= cap), None)
+    if at is None:
+        return flatness([], count_key, 0, flat_mb) | {"cap_reached_at": None}
+    return flatness(samples, count_key, at, flat_mb) | {"cap_reached_at": at}
 
 
 def _thin(samples: list[dict], keep: int = 200) -> list[dict]:
@@ -353,6 +363,7 @@ def _soak_pipeline(cfg: SoakConfig, workdir: Path) -> dict:
         "checkpoints": probe.checkpoints,
         "series": _thin(probe.periodic),
         "rss_flat": flatness(samples, "frames", cfg.warmup_frames, cfg.flat_mb),
+        "rss_flat_at_cap": flatness_at_cap(samples, "frames", cfg.max_places, cfg.flat_mb),
         "log": {
             "dir_end": disk_end,
             "files_peak": max((s["log_files"] for s in samples), default=0),
@@ -436,6 +447,7 @@ def _soak_core_here(cfg: SoakConfig) -> dict:
         "checkpoints": checkpoints,
         "series": _thin(periodic),
         "rss_flat": flatness(samples, "observations", cfg.warmup_observations, cfg.flat_mb),
+        "rss_flat_at_cap": flatness_at_cap(samples, "observations", cfg.max_places, cfg.flat_mb),
         "process": "spawned, OMP/OPENBLAS/MKL_NUM_THREADS=1",
         "load_average_start": load_start,
         "load_average_end": load_average(),
@@ -488,4 +500,12 @@ def bench_soak(config: SoakConfig) -> dict:
     return out
 
 
-__all__ = ["FRAME_CHECKPOINTS", "OBSERVATION_CHECKPOINTS", "SoakConfig", "bench_soak", "flatness", "log_disk_usage"]
+__all__ = [
+    "FRAME_CHECKPOINTS",
+    "OBSERVATION_CHECKPOINTS",
+    "SoakConfig",
+    "bench_soak",
+    "flatness",
+    "flatness_at_cap",
+    "log_disk_usage",
+]

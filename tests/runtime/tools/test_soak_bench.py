@@ -10,8 +10,17 @@ import pytest
 
 from aefabmap.cli.demo import default_bundle
 from aefabmap.errors import BundleError, ConfigError
-from aefabmap.runtime.tools.soak_bench import SoakConfig, bench_soak, flatness, log_disk_usage
-from aefabmap.runtime.tools.synthetic_observations import observation_stream, synthetic_observations
+from aefabmap.runtime.tools.soak_bench import (
+    SoakConfig,
+    bench_soak,
+    flatness,
+    flatness_at_cap,
+    log_disk_usage,
+)
+from aefabmap.runtime.tools.synthetic_observations import (
+    observation_stream,
+    synthetic_observations,
+)
 from aefabmap.runtime.tools.synthetic_route import random_views
 
 
@@ -87,3 +96,14 @@ def test_core_phase_samples_rss_at_the_checkpoints(vocabulary):
     f = core["rss_flat"]
     assert f["samples"] >= 3 and f["met"] in (True, False) and f["range_mb"] >= 0
     assert set(f) >= {"first", "last", "min", "max", "growth_mb", "range_mb", "met"}
+    # Full after exclude (50) + cap (20) observations; samples every 2 observations.
+    assert core["rss_flat_at_cap"]["cap_reached_at"] == 70
+
+
+def test_flatness_at_cap_starts_where_the_map_is_full():
+    samples = [{"observations": n, "rss_mb": r, "places": p}
+               for n, r, p in [(10, 60.0, 5), (20, 70.0, 20), (30, 71.0, 20), (40, 71.5, 20)]]
+    f = flatness_at_cap(samples, "observations", 20, 5.0)
+    assert f["cap_reached_at"] == 20 and f["first"] == 70.0 and f["range_mb"] == 1.5 and f["met"] is True
+    never = flatness_at_cap(samples, "observations", 50, 5.0)
+    assert never["cap_reached_at"] is None and never["met"] is None
