@@ -61,6 +61,56 @@ def register(sub) -> None:
                     help="keep the node's MCAP log and stderr here (default: a temporary directory)")
     st.add_argument("--json", type=Path, metavar="OUT")
     st.set_defaults(func=run_stream)
+    so = bsub.add_parser("soak", help="RSS over a long run at the map cap: a real node fed N frames over Zenoh, "
+                         "and M observations straight into the detector core")
+    so.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    so.add_argument("--frames", type=int, default=100_000, metavar="N",
+                    help="frames through the full pipeline (default 100000; 0 skips that phase)")
+    so.add_argument("--observations", type=int, default=1_000_000, metavar="M",
+                    help="observations straight into the detector core (default 1000000; 0 skips that phase)")
+    so.add_argument("--max-places", type=int, default=2000, metavar="N", help="map cap of both phases (default 2000)")
+    so.add_argument("--rate", type=float, default=30.0, metavar="HZ",
+                    help="publish rate of the pipeline phase (default 30; 0: closed loop, --window frames in flight)")
+    so.add_argument("--window", type=int, default=2, help="frames in flight in closed loop (default 2)")
+    so.add_argument("--size", type=_size, default=(640, 480), metavar="WxH", help="frame size (default 640x480)")
+    so.add_argument("--mcap-max-mb", type=float, default=20.0, metavar="MB", help="the node's --mcap-max-mb (default 20)")
+    so.add_argument("--log-budget-mb", type=float, default=100.0, metavar="MB",
+                    help="the node's --log-budget-mb (default 100)")
+    so.add_argument("--image-every", type=int, default=1, metavar="N", help="the node's --image-every (default 1)")
+    so.add_argument("--frame-checkpoints", type=int, nargs="+", default=None, metavar="N",
+                    help="frame counts where the node's RSS is sampled (default 1000 10000 50000 100000)")
+    so.add_argument("--observation-checkpoints", type=int, nargs="+", default=None, metavar="N",
+                    help="observation counts where RSS is sampled (default 1000 10000 100000 500000 1000000)")
+    so.add_argument("--warmup-frames", type=int, default=10_000, metavar="N",
+                    help="RSS from this frame count on must stay within --flat-mb (default 10000)")
+    so.add_argument("--warmup-observations", type=int, default=10_000, metavar="N",
+                    help="the same for the core phase (default 10000)")
+    so.add_argument("--flat-mb", type=float, default=5.0, metavar="MB", help="allowed RSS range after warm-up (default 5)")
+    so.add_argument("--sample-seconds", type=float, default=5.0, metavar="S",
+                    help="period of the pipeline phase's RSS samples besides the checkpoints (default 5)")
+    so.add_argument("--core-vocabulary", type=int, default=0, metavar="V",
+                    help="core phase on a random Chow-Liu tree over V words instead of the bundle's vocabulary "
+                    "(default 0: the bundle's)")
+    so.add_argument("--core-words", type=int, default=300, metavar="K",
+                    help="words per observation with --core-vocabulary (default 300)")
+    so.add_argument("--max-minutes", type=float, default=None, metavar="MIN",
+                    help="stop each phase after MIN minutes if not done (reported; default: no limit)")
+    so.add_argument("--node-threads", type=int, default=1, metavar="N",
+                    help="OMP/OPENBLAS_NUM_THREADS of the node (default 1; 0: inherit this environment)")
+    so.add_argument("--workdir", type=Path, default=None, metavar="DIR",
+                    help="keep the node's MCAP logs and stderr here (default: a temporary directory)")
+    so.add_argument("--json", type=Path, metavar="OUT")
+    so.set_defaults(func=run_soak)
+
+
+def _size(text: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH, e.g. 320x240, got {text!r}") from None
+    return w, h
 
 
 def _emit(doc, path: Path | None) -> None:
@@ -146,4 +196,51 @@ def run_stream(args) -> int:
     print(f"node RSS MB: first {r['first']}, last {r['last']}, max {r['max']} ({r['samples']} samples)")
     for name, t in doc["targets"].items():
         print(f"target {name}: {'MET' if t['met'] else 'MISSED'} {t}")
+    return 0
+
+
+def run_soak(args) -> int:
+    from aefabmap.runtime.tools.soak_bench import (
+        FRAME_CHECKPOINTS,
+        OBSERVATION_CHECKPOINTS,
+        SoakConfig,
+        bench_soak,
+    )
+
+    cfg = SoakConfig(
+        bundle=str(_model(args)), frames=args.frames, observations=args.observations, max_places=args.max_places,
+        rate_hz=args.rate, window=args.window, size=args.size, mcap_max_mb=args.mcap_max_mb,
+        log_budget_mb=args.log_budget_mb, image_every=args.image_every,
+        frame_checkpoints=tuple(args.frame_checkpoints or FRAME_CHECKPOINTS),
+        observation_checkpoints=tuple(args.observation_checkpoints or OBSERVATION_CHECKPOINTS),
+        warmup_frames=args.warmup_frames, warmup_observations=args.warmup_observations, flat_mb=args.flat_mb,
+        sample_period_s=args.sample_seconds, core_vocabulary=args.core_vocabulary, core_words=args.core_words,
+        max_seconds=args.max_minutes * 60 if args.max_minutes else None, node_threads=args.node_threads or None,
+        workdir=str(args.workdir) if args.workdir else None,
+    )
+    doc = bench_soak(cfg)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"load average at the end: {doc['machine']['load_average']}")
+    for name, count in (("pipeline", "frames"), ("core", "observations")):
+        ph = doc[name]
+        if ph is None:
+            continue
+        print(f"\n{name}: RSS MB at {count}")
+        for s in ph["checkpoints"]:
+            print(f"  {s[count]:>9}  {s['rss_mb']:>8}  places {s['places']}"
+                  + (f"  log files {s['log_files']} bytes {s['log_bytes']}" if name == "pipeline" else ""))
+        for label, f in (("warm-up", ph["rss_flat"]), ("map full", ph["rss_flat_at_cap"])):
+            verdict = {True: "FLAT", False: "NOT FLAT", None: "too short to judge"}[f["met"]]
+            print(f"  {label}, from {f['warmup']} {count}: range {f['range_mb']} MB, growth {f['growth_mb']} MB over "
+                  f"{f['samples']} samples -> {verdict} (within {f['flat_mb']} MB)")
+        if ph["stopped_at_max_seconds"]:
+            print("  stopped at --max-minutes")
+        if name == "pipeline":
+            lg = ph["log"]
+            print(f"  published {ph['frames_published']}, processed {ph['frames_processed']} "
+                  f"({ph['processed_fps']} fps), not processed {ph['not_processed']}; log files created "
+                  f"{lg['files_created']}, deleted {lg['files_deleted']}, on disk at the end {lg['dir_end']['files']} "
+                  f"({lg['dir_end']['bytes']} bytes), errors {lg['errors']}")
     return 0

@@ -6,14 +6,21 @@ reads its JSON run summary.
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
+from collections.abc import Sequence
+from pathlib import Path
 
 from aefabmap.errors import InputError, TransportError
 from aefabmap.runtime.core.messages import RunSummary
+
+#: Environment of a node with one BLAS/OpenMP thread (as deploy/aefabmap.service sets it).
+SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 def free_tcp_port() -> int:
@@ -21,6 +28,35 @@ def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def start_run_node(bundle: str | Path, key: str, endpoint: str, mcap: str | Path, stderr_path: Path,
+                   extra_args: Sequence[str] = (), node_threads: int | None = 1) -> subprocess.Popen:
+    """Start ``aefabmap run --model bundle --key key --listen endpoint --mcap mcap *extra_args``
+    as a child (stdout piped for its run summary, stderr to stderr_path). node_threads: the
+    child's OMP/OPENBLAS/MKL_NUM_THREADS (None: inherit this environment)."""
+    cmd = [sys.executable, "-m", "aefabmap.cli.main", "run", "--model", str(bundle), "--key", key,
+           "--listen", endpoint, "--mcap", str(mcap), *extra_args]
+    env = dict(os.environ)
+    if node_threads is not None:
+        env.update({k: str(node_threads) for k in SINGLE_THREAD_ENV})
+    err = open(stderr_path, "w")  # noqa: SIM115 - the child holds its own descriptor
+    try:
+        return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+    finally:
+        err.close()
+
+
+def process_rss_mb(pid: int | str) -> float | None:
+    """VmRSS of a process in MB from /proc/<pid>/status (pid "self": this one; None when unavailable)."""
+    try:
+        with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def connect_when_listening(endpoint: str, node: subprocess.Popen, timeout_s: float):

@@ -50,12 +50,13 @@ import numpy as np
 from aefabmap.errors import BundleError, ConfigError, InputError, TransportError
 from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
+    SINGLE_THREAD_ENV,
     connect_when_listening,
     free_tcp_port,
+    process_rss_mb,
+    start_run_node,
     stop_node,
 )
-
-SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 def _stats(values, prefix: str = "") -> dict:
@@ -134,6 +135,12 @@ def bench_pipeline(config: PipelineBenchConfig) -> dict:
         raise BundleError(f"model bundle {config.bundle} does not exist")
     if not config.single_core:
         return _bench_pipeline_here(config)
+    return run_spawned_single_thread(_bench_pipeline_here, config)
+
+
+def run_spawned_single_thread(fn, *args):
+    """fn(*args) in a freshly spawned process with OMP/OPENBLAS/MKL_NUM_THREADS=1 set before it
+    imports numpy (so BLAS cannot take a second core); returns its result."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
@@ -141,7 +148,7 @@ def bench_pipeline(config: PipelineBenchConfig) -> dict:
     os.environ.update(SINGLE_THREAD_ENV)  # inherited by the spawned child before it imports numpy
     try:
         with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
-            return ex.submit(_bench_pipeline_here, config).result()
+            return ex.submit(fn, *args).result()
     finally:
         for k, v in saved.items():
             if v is None:
@@ -313,18 +320,6 @@ class StreamBenchConfig:
             raise ConfigError("window, queue and max_places must be >= 1")
 
 
-def process_rss_mb(pid: int) -> float | None:
-    """VmRSS of a process in MB from /proc/<pid>/status (None when unavailable)."""
-    try:
-        with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
-        return None
-    return None
-
-
 class _Results:
     """Collects the node's results and stats as they arrive (zenoh callback threads)."""
 
@@ -409,19 +404,10 @@ class _RssSampler(threading.Thread):
 
 
 def _start_node(cfg: StreamBenchConfig, key: str, endpoint: str, mcap: Path, stderr_path: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "aefabmap.cli.main", "run", "--model", str(cfg.bundle), "--key", key,
-           "--listen", endpoint, "--mcap", str(mcap), "--queue", str(cfg.queue),
-           "--max-places", str(cfg.max_places), "--image-every", str(cfg.image_every)]
+    extra = ["--queue", str(cfg.queue), "--max-places", str(cfg.max_places), "--image-every", str(cfg.image_every)]
     if cfg.memory_mb is not None:
-        cmd += ["--memory-mb", str(cfg.memory_mb)]
-    env = dict(os.environ)
-    if cfg.node_threads is not None:
-        env.update({k: str(cfg.node_threads) for k in SINGLE_THREAD_ENV})
-    err = open(stderr_path, "w")  # noqa: SIM115 - closed after the child exits
-    try:
-        return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=env)
-    finally:
-        err.close()
+        extra += ["--memory-mb", str(cfg.memory_mb)]
+    return start_run_node(cfg.bundle, key, endpoint, mcap, stderr_path, extra, cfg.node_threads)
 
 
 def _latency_summary(recs: list[dict]) -> dict:
@@ -684,5 +670,6 @@ __all__ = [
     "bench_pipeline",
     "bench_stream",
     "process_rss_mb",
+    "run_spawned_single_thread",
     "synthetic_frames",
 ]

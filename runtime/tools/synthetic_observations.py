@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
+from itertools import islice
 
 import numpy as np
 
@@ -13,8 +15,9 @@ from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.tree import ChowLiuTree
 
 
-def synthetic_observations(n: int, vocabulary_size: int, words_per_obs: int = 300, seed: int = 0) -> list[np.ndarray]:
-    """n observations of ~words_per_obs distinct words each (sorted int64 arrays).
+def observation_stream(vocabulary_size: int, words_per_obs: int = 300, seed: int = 0) -> Iterator[np.ndarray]:
+    """An endless stream of observations of ~words_per_obs distinct words each (sorted int64
+    arrays), drawn one at a time (constant memory however many are taken).
 
     Word frequencies are log-normal (sigma 0.75: the most common words are ~10x more
     frequent than the median one, as in k-means vocabularies of real images).
@@ -23,12 +26,15 @@ def synthetic_observations(n: int, vocabulary_size: int, words_per_obs: int = 30
     weights = rng.lognormal(0.0, 0.75, vocabulary_size)
     cdf = np.cumsum(weights / weights.sum())
     k = min(words_per_obs, vocabulary_size)
-    out = []
-    for _ in range(n):
+    while True:
         draws = np.searchsorted(cdf, rng.random(int(k * 1.15)))
         w = np.unique(np.minimum(draws, vocabulary_size - 1))[:k]
-        out.append(w.astype(np.int64))
-    return out
+        yield w.astype(np.int64)
+
+
+def synthetic_observations(n: int, vocabulary_size: int, words_per_obs: int = 300, seed: int = 0) -> list[np.ndarray]:
+    """The first n observations of :func:`observation_stream` (same arguments)."""
+    return list(islice(observation_stream(vocabulary_size, words_per_obs, seed), n))
 
 
 def random_tree(vocabulary_size: int, seed: int = 0) -> ChowLiuTree:

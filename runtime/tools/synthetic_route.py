@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -226,6 +227,30 @@ def generate_loop_sequence(
         noise = rng.normal(0.0, cfg.noise_sigma, size=(h, w)).astype(np.float32) if cfg.noise_sigma > 0 else None
         images.append(render_view(world, pose, (w, h), noise))
     return images, revisit_matrix(poses, (w, h), cfg)
+
+
+def random_views(
+    seed: int = 0,
+    size: tuple[int, int] = (640, 480),
+    config: SyntheticConfig | None = None,
+) -> Iterator[np.ndarray]:
+    """An endless stream of (H, W) uint8 views of the world of (seed, size) from random poses
+    (centre uniform over the route's bounding box, rotation within +-180 deg, zoom within
+    max_zoom, gain/offset jittered) without sensor noise: every frame differs from the
+    others (a soak source that does not repeat; ~1-2 ms per 640x480 view). Revisits happen
+    by chance when two poses fall close. Deterministic in (seed, size)."""
+    cfg = config or SyntheticConfig()
+    w, h = _check_size(size)
+    world = render_world(seed, (w, h), cfg)
+    ww, wh = cfg.world_scale * w, cfg.world_scale * h
+    ax, ay = cfg.route_scale * w, cfg.route_scale * h
+    rng = np.random.default_rng(seed + 15485863)
+    while True:
+        x, y, rot, zoom, gain, offset = (
+            rng.uniform(ww / 2 - ax, ww / 2 + ax), rng.uniform(wh / 2 - ay, wh / 2 + ay), rng.uniform(-180, 180),
+            rng.uniform(1.0 / cfg.max_zoom, cfg.max_zoom), rng.uniform(0.85, 1.15), rng.uniform(-15, 15))
+        yield render_view(world, CameraPose(float(x), float(y), float(rot), float(zoom), 0, float(gain),
+                                            float(offset)), (w, h), None)
 
 
 def write_sequence(
