@@ -8,7 +8,8 @@
 # DATA: the data root (train/, lip6_outdoor/, validation/corridor/); BUNDLES: where bundles are
 # trained (BUNDLES/<name>, features cached in BUNDLES/cache); RESULTS: eval JSON, per-frame
 # evidence (JSON lines) and failure images per bundle and sequence. NAME: bundles to run,
-# <features>_kmeans_<words> (default: the whole matrix). Runs one job at a time; set PYTHON to
+# <features>_kmeans_<words> (flat vocabulary) or <features>_kmeans_tree_<words> (vocabulary
+# tree, branching 10) (default: the flat matrix). Runs one job at a time; set PYTHON to
 # choose the interpreter (default: python on PATH).
 set -euo pipefail
 if [ $# -lt 3 ]; then
@@ -26,10 +27,12 @@ mkdir -p "$bundles" "$results"
 for name in "${names[@]}"; do
   features=${name%%_*}
   words=${name##*_}
+  quantizer=kmeans
+  case $name in *_kmeans_tree_*) quantizer=kmeans-tree ;; esac
   if [ ! -f "$bundles/$name/manifest.json" ]; then
     echo "== train $name" >&2
     "${cli[@]}" train --images "$data/train/camvid" "$data/train/scene15" --features "$features" \
-      --quantizer kmeans --words "$words" --seed 0 --out "$bundles/$name" --cache "$bundles/cache" --no-progress
+      --quantizer "$quantizer" --words "$words" --seed 0 --out "$bundles/$name" --cache "$bundles/cache" --no-progress
   fi
   # Lip6: the protocol's exclusion window (50); corridor: its README's (20).
   for seq in lip6:lip6_outdoor/ground_truth.npy:50 corridor:validation/corridor/gt.npy:20; do

@@ -17,10 +17,11 @@ from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
 from aefabmap.runtime.core.feature_kinds import FeatureKind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
+from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.trainer.chow_liu import fit_chow_liu
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
-QUANTIZERS = ("kmeans", "ae")
+QUANTIZERS = ("kmeans", "kmeans-tree", "ae")
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,9 @@ class TrainConfig:
 
     images: training image directories (searched recursively, sorted by path).
     words: vocabulary size K. max_descriptors: descriptors sampled for clustering.
+    quantizer: "kmeans" (flat vocabulary), "kmeans-tree" (vocabulary tree with `branching`
+        children per node, exactly `words` leaves; binary kinds get k-majority bit centres
+        compared by popcount unless float_centers) or "ae".
     ae_epochs / ae_descriptors: autoencoder training budget (quantizer "ae" only).
     cache_dir: where extracted training features are kept between runs (None: no cache);
         entries are keyed by the feature settings and the image list, so a stale entry is
@@ -40,6 +44,8 @@ class TrainConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     quantizer: str = "kmeans"
     words: int = 2000
+    branching: int = 10
+    float_centers: bool = False
     seed: int = 0
     max_descriptors: int = 200_000
     kmeans_iterations: int = 25
@@ -53,6 +59,8 @@ class TrainConfig:
             raise ConfigError(f"quantizer must be one of {QUANTIZERS}, got {self.quantizer!r}")
         if self.words < 2:
             raise ConfigError(f"--words must be >= 2, got {self.words}")
+        if not 2 <= self.branching <= 256:
+            raise ConfigError(f"--branching must be in [2, 256], got {self.branching}")
         if self.max_descriptors < self.words:
             raise ConfigError(f"max_descriptors ({self.max_descriptors}) must be >= words ({self.words})")
 
@@ -156,6 +164,8 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             quantizer = NearestCentroidQuantizer(centroids)
             q_manifest = {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}, "descriptors_clustered": int(sample.shape[0])}
             q_files: dict = {"vocabulary.npy": centroids}
+        elif config.quantizer == "kmeans-tree":
+            quantizer, q_manifest, q_files = _train_tree(sample, kind, config)
         else:
             from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
             from aefabmap.trainer.ae_quantizer import build_ae_quantizer
@@ -183,7 +193,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
         timings["vocabulary_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         observations = [
-            np.unique(quantizer.quantize(kind.vectors(raw))) if len(raw) else np.zeros(0, np.int64)
+            np.unique(quantize_raw(quantizer, kind, raw)) if len(raw) else np.zeros(0, np.int64)
             for raw in tqdm(per_image, desc="quantise", disable=not config.show_progress, mininterval=1.0)
         ]
         timings["quantise_s"] = time.perf_counter() - t0
@@ -200,6 +210,8 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             "quantizer": config.quantizer,
             "words": config.words,
         }
+        if config.quantizer == "kmeans-tree":
+            summary |= {"branching": config.branching, "tree_depth": quantizer.depth, "tree_nodes": quantizer.nodes}
         out = write_bundle(
             config.out,
             features=config.features,
@@ -211,3 +223,44 @@ def train_bundle(config: TrainConfig) -> TrainResult:
         )
     timings["total_s"] = time.perf_counter() - t_start
     return TrainResult(out, summary, timings)
+
+
+#: Bundle file names of the vocabulary tree's arrays (runtime/adapters/bundle_reader.py).
+TREE_FILE_NAMES = {
+    "centers": "vocab_tree_centers.npy",
+    "children": "vocab_tree_children.npy",
+    "leaf_words": "vocab_tree_leaf_words.npy",
+}
+
+
+def _train_tree(sample: np.ndarray, kind: FeatureKind, config: TrainConfig):
+    """The vocabulary tree of `sample`: (quantiser, manifest entry, bundle files)."""
+    from aefabmap.runtime.core.vocab_tree import VocabularyTree
+    from aefabmap.trainer.vocab_tree import fit_vocab_tree
+
+    binary = kind.distance == "hamming" and not config.float_centers
+    bar = tqdm(desc="tree nodes", disable=not config.show_progress, mininterval=1.0)
+    arrays = fit_vocab_tree(
+        sample, config.words, config.branching, binary=binary,
+        config=KMeansConfig(config.kmeans_iterations, seed=config.seed), progress=lambda node: bar.update(1),
+    )
+    bar.close()
+    if arrays.words != config.words:
+        raise InputError(f"the training descriptors have too few distinct rows for {config.words} tree leaves "
+                         f"(got {arrays.words})")
+    quantizer = VocabularyTree(arrays.centers, arrays.children, arrays.leaf_words)
+    manifest = {
+        "type": "kmeans-tree",
+        "files": dict(TREE_FILE_NAMES),
+        "branching": config.branching,
+        "nodes": quantizer.nodes,
+        "depth": quantizer.depth,
+        "distance": "hamming" if binary else "l2",
+        "descriptors_clustered": int(sample.shape[0]),
+    }
+    files = {
+        TREE_FILE_NAMES["centers"]: arrays.centers,
+        TREE_FILE_NAMES["children"]: arrays.children,
+        TREE_FILE_NAMES["leaf_words"]: arrays.leaf_words,
+    }
+    return quantizer, manifest, files

@@ -1,7 +1,9 @@
 """The quantiser interface: descriptor vectors in, visual word ids out.
 
-Implemented by the k-means vocabulary (nearest centroid, here) and the
-autoencoder quantiser (one ONNX graph, runtime/core/onnx_quantizer.py).
+Implemented by the k-means vocabulary (nearest centroid, here), the vocabulary tree
+(runtime/core/vocab_tree.py) and the autoencoder quantiser (one ONNX graph,
+runtime/core/onnx_quantizer.py). Callers holding raw descriptors use `quantize_raw`, which
+hands packed bits straight to a quantiser that reads them (a tree with binary centres).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from aefabmap.errors import InputError
+from aefabmap.runtime.core.feature_kinds import FeatureKind
 
 
 @runtime_checkable
@@ -21,6 +24,17 @@ class Quantizer(Protocol):
     descriptor_length: int
 
     def quantize(self, vectors: np.ndarray) -> np.ndarray: ...
+
+
+def quantize_raw(quantizer: Quantizer, kind: FeatureKind, descriptors: np.ndarray) -> np.ndarray:
+    """Raw descriptors (N, width) of `kind` -> word ids (N,) int32.
+
+    A quantiser with `accepts_packed_bits` true takes a binary kind's packed bytes as they are
+    (no unpacking to 8 W floats); every other gets the kind's descriptor vectors.
+    """
+    if kind.distance == "hamming" and getattr(quantizer, "accepts_packed_bits", False):
+        return quantizer.quantize_raw(kind.check(descriptors))
+    return quantizer.quantize(kind.vectors(descriptors))
 
 
 def check_vectors(vectors: np.ndarray, descriptor_length: int) -> np.ndarray:

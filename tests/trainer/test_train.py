@@ -60,3 +60,26 @@ def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     # training distribution, hence the margin); int8 kernels saturating int16 gave 0.18.
     assert np.mean(w32 == w8) >= 0.97
     assert b.manifest["quantizer"]["int8_agreement"] >= 0.99  # measured on its training descriptors
+
+
+def test_tree_bundle_is_byte_reproducible_and_quantises_like_its_tree(image_dir, tmp_path):
+    a = train_bundle(config(image_dir, tmp_path / "t1", quantizer="kmeans-tree", branching=4))
+    b = train_bundle(config(image_dir, tmp_path / "t2", quantizer="kmeans-tree", branching=4))
+    files = sorted(p.name for p in a.path.iterdir())
+    assert "vocab_tree_centers.npy" in files and "vocabulary.npy" not in files
+    assert all((a.path / f).read_bytes() == (b.path / f).read_bytes() for f in files)
+    bundle = load_bundle(a.path)
+    q = bundle.manifest["quantizer"]
+    assert q["type"] == "kmeans-tree" and q["distance"] == "hamming" and q["branching"] == 4
+    assert bundle.vocabulary_size == 32 and a.summary["tree_depth"] >= 2
+    # Training observations are the words the runtime quantiser gives.
+    tree = bundle.quantizer()
+    assert all(np.array_equal(o, np.unique(o)) and o.max() < 32 for o in bundle.training_observations if o.size)
+    assert tree.vocabulary_size == 32
+
+
+def test_tree_with_float_centres_on_orb(image_dir, tmp_path):
+    res = train_bundle(config(image_dir, tmp_path / "f", quantizer="kmeans-tree", branching=4, float_centers=True))
+    bundle = load_bundle(res.path)
+    assert bundle.manifest["quantizer"]["distance"] == "l2"
+    assert not bundle.quantizer().accepts_packed_bits
