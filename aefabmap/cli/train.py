@@ -20,6 +20,12 @@ def register(sub) -> None:
                    help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
                    "O(branching x depth) distances (ORB: bit centres, popcount); ae: autoencoder")
     p.add_argument("--branching", type=int, default=10, help="children per node of --quantizer kmeans-tree (default 10)")
+    p.add_argument("--index-buckets", type=int, default=0, metavar="S",
+                   help="--quantizer kmeans: add an inverted index of S buckets (same words as the flat search, "
+                   "fewer distances; 0: none, default)")
+    p.add_argument("--vocabulary-from", type=Path, default=None, metavar="BUNDLE",
+                   help="--quantizer kmeans: reuse this k-means bundle's centroids (same features and --words) "
+                   "instead of clustering again")
     p.add_argument("--float-centers", action="store_true",
                    help="kmeans-tree on a binary kind: mean (float) centres and L2 on unpacked bits instead of "
                    "bit centres and popcount (slower; for comparison)")
@@ -51,6 +57,8 @@ def run(args) -> int:
         words=args.words,
         branching=args.branching,
         float_centers=args.float_centers,
+        index_buckets=args.index_buckets,
+        vocabulary_from=args.vocabulary_from,
         seed=args.seed,
         max_descriptors=args.max_descriptors,
         cache_dir=args.cache,

@@ -7,7 +7,10 @@ A bundle is a directory:
     train_obs_indptr.npy (M+1,) int64, train_obs_indices.npy (nnz,) uint16|uint32
                                    training observations (CSR rows of word ids) for the
                                    sampled new-place model and tf-idf weights
-    quantizer files                kmeans: vocabulary.npy (V, D) float32 centroids;
+    quantizer files                kmeans: vocabulary.npy (V, D) float32 centroids; optionally an
+                                   inverted index (manifest quantizer "index": buckets S, entries
+                                   E, distance): index_route_centers.npy (S, D/8) uint8 or (S, D)
+                                   float32, index_indptr.npy (S+1,), index_words.npy (E,);
                                    kmeans-tree: vocab_tree_centers.npy (M, W) uint8 packed bits
                                    ("distance": "hamming") or (M, D) float32 ("l2"),
                                    vocab_tree_children.npy (M, B) int32,
@@ -45,6 +48,7 @@ TREE_FILES = {"parent": "tree_parent.npy", "p": "tree_p.npy", "a": "tree_a.npy",
 OBS_FILES = {"indptr": "train_obs_indptr.npy", "indices": "train_obs_indices.npy"}
 QUANTIZER_TYPES = ("kmeans", "kmeans-tree", "ae")
 TREE_QUANTIZER_FILES = ("centers", "children", "leaf_words")
+INDEX_QUANTIZER_FILES = ("index_centers", "index_indptr", "index_words")
 #: Bounds of a vocabulary tree's branching factor (children per node).
 MAX_TREE_BRANCHING = 256
 
@@ -91,7 +95,11 @@ class ModelBundle:
         return dict(self.manifest.get("detector", {"pzge": 0.39, "pzgne": 0.0}))
 
     def quantizer(self, variant: str = "fp32", threads: int = 1):
-        """Build the bundle's quantiser (Quantizer protocol). variant: "fp32" | "int8" (ae only)."""
+        """Build the bundle's quantiser (Quantizer protocol).
+
+        variant: "fp32" | "int8" (ae); a k-means bundle with an inverted index uses it unless
+        variant is "flat" (the exhaustive arg-min over the same words).
+        """
         q = self.manifest["quantizer"]
         files = q["files"]
         if self.quantizer_type == "kmeans":
@@ -103,6 +111,8 @@ class ModelBundle:
             )
             if not np.isfinite(centroids).all():
                 raise BundleError(f"{self.path}: {name} holds NaN or infinite centroids")
+            if "index" in q and variant != "flat":
+                return self._indexed(centroids)
             return NearestCentroidQuantizer(centroids)
         if self.quantizer_type == "kmeans-tree":
             return self._vocabulary_tree()
@@ -117,6 +127,39 @@ class ModelBundle:
             threads=threads,
         )
 
+
+    def _indexed(self, centroids: np.ndarray):
+        """The flat vocabulary with its inverted index; shapes from the manifest, checked in the
+        .npy headers before loading, then the lists (validate_index)."""
+        from aefabmap.runtime.core.quantizer import IndexedCentroidQuantizer
+
+        q, v, d = self.manifest["quantizer"], self.vocabulary_size, self.descriptor_length
+        index, files = q["index"], q["files"]
+        if not isinstance(index, dict) or not all(k in files for k in INDEX_QUANTIZER_FILES):
+            raise BundleError(f"{self.path}: a k-means index names the files {INDEX_QUANTIZER_FILES}")
+        s, n, distance = index.get("buckets"), index.get("entries"), index.get("distance")
+        if not _is_int(s) or not 1 <= s <= v:
+            raise BundleError(f"{self.path}: index 'buckets' must be an integer in [1, {v}]")
+        if not _is_int(n) or not v <= n <= s * v:
+            raise BundleError(f"{self.path}: index 'entries' must be an integer in [{v}, {s * v}]")
+        if distance == "hamming":
+            if self.features.spec.distance != "hamming" or d % 8:
+                raise BundleError(f"{self.path}: Hamming routing centres need a binary feature kind")
+            centers = _load_array(self.path, files["index_centers"], kinds="u", shape=(s, d // 8))
+            want = np.uint8
+        elif distance == "l2":
+            centers = _load_array(self.path, files["index_centers"], kinds="f", shape=(s, d))
+            want = np.float32
+        else:
+            raise BundleError(f"{self.path}: index 'distance' must be 'hamming' or 'l2', got {str(distance)[:40]!r}")
+        if centers.dtype != want:
+            raise BundleError(f"{self.path}: {files['index_centers']} must hold {np.dtype(want)}, got {centers.dtype}")
+        indptr = _load_array(self.path, files["index_indptr"], kinds="iu", shape=(s + 1,))
+        words = _load_array(self.path, files["index_words"], kinds="iu", shape=(n,))
+        try:
+            return IndexedCentroidQuantizer(np.asarray(centroids, np.float32), centers, indptr, words)
+        except InputError as exc:
+            raise BundleError(f"{self.path}: invalid vocabulary index: {exc}") from exc
 
     def _vocabulary_tree(self):
         """The kmeans-tree quantiser; shapes come from the manifest and are checked in each

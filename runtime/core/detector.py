@@ -65,7 +65,8 @@ class DetectorConfig:
     exclude: frames a frame waits before it enters the map (delayed insertion); also the
         exclusion window: a query never sees its `exclude` predecessors.
     loop_threshold: a loop is declared when the best place's score reaches this.
-    quantizer_variant: "fp32" or "int8" (autoencoder bundles). threads: onnxruntime threads.
+    quantizer_variant: "fp32" or "int8" (autoencoder bundles); "flat" searches a k-means bundle
+        with an inverted index exhaustively instead. threads: onnxruntime threads.
     motion_model, naive_bayes, smoothing: FAB-MAP options (docs/fabmap2.md).
     fabmap_score: what `score` holds with the fabmap scorer: "probability" (the normalised
         posterior P of the best place, docs/evaluation.md's FAB-MAP score) or "llr" (log-likelihood

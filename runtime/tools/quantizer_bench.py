@@ -22,14 +22,14 @@ from aefabmap.errors import BundleError, ConfigError
 from aefabmap.runtime.tools.stream_bench import SINGLE_THREAD_ENV, _stats, machine_info, pin_one_cpu
 
 #: Quantiser variants: the bundle's quantizer type and, for the autoencoder, the precision.
-VARIANTS = ("kmeans-flat", "kmeans-tree", "ae-fp32", "ae-int8")
+VARIANTS = ("kmeans-flat", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8")
 SAMPLE_SUBDIR = Path("train") / "scene15"
 
 
 @dataclass(frozen=True)
 class QuantizerBenchConfig:
-    """bundle: model bundle directory. variant: None (the bundle's own; "ae-fp32" for AE bundles),
-    one of VARIANTS, or "fp32"/"int8". descriptors: per timed call. repeats: timed calls (after
+    """bundle: model bundle directory. variant: None (the bundle's own: "kmeans-indexed" when a
+    k-means bundle has an index, "ae-fp32" for AE bundles), one of VARIANTS, or "fp32"/"int8". descriptors: per timed call. repeats: timed calls (after
     `warmup`). data: data root holding train/scene15 (None: synthetic frames)."""
 
     bundle: str
@@ -47,18 +47,29 @@ class QuantizerBenchConfig:
             raise ConfigError(f"variant must be one of {VARIANTS + ('fp32', 'int8')}, got {self.variant!r}")
 
 
-def resolve_variant(quantizer_type: str, variant: str | None) -> str:
-    """The VARIANTS name of `variant` for a bundle whose quantizer is `quantizer_type`."""
-    own = {"kmeans": "kmeans-flat", "kmeans-tree": "kmeans-tree"}.get(quantizer_type)
-    if own is not None:
-        if variant not in (None, own):
-            raise ConfigError(f"a {quantizer_type} bundle has the one variant {own!r}, not {variant!r}")
-        return own
-    if variant in (None, "fp32", "ae-fp32"):
-        return "ae-fp32"
-    if variant in ("int8", "ae-int8"):
-        return "ae-int8"
-    raise ConfigError(f"an autoencoder bundle has the variants 'ae-fp32' and 'ae-int8', not {variant!r}")
+def resolve_variant(manifest_quantizer: dict, variant: str | None) -> str:
+    """The VARIANTS name of `variant` for a bundle whose manifest quantizer entry is given.
+
+    A k-means bundle with an inverted index runs "kmeans-indexed" (default) or "kmeans-flat".
+    """
+    qtype = manifest_quantizer.get("type")
+    if qtype == "kmeans":
+        have = ("kmeans-indexed", "kmeans-flat") if "index" in manifest_quantizer else ("kmeans-flat",)
+    elif qtype == "kmeans-tree":
+        have = ("kmeans-tree",)
+    else:
+        have = ("ae-fp32", "ae-int8")
+        variant = {"fp32": "ae-fp32", "int8": "ae-int8"}.get(variant, variant)
+    if variant is None:
+        return have[0]
+    if variant not in have:
+        raise ConfigError(f"this {qtype} bundle has the variants {have}, not {variant!r}")
+    return variant
+
+
+#: Bundle.quantizer() variant argument of each VARIANTS name.
+LOADER_VARIANT = {"kmeans-flat": "flat", "kmeans-indexed": "fp32", "kmeans-tree": "fp32", "ae-fp32": "fp32",
+                  "ae-int8": "int8"}
 
 
 def sample_descriptors(features, n: int, data: str | None) -> tuple[np.ndarray, str]:
@@ -125,8 +136,8 @@ def _bench_here(config: QuantizerBenchConfig) -> dict:
         cv2.setNumThreads(1)
         pinned = pin_one_cpu()
     bundle = load_bundle(config.bundle)
-    variant = resolve_variant(bundle.quantizer_type, config.variant)
-    quantizer = bundle.quantizer(variant.removeprefix("ae-") if variant.startswith("ae-") else "fp32", threads=1)
+    variant = resolve_variant(bundle.manifest["quantizer"], config.variant)
+    quantizer = bundle.quantizer(LOADER_VARIANT[variant], threads=1)
     kind = bundle.features.spec
     raw, source = sample_descriptors(bundle.features, config.descriptors, config.data)
     for _ in range(config.warmup):
@@ -161,4 +172,6 @@ def _bench_here(config: QuantizerBenchConfig) -> dict:
     }
     if q.get("type") == "kmeans-tree":
         doc["tree"] = {k: q.get(k) for k in ("branching", "nodes", "depth", "distance")}
+    if variant == "kmeans-indexed":
+        doc["index"] = {k: q["index"].get(k) for k in ("buckets", "entries", "distance")}
     return doc

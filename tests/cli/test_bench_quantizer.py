@@ -35,9 +35,13 @@ def test_tree_bundle_is_kmeans_tree(tmp_path):
 
 def test_variant_that_the_bundle_does_not_have_is_refused(tmp_path):
     assert main(["bench", "quantizer", "--variant", "kmeans-tree", "--repeats", "1", "--all-cores"]) == 2
-    assert resolve_variant("ae", None) == "ae-fp32" and resolve_variant("ae", "int8") == "ae-int8"
+    assert resolve_variant({"type": "ae"}, None) == "ae-fp32" and resolve_variant({"type": "ae"}, "int8") == "ae-int8"
+    indexed = {"type": "kmeans", "index": {}}
+    assert resolve_variant(indexed, None) == "kmeans-indexed" and resolve_variant(indexed, "kmeans-flat") == "kmeans-flat"
     with pytest.raises(ConfigError):
-        resolve_variant("ae", "kmeans-flat")
+        resolve_variant({"type": "ae"}, "kmeans-flat")
+    with pytest.raises(ConfigError):
+        resolve_variant({"type": "kmeans"}, "kmeans-indexed")
 
 
 @pytest.mark.slow

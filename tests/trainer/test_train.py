@@ -83,3 +83,26 @@ def test_tree_with_float_centres_on_orb(image_dir, tmp_path):
     bundle = load_bundle(res.path)
     assert bundle.manifest["quantizer"]["distance"] == "l2"
     assert not bundle.quantizer().accepts_packed_bits
+
+
+def test_index_over_an_existing_vocabulary_keeps_its_words(image_dir, tmp_path):
+    """--vocabulary-from + --index-buckets: same centroids and training observations as the flat
+    bundle (the index gives the flat words on every training descriptor); "flat" still loads."""
+    flat = train_bundle(config(image_dir, tmp_path / "flat"))
+    indexed = train_bundle(config(image_dir, tmp_path / "idx", vocabulary_from=flat.path, index_buckets=4))
+    a, b = load_bundle(flat.path), load_bundle(indexed.path)
+    assert (a.path / "vocabulary.npy").read_bytes() == (b.path / "vocabulary.npy").read_bytes()
+    assert all(np.array_equal(x, y) for x, y in zip(a.training_observations, b.training_observations))
+    q = b.manifest["quantizer"]
+    assert q["type"] == "kmeans" and q["index"]["buckets"] == 4 and q["index"]["distance"] == "hamming"
+    assert type(b.quantizer()).__name__ == "IndexedCentroidQuantizer"
+    assert type(b.quantizer("flat")).__name__ == "NearestCentroidQuantizer"
+    again = train_bundle(config(image_dir, tmp_path / "idx2", vocabulary_from=flat.path, index_buckets=4))
+    assert all((indexed.path / f.name).read_bytes() == f.read_bytes() for f in again.path.iterdir())
+
+
+def test_index_options_are_checked(image_dir, tmp_path):
+    with pytest.raises(Exception, match="apply to --quantizer kmeans"):
+        config(image_dir, tmp_path / "x", quantizer="kmeans-tree", index_buckets=4)
+    with pytest.raises(Exception, match="index-buckets"):
+        config(image_dir, tmp_path / "x", index_buckets=33)

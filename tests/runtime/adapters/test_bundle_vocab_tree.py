@@ -133,3 +133,75 @@ def test_lying_header_is_refused_before_allocation(tree_bundle):
     (tree_bundle / "manifest.json").write_text(json.dumps(mm))
     with pytest.raises(BundleError, match="has shape"):
         load_bundle(tree_bundle).quantizer()
+
+
+@pytest.fixture(scope="module")
+def indexed_bundle(tmp_path_factory):
+    """A synthetic flat bundle plus an index built on generated vectors."""
+    from aefabmap.export.bundle_writer import write_bundle
+    from aefabmap.runtime.core.features import FeatureConfig
+    from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
+    from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
+    from aefabmap.trainer.centroid_index import build_lists, fit_routing
+    from aefabmap.trainer.kmeans import KMeansConfig
+    from aefabmap.trainer.train import INDEX_FILE_NAMES
+
+    rng = np.random.default_rng(0)
+    centroids = rng.random((64, 256)).astype(np.float32)
+    x = (rng.random((3000, 256)) < 0.5).astype(np.float32)
+    centers = fit_routing(x, 4, binary=True, config=KMeansConfig(4))
+    indptr, words = build_lists(centers, centroids, [(x, NearestCentroidQuantizer(centroids).quantize(x))])
+    files = {"centroids": "vocabulary.npy", **INDEX_FILE_NAMES}
+    return write_bundle(
+        tmp_path_factory.mktemp("idx") / "bundle", features=FeatureConfig("orb", 200), tree=random_tree(64, 0),
+        training_observations=synthetic_observations(20, 64, 10, 0),
+        quantizer={"type": "kmeans", "files": files,
+                   "index": {"buckets": 4, "entries": int(words.size), "distance": "hamming"}},
+        quantizer_files={"vocabulary.npy": centroids, INDEX_FILE_NAMES["index_centers"]: centers,
+                         INDEX_FILE_NAMES["index_indptr"]: indptr, INDEX_FILE_NAMES["index_words"]: words},
+        training_summary={"synthetic": True},
+    )
+
+
+def test_indexed_bundle_round_trip(indexed_bundle):
+    b = load_bundle(indexed_bundle)
+    q, flat = b.quantizer(), b.quantizer("flat")
+    assert type(q).__name__ == "IndexedCentroidQuantizer" and q.buckets == 4
+    raw = np.random.default_rng(1).integers(0, 256, (50, 32), dtype=np.uint8)
+    w = q.quantize_raw(raw)
+    assert w.shape == (50,) and w.max() < 64 and flat.quantize(b.features.spec.vectors(raw)).max() < 64
+
+
+@pytest.mark.parametrize(
+    "index, message",
+    [
+        ({"buckets": 10**9}, "'buckets' must be an integer"),
+        ({"entries": 10**12}, "'entries' must be an integer"),
+        ({"entries": 3}, "'entries' must be an integer"),
+        ({"distance": "l1"}, "'distance' must be"),
+        ({"distance": "l2"}, "has dtype uint8"),
+        ({"buckets": 5}, "has shape"),
+    ],
+)
+def test_hostile_index_entries_are_refused(indexed_bundle, tmp_path, index, message):
+    import shutil
+
+    bundle = tmp_path / "b"
+    shutil.copytree(indexed_bundle, bundle)
+    m = _manifest(bundle)
+    m["quantizer"]["index"].update(index)
+    (bundle / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(BundleError, match=message):
+        load_bundle(bundle).quantizer()
+    load_bundle(bundle).quantizer("flat")  # the exhaustive search never reads the index
+
+
+def test_hostile_index_arrays_are_refused(indexed_bundle, tmp_path):
+    import shutil
+
+    bundle = tmp_path / "b"
+    shutil.copytree(indexed_bundle, bundle)
+    words = np.load(bundle / "index_words.npy")
+    _replace_array(bundle, "index_words.npy", np.where(words == words.max(), 64, words).astype(np.int32))
+    with pytest.raises(BundleError, match="invalid vocabulary index"):
+        load_bundle(bundle).quantizer()
