@@ -162,7 +162,8 @@ def train_bundle(config: TrainConfig) -> TrainResult:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:
         if config.quantizer == "kmeans":
-            bar = tqdm(total=config.kmeans_iterations, desc="k-means", disable=not config.show_progress)
+            bar = tqdm(total=config.kmeans_iterations, desc="k-means",
+                       disable=not config.show_progress or config.vocabulary_from is not None)
 
             def tick(it, moved):
                 bar.update(1)

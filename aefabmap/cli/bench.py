@@ -147,7 +147,8 @@ def run_quantizer(args) -> int:
     doc = bench_quantizer(cfg)
     _emit(doc, args.json)
     print(f"\n{doc['variant']} ({doc['feature_kind']}, {doc['words']} words): {doc['ms_per_500_median']} ms per 500 "
-          f"descriptors (median; p95 {doc['ms_per_500_p95']}), load {doc['machine']['load_average']}")
+          f"descriptors (median; p95 {doc['ms_per_500_p95']}; CPU median {doc['cpu_ms_per_500_median']}), "
+          f"load {doc['machine']['load_average']}")
     return 0
 
 

@@ -86,8 +86,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--profile", default=None, choices=tuple(PROFILES), metavar="NAME",
-                   help="named preset (runtime/core/profiles.py): 'board' = ORB 500 keypoints, 3000-word "
-                   "vocabulary tree, 1 thread, --memory-mb 64, --queue 2; explicit options win; the bundle must "
+                   help="named preset (runtime/core/profiles.py): 'board' = ORB 500 keypoints, 3000-word flat "
+                   "k-means vocabulary, 1 thread, --memory-mb 64, --queue 2; explicit options win; the bundle must "
                    "be the profile's model")
     p.add_argument("--key", default=None, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
     p.add_argument("--ros-topic", default=None, metavar="TOPIC",
@@ -124,7 +124,9 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from pathlib import Path
+
+    from aefabmap.runtime.adapters.bundle_reader import load_detector, read_manifest
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
     from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
@@ -152,11 +154,11 @@ def main(args: argparse.Namespace) -> int:
         verification = VerificationConfig(camera=getattr(args, "camera", None),
                                           keep_inlier_points=getattr(args, "foxglove", None) is not None)
         settings = run_settings(args)
+        if settings["profile"] is not None:  # before loading: the profile's model or nothing
+            get_profile(settings["profile"]).check_bundle(read_manifest(Path(args.model)))
         detector = load_detector(args.model, DetectorConfig(
             max_places=args.max_places, memory_mb=settings["memory_mb"], verification=verification,
             threads=settings["threads"], quantizer_variant=settings["quantizer_variant"]))
-        if settings["profile"] is not None:
-            get_profile(settings["profile"]).check_bundle(detector.manifest, detector.bundle.quantizer_type)
         # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": settings["memory_mb"],
                       "camera": list(verification.camera) if verification.camera else None}

@@ -17,7 +17,7 @@ from aefabmap.errors import ConfigError
 class RunProfile:
     """keypoints: ORB/SIFT keypoints per frame the bundle was trained with (features.max_features).
     feature_kind / words / variant: the bundle's feature kind, K and quantiser variant
-    ("kmeans-flat", "kmeans-tree", "ae-fp32", "ae-int8"). threads: onnxruntime and OpenCV threads
+    ("kmeans-flat", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8"). threads: onnxruntime and OpenCV threads
     (BLAS already runs one thread per frame). memory_mb: cap of the map (MiB, keypoints of the
     places included). queue: frames kept while busy (older ones dropped).
     """
@@ -32,44 +32,52 @@ class RunProfile:
     queue: int
     train_command: str
 
-    def check_bundle(self, manifest: dict, quantizer_type: str) -> None:
+    def check_bundle(self, manifest: dict) -> None:
         """Raise ConfigError unless the bundle (its manifest) is this profile's model."""
-        variant = {"kmeans": "kmeans-flat", "kmeans-tree": "kmeans-tree"}.get(quantizer_type, "ae-fp32")
-        features = manifest.get("features", {})
+        features, q = manifest.get("features", {}), manifest.get("quantizer", {})
+        have = bundle_variants(q)
         want = {"features": self.feature_kind, "keypoints": self.keypoints, "words": self.words}
         got = {"features": features.get("kind"), "keypoints": features.get("max_features"),
                "words": manifest.get("vocabulary_size")}
-        if self.variant.startswith("ae-"):
-            ok_variant = quantizer_type == "ae"
-        else:
-            ok_variant = variant == self.variant
-        if got != want or not ok_variant:
+        if got != want or self.variant not in have:
             raise ConfigError(
                 f"profile {self.name!r} runs {self.feature_kind} {self.keypoints} keypoints, {self.words} words, "
                 f"{self.variant}; the bundle has {got['features']} {got['keypoints']} keypoints, {got['words']} words, "
-                f"{variant if quantizer_type != 'ae' else 'ae'}. Train one with: {self.train_command}"
+                f"{' / '.join(have)}. Train one with: {self.train_command}"
             )
 
     @property
     def quantizer_variant(self) -> str:
-        """The DetectorConfig.quantizer_variant ("fp32" / "int8")."""
-        return "int8" if self.variant == "ae-int8" else "fp32"
+        """The DetectorConfig.quantizer_variant of `variant`."""
+        return {"ae-int8": "int8", "kmeans-flat": "flat"}.get(self.variant, "fp32")
+
+
+def bundle_variants(quantizer: dict) -> tuple[str, ...]:
+    """Quantiser variants a bundle can run, from its manifest quantizer entry (its default first)."""
+    qtype = quantizer.get("type")
+    if qtype == "kmeans":
+        return ("kmeans-indexed", "kmeans-flat") if "index" in quantizer else ("kmeans-flat",)
+    if qtype == "kmeans-tree":
+        return ("kmeans-tree",)
+    return ("ae-fp32", "ae-int8")
 
 
 #: The presets, by name. "board": one core of a small ARM board (Raspberry Pi 4/5 class)
-#: running the node beside a camera driver and a SLAM back-end.
+#: running the node beside a camera driver and a SLAM back-end. Its quantiser is the flat
+#: search: the vocabulary tree is faster but less accurate on Lip6, and the inverted index was
+#: not faster at 32 buckets (docs/results.md, "Quantisation in O(log K)").
 PROFILES = {
     "board": RunProfile(
         name="board",
         feature_kind="orb",
         keypoints=500,
         words=3000,
-        variant="kmeans-tree",
+        variant="kmeans-flat",
         threads=1,
         memory_mb=64.0,
         queue=2,
         train_command="aefabmap train --images DATA/train/camvid DATA/train/scene15 --features orb "
-        "--quantizer kmeans-tree --branching 10 --words 3000 --seed 0 --out bundles/orb_kmeans_tree_3000",
+        "--quantizer kmeans --words 3000 --seed 0 --out bundles/orb_kmeans_3000",
     ),
 }
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap.errors import BundleError, ConfigError
+from aefabmap.runtime.core.profiles import bundle_variants
 from aefabmap.runtime.tools.stream_bench import SINGLE_THREAD_ENV, _stats, machine_info, pin_one_cpu
 
 #: Quantiser variants: the bundle's quantizer type and, for the autoencoder, the precision.
@@ -48,22 +49,15 @@ class QuantizerBenchConfig:
 
 
 def resolve_variant(manifest_quantizer: dict, variant: str | None) -> str:
-    """The VARIANTS name of `variant` for a bundle whose manifest quantizer entry is given.
-
-    A k-means bundle with an inverted index runs "kmeans-indexed" (default) or "kmeans-flat".
-    """
-    qtype = manifest_quantizer.get("type")
-    if qtype == "kmeans":
-        have = ("kmeans-indexed", "kmeans-flat") if "index" in manifest_quantizer else ("kmeans-flat",)
-    elif qtype == "kmeans-tree":
-        have = ("kmeans-tree",)
-    else:
-        have = ("ae-fp32", "ae-int8")
+    """The VARIANTS name of `variant` for a bundle whose manifest quantizer entry is given
+    (None: the bundle's default; a k-means bundle with an index runs "kmeans-indexed" or "kmeans-flat")."""
+    have = bundle_variants(manifest_quantizer)
+    if have[0].startswith("ae-"):
         variant = {"fp32": "ae-fp32", "int8": "ae-int8"}.get(variant, variant)
     if variant is None:
         return have[0]
     if variant not in have:
-        raise ConfigError(f"this {qtype} bundle has the variants {have}, not {variant!r}")
+        raise ConfigError(f"this {manifest_quantizer.get('type')} bundle has the variants {have}, not {variant!r}")
     return variant
 
 
@@ -142,12 +136,13 @@ def _bench_here(config: QuantizerBenchConfig) -> dict:
     raw, source = sample_descriptors(bundle.features, config.descriptors, config.data)
     for _ in range(config.warmup):
         quantize_raw(quantizer, kind, raw)
-    times = []
+    times, cpu = [], []
     for _ in range(config.repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         quantize_raw(quantizer, kind, raw)
         times.append((time.perf_counter() - t0) * 1e3)
-    stats = _stats(times)
+        cpu.append((time.process_time() - c0) * 1e3)
+    stats, cpu_stats = _stats(times), _stats(cpu)
     n = raw.shape[0]
     q = bundle.manifest["quantizer"]
     doc = {
@@ -162,6 +157,10 @@ def _bench_here(config: QuantizerBenchConfig) -> dict:
         # Per 500 descriptors: scaled when fewer were found (linear in N for every variant).
         "ms_per_500_median": round(stats["median"] * 500 / n, 3),
         "ms_per_500_p95": round(stats["p95"] * 500 / n, 3),
+        # CPU time of the process (one pinned thread): what the call costs when the machine is
+        # shared, without the time it waited for the CPU.
+        "cpu_ms_per_500_median": round(cpu_stats["median"] * 500 / n, 3),
+        "cpu_ms_per_500_p95": round(cpu_stats["p95"] * 500 / n, 3),
         "ms_per_call": stats,
         "repeats": config.repeats,
         "timed": "raw descriptors -> word ids (quantize_raw), as the detector's quantise stage",

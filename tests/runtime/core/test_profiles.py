@@ -12,13 +12,17 @@ from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.profiles import PROFILES, get_profile
 
 
-def _manifest(kind="orb", keypoints=500, words=3000) -> dict:
-    return {"features": {"kind": kind, "max_features": keypoints}, "vocabulary_size": words}
+FLAT = {"type": "kmeans"}
+
+
+def _manifest(kind="orb", keypoints=500, words=3000, quantizer=None) -> dict:
+    return {"features": {"kind": kind, "max_features": keypoints}, "vocabulary_size": words,
+            "quantizer": quantizer or FLAT}
 
 
 def test_board_profile_is_the_documented_preset():
     board = get_profile("board")
-    assert (board.feature_kind, board.keypoints, board.words, board.variant) == ("orb", 500, 3000, "kmeans-tree")
+    assert (board.feature_kind, board.keypoints, board.words, board.variant) == ("orb", 500, 3000, "kmeans-flat")
     assert (board.threads, board.memory_mb, board.queue) == (1, 64.0, 2)
     with pytest.raises(ConfigError, match="profile must be one of"):
         get_profile("desktop")
@@ -26,12 +30,12 @@ def test_board_profile_is_the_documented_preset():
 
 def test_board_profile_accepts_its_model_and_refuses_others():
     board = PROFILES["board"]
-    board.check_bundle(_manifest(), "kmeans-tree")
-    for manifest, qtype in [(_manifest(), "kmeans"), (_manifest(words=2000), "kmeans-tree"),
-                            (_manifest(keypoints=1000), "kmeans-tree"), (_manifest(kind="sift"), "kmeans-tree"),
-                            (_manifest(), "ae")]:
+    board.check_bundle(_manifest())
+    board.check_bundle(_manifest(quantizer={"type": "kmeans", "index": {"buckets": 32}}))  # runs it flat
+    for manifest in [_manifest(words=2000), _manifest(keypoints=1000),
+                     _manifest(kind="sift"), _manifest(quantizer={"type": "kmeans-tree"}), _manifest(quantizer={"type": "ae"})]:
         with pytest.raises(ConfigError, match="Train one with: aefabmap train"):
-            board.check_bundle(manifest, qtype)
+            board.check_bundle(manifest)
 
 
 def _run_args(*extra: str) -> argparse.Namespace:
@@ -42,7 +46,7 @@ def test_run_selects_the_profile_and_explicit_options_win():
     plain = run_settings(_run_args())
     assert plain == {"profile": None, "memory_mb": None, "queue": 2, "threads": 1, "quantizer_variant": "fp32"}
     board = run_settings(_run_args("--profile", "board"))
-    assert board == {"profile": "board", "memory_mb": 64.0, "queue": 2, "threads": 1, "quantizer_variant": "fp32"}
+    assert board == {"profile": "board", "memory_mb": 64.0, "queue": 2, "threads": 1, "quantizer_variant": "flat"}
     mine = run_settings(_run_args("--profile", "board", "--memory-mb", "32", "--queue", "4"))
     assert (mine["memory_mb"], mine["queue"]) == (32.0, 4)
 
