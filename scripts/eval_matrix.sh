@@ -9,11 +9,12 @@
 # trained (BUNDLES/<name>, features cached in BUNDLES/cache); RESULTS: eval JSON, per-frame
 # evidence (JSON lines) and failure images per bundle and sequence. NAME: bundles to run,
 # <features>_kmeans_<words> (flat vocabulary) or <features>_kmeans_tree_<words> (vocabulary
-# tree, branching 10) (default: the flat matrix). Runs one job at a time; set PYTHON to
+# tree, branching 10) (default: the flat matrix); a bundle already in BUNDLES is evaluated as it
+# is, whatever its name. Runs one job at a time; set PYTHON to
 # choose the interpreter (default: python on PATH).
 set -euo pipefail
 if [ $# -lt 3 ]; then
-  sed -n '2,13p' "$0" >&2
+  sed -n '2,14p' "$0" >&2
   exit 2
 fi
 data=$1 bundles=$2 results=$3
