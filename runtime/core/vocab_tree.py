@@ -158,10 +158,10 @@ def validate_tree(centers: np.ndarray, children: np.ndarray, leaf_words: np.ndar
     m = centers.shape[0]
     if not isinstance(children, np.ndarray) or children.ndim != 2 or children.shape[0] != m or children.shape[1] < 2:
         raise InputError(f"tree children must be ({m}, B >= 2), got {getattr(children, 'shape', None)}")
-    if children.dtype.kind not in "iu" or leaf_words.dtype.kind not in "iu":
-        raise InputError("tree children and leaf words must be integers")
     if not isinstance(leaf_words, np.ndarray) or leaf_words.shape != (m,):
         raise InputError(f"tree leaf words must be ({m},), got {getattr(leaf_words, 'shape', None)}")
+    if children.dtype.kind not in "iu" or leaf_words.dtype.kind not in "iu":
+        raise InputError("tree children and leaf words must be integers")
     if centers.dtype == np.float32 and not np.isfinite(centers).all():
         raise InputError("tree centres hold NaN or infinite values")
     ch = children.astype(np.int64)
