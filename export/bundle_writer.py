@@ -86,7 +86,9 @@ def write_bundle(
             "files": files,
         }
         (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
-        load_bundle(tmp)  # never leave behind a bundle the runtime would refuse
+        written = load_bundle(tmp)  # never leave behind a bundle the runtime would refuse
+        if quantizer.get("type") != "ae":
+            written.quantizer()  # k-means arrays are validated when the quantiser is built
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
             old.rmdir()

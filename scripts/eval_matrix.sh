@@ -8,11 +8,13 @@
 # DATA: the data root (train/, lip6_outdoor/, validation/corridor/); BUNDLES: where bundles are
 # trained (BUNDLES/<name>, features cached in BUNDLES/cache); RESULTS: eval JSON, per-frame
 # evidence (JSON lines) and failure images per bundle and sequence. NAME: bundles to run,
-# <features>_kmeans_<words> (default: the whole matrix). Runs one job at a time; set PYTHON to
+# <features>_kmeans_<words> (flat vocabulary) or <features>_kmeans_tree_<words> (vocabulary
+# tree, branching 10) (default: the flat matrix); a bundle already in BUNDLES is evaluated as it
+# is, whatever its name. Runs one job at a time; set PYTHON to
 # choose the interpreter (default: python on PATH).
 set -euo pipefail
 if [ $# -lt 3 ]; then
-  sed -n '2,13p' "$0" >&2
+  sed -n '2,14p' "$0" >&2
   exit 2
 fi
 data=$1 bundles=$2 results=$3
@@ -26,10 +28,12 @@ mkdir -p "$bundles" "$results"
 for name in "${names[@]}"; do
   features=${name%%_*}
   words=${name##*_}
+  quantizer=kmeans
+  case $name in *_kmeans_tree_*) quantizer=kmeans-tree ;; esac
   if [ ! -f "$bundles/$name/manifest.json" ]; then
     echo "== train $name" >&2
     "${cli[@]}" train --images "$data/train/camvid" "$data/train/scene15" --features "$features" \
-      --quantizer kmeans --words "$words" --seed 0 --out "$bundles/$name" --cache "$bundles/cache" --no-progress
+      --quantizer "$quantizer" --words "$words" --seed 0 --out "$bundles/$name" --cache "$bundles/cache" --no-progress
   fi
   # Lip6: the protocol's exclusion window (50); corridor: its README's (20).
   for seq in lip6:lip6_outdoor/ground_truth.npy:50 corridor:validation/corridor/gt.npy:20; do

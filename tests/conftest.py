@@ -72,3 +72,34 @@ def make_synthetic_bundle(out: Path, vocabulary_size: int = 64, kind: str = "orb
 @pytest.fixture
 def synthetic_bundle(tmp_path) -> Path:
     return make_synthetic_bundle(tmp_path / "bundle")
+
+
+def make_synthetic_tree_bundle(out: Path, vocabulary_size: int = 40, kind: str = "orb", branching: int = 4,
+                               seed: int = 0) -> Path:
+    """A small valid kmeans-tree bundle, its tree trained on generated descriptor vectors."""
+    import numpy as np
+
+    from aefabmap.export.bundle_writer import write_bundle
+    from aefabmap.runtime.core.features import FeatureConfig
+    from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
+    from aefabmap.trainer.kmeans import KMeansConfig
+    from aefabmap.trainer.train import TREE_FILE_NAMES
+    from aefabmap.trainer.vocab_tree import fit_vocab_tree
+
+    features = FeatureConfig(kind=kind, max_features=200)
+    rng = np.random.default_rng(seed)
+    binary = features.spec.distance == "hamming"
+    d = features.descriptor_length
+    x = (rng.random((2000, d)) < 0.5).astype(np.float32) if binary else rng.random((2000, d)).astype(np.float32)
+    a = fit_vocab_tree(x, vocabulary_size, branching, binary=binary, config=KMeansConfig(4, seed=seed))
+    return write_bundle(
+        out,
+        features=features,
+        tree=random_tree(vocabulary_size, seed),
+        training_observations=synthetic_observations(20, vocabulary_size, 10, seed),
+        quantizer={"type": "kmeans-tree", "files": dict(TREE_FILE_NAMES), "branching": branching,
+                   "nodes": int(a.children.shape[0]), "distance": "hamming" if binary else "l2"},
+        quantizer_files={TREE_FILE_NAMES["centers"]: a.centers, TREE_FILE_NAMES["children"]: a.children,
+                         TREE_FILE_NAMES["leaf_words"]: a.leaf_words},
+        training_summary={"synthetic": True},
+    )

@@ -19,11 +19,16 @@ from aefabmap.errors import ConfigError, InputError
 
 @dataclass(frozen=True)
 class KMeansConfig:
-    """Lloyd's k-means: iterations, convergence tolerance (fraction of reassigned vectors), seed."""
+    """Lloyd's k-means: iterations, convergence tolerance (fraction of reassigned vectors), seed.
+
+    binary: k-majority for bit vectors in {0, 1}: each update rounds the centroids to 0/1 (the
+    bitwise majority of the cluster), so centroids pack to bits and compare by popcount.
+    """
 
     max_iterations: int = 25
     tolerance: float = 0.001
     seed: int = 0
+    binary: bool = False
 
 
 def fit_kmeans(vectors: np.ndarray, k: int, config: KMeansConfig | None = None, progress=None) -> np.ndarray:
@@ -48,11 +53,19 @@ def fit_kmeans(vectors: np.ndarray, k: int, config: KMeansConfig | None = None, 
         moved = float(np.mean(new_labels != labels))
         labels = new_labels
         centroids = _update(x, labels, dist, centroids)
+        if config.binary:
+            # Ties (exactly half the cluster) go to 1: a fixed rule keeps the result reproducible.
+            centroids = (centroids >= 0.5).astype(np.float32)
         if progress is not None:
             progress(it, moved)
         if moved <= config.tolerance:
             break
     return centroids
+
+
+def assign(x: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """Nearest centroid (squared L2) of each (N, D) vector -> (N,) int64; first of equal distances."""
+    return _assign(np.ascontiguousarray(x, np.float32), np.ascontiguousarray(centroids, np.float32))[0]
 
 
 def _kmeans_plus_plus(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

@@ -17,10 +17,11 @@ from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
 from aefabmap.runtime.core.feature_kinds import FeatureKind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
+from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.trainer.chow_liu import fit_chow_liu
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
-QUANTIZERS = ("kmeans", "ae")
+QUANTIZERS = ("kmeans", "kmeans-tree", "ae")
 
 
 @dataclass(frozen=True)
@@ -29,6 +30,15 @@ class TrainConfig:
 
     images: training image directories (searched recursively, sorted by path).
     words: vocabulary size K. max_descriptors: descriptors sampled for clustering.
+    quantizer: "kmeans" (flat vocabulary), "kmeans-tree" (vocabulary tree with `branching`
+        children per node, exactly `words` leaves; binary kinds get k-majority bit centres
+        compared by popcount unless float_centers) or "ae".
+    index_buckets: quantizer "kmeans" only: 0 (default) searches the flat vocabulary exhaustively;
+        S > 0 adds an inverted index of S buckets (IndexedCentroidQuantizer: the flat words, a
+        descriptor compared only with its bucket's list; on ORB 3000 words with S = 32 a list
+        holds 38 % of the words and the search is not faster, docs/results.md).
+    vocabulary_from: quantizer "kmeans" only: take the centroids of this k-means bundle (same
+        feature settings) instead of clustering again (e.g. to add an index to it).
     ae_epochs / ae_descriptors: autoencoder training budget (quantizer "ae" only).
     cache_dir: where extracted training features are kept between runs (None: no cache);
         entries are keyed by the feature settings and the image list, so a stale entry is
@@ -40,6 +50,10 @@ class TrainConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     quantizer: str = "kmeans"
     words: int = 2000
+    branching: int = 10
+    index_buckets: int = 0
+    vocabulary_from: Path | None = None
+    float_centers: bool = False
     seed: int = 0
     max_descriptors: int = 200_000
     kmeans_iterations: int = 25
@@ -53,6 +67,12 @@ class TrainConfig:
             raise ConfigError(f"quantizer must be one of {QUANTIZERS}, got {self.quantizer!r}")
         if self.words < 2:
             raise ConfigError(f"--words must be >= 2, got {self.words}")
+        if not 2 <= self.branching <= 256:
+            raise ConfigError(f"--branching must be in [2, 256], got {self.branching}")
+        if self.index_buckets < 0 or self.index_buckets > self.words:
+            raise ConfigError(f"--index-buckets must be in [0, words], got {self.index_buckets}")
+        if (self.index_buckets or self.vocabulary_from) and self.quantizer != "kmeans":
+            raise ConfigError("--index-buckets and --vocabulary-from apply to --quantizer kmeans")
         if self.max_descriptors < self.words:
             raise ConfigError(f"max_descriptors ({self.max_descriptors}) must be >= words ({self.words})")
 
@@ -143,19 +163,31 @@ def train_bundle(config: TrainConfig) -> TrainResult:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as work:
         if config.quantizer == "kmeans":
-            bar = tqdm(total=config.kmeans_iterations, desc="k-means", disable=not config.show_progress)
+            bar = tqdm(total=config.kmeans_iterations, desc="k-means",
+                       disable=not config.show_progress or config.vocabulary_from is not None)
 
             def tick(it, moved):
                 bar.update(1)
                 bar.set_postfix(moved=f"{moved:.4f}")
 
-            centroids = fit_kmeans(sample, config.words, KMeansConfig(config.kmeans_iterations, seed=config.seed), tick)
+            if config.vocabulary_from is not None:
+                centroids, clustered = _centroids_from(config)
+            else:
+                centroids = fit_kmeans(sample, config.words, KMeansConfig(config.kmeans_iterations, seed=config.seed), tick)
+                clustered = int(sample.shape[0])
             bar.close()
             from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
 
             quantizer = NearestCentroidQuantizer(centroids)
-            q_manifest = {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}, "descriptors_clustered": int(sample.shape[0])}
+            q_manifest = {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}, "descriptors_clustered": clustered}
             q_files: dict = {"vocabulary.npy": centroids}
+            if config.index_buckets:
+                quantizer, index_manifest, index_files, observations = _train_index(sample, per_image, kind, quantizer, config)
+                q_manifest["files"] |= index_manifest.pop("files")
+                q_manifest["index"] = index_manifest
+                q_files |= index_files
+        elif config.quantizer == "kmeans-tree":
+            quantizer, q_manifest, q_files = _train_tree(sample, kind, config)
         else:
             from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
             from aefabmap.trainer.ae_quantizer import build_ae_quantizer
@@ -182,10 +214,11 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             )
         timings["vocabulary_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        observations = [
-            np.unique(quantizer.quantize(kind.vectors(raw))) if len(raw) else np.zeros(0, np.int64)
-            for raw in tqdm(per_image, desc="quantise", disable=not config.show_progress, mininterval=1.0)
-        ]
+        if not (config.quantizer == "kmeans" and config.index_buckets):  # the index pass made them
+            observations = [
+                np.unique(quantize_raw(quantizer, kind, raw)) if len(raw) else np.zeros(0, np.int64)
+                for raw in tqdm(per_image, desc="quantise", disable=not config.show_progress, mininterval=1.0)
+            ]
         timings["quantise_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         tree = fit_chow_liu(observations, config.words)
@@ -200,6 +233,12 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             "quantizer": config.quantizer,
             "words": config.words,
         }
+        if config.index_buckets:
+            summary |= {"index_buckets": config.index_buckets, "index_entries": int(quantizer.words.size)}
+        if config.vocabulary_from is not None:
+            summary["vocabulary_from"] = Path(config.vocabulary_from).name
+        if config.quantizer == "kmeans-tree":
+            summary |= {"branching": config.branching, "tree_depth": quantizer.depth, "tree_nodes": quantizer.nodes}
         out = write_bundle(
             config.out,
             features=config.features,
@@ -211,3 +250,97 @@ def train_bundle(config: TrainConfig) -> TrainResult:
         )
     timings["total_s"] = time.perf_counter() - t_start
     return TrainResult(out, summary, timings)
+
+
+#: Bundle file names of the vocabulary tree's arrays (runtime/adapters/bundle_reader.py).
+TREE_FILE_NAMES = {
+    "centers": "vocab_tree_centers.npy",
+    "children": "vocab_tree_children.npy",
+    "leaf_words": "vocab_tree_leaf_words.npy",
+}
+
+
+def _train_tree(sample: np.ndarray, kind: FeatureKind, config: TrainConfig):
+    """The vocabulary tree of `sample`: (quantiser, manifest entry, bundle files)."""
+    from aefabmap.runtime.core.vocab_tree import VocabularyTree
+    from aefabmap.trainer.vocab_tree import fit_vocab_tree
+
+    binary = kind.distance == "hamming" and not config.float_centers
+    bar = tqdm(desc="tree nodes", disable=not config.show_progress, mininterval=1.0)
+    arrays = fit_vocab_tree(
+        sample, config.words, config.branching, binary=binary,
+        config=KMeansConfig(config.kmeans_iterations, seed=config.seed), progress=lambda node: bar.update(1),
+    )
+    bar.close()
+    if arrays.words != config.words:
+        raise InputError(f"the training descriptors have too few distinct rows for {config.words} tree leaves "
+                         f"(got {arrays.words})")
+    quantizer = VocabularyTree(arrays.centers, arrays.children, arrays.leaf_words)
+    manifest = {
+        "type": "kmeans-tree",
+        "files": dict(TREE_FILE_NAMES),
+        "branching": config.branching,
+        "nodes": quantizer.nodes,
+        "depth": quantizer.depth,
+        "distance": "hamming" if binary else "l2",
+        "descriptors_clustered": int(sample.shape[0]),
+    }
+    files = {
+        TREE_FILE_NAMES["centers"]: arrays.centers,
+        TREE_FILE_NAMES["children"]: arrays.children,
+        TREE_FILE_NAMES["leaf_words"]: arrays.leaf_words,
+    }
+    return quantizer, manifest, files
+
+
+#: Bundle file names of the flat vocabulary's inverted index (runtime/adapters/bundle_reader.py).
+INDEX_FILE_NAMES = {
+    "index_centers": "index_route_centers.npy",
+    "index_indptr": "index_indptr.npy",
+    "index_words": "index_words.npy",
+}
+
+
+def _centroids_from(config: TrainConfig) -> tuple[np.ndarray, int]:
+    """The centroids of the k-means bundle config.vocabulary_from (same features and K)."""
+    from aefabmap.runtime.adapters.bundle_reader import load_bundle
+
+    source = load_bundle(config.vocabulary_from)
+    if source.quantizer_type != "kmeans":
+        raise ConfigError(f"--vocabulary-from {config.vocabulary_from}: not a k-means bundle")
+    if source.features != config.features or source.vocabulary_size != config.words:
+        raise ConfigError(f"--vocabulary-from {config.vocabulary_from}: its features or word count differ from this training")
+    return source.quantizer("flat").centroids, int(source.manifest["quantizer"].get("descriptors_clustered", 0))
+
+
+def _train_index(sample: np.ndarray, per_image: list[np.ndarray], kind: FeatureKind, flat, config: TrainConfig):
+    """Inverted index of the flat vocabulary: (quantiser, manifest entry, files, observations).
+
+    The observations are the exact flat words of each training image, which the index
+    reproduces on every training descriptor (its lists hold them).
+    """
+    from aefabmap.runtime.core.quantizer import IndexedCentroidQuantizer
+    from aefabmap.trainer.centroid_index import build_lists, fit_routing
+
+    binary = kind.distance == "hamming"
+    centers = fit_routing(sample, config.index_buckets, binary=binary,
+                          config=KMeansConfig(config.kmeans_iterations, seed=config.seed))
+    observations: list[np.ndarray] = []
+
+    def assigned():
+        for raw in tqdm(per_image, desc="quantise + index", disable=not config.show_progress, mininterval=1.0):
+            if not len(raw):
+                observations.append(np.zeros(0, np.int64))
+                continue
+            vectors = kind.vectors(raw)
+            words = flat.quantize(vectors)
+            observations.append(np.unique(words))
+            yield vectors, words
+
+    indptr, words = build_lists(centers, flat.centroids, assigned())
+    quantizer = IndexedCentroidQuantizer(flat.centroids, centers, indptr, words)
+    manifest = {"files": dict(INDEX_FILE_NAMES), "buckets": int(centers.shape[0]), "entries": int(words.size),
+                "distance": "hamming" if binary else "l2"}
+    files = {INDEX_FILE_NAMES["index_centers"]: centers, INDEX_FILE_NAMES["index_indptr"]: indptr,
+             INDEX_FILE_NAMES["index_words"]: words}
+    return quantizer, manifest, files, observations

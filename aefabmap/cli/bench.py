@@ -37,6 +37,19 @@ def register(sub) -> None:
     pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     pl.add_argument("--json", type=Path, metavar="OUT")
     pl.set_defaults(func=run_pipeline)
+    qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
+    qz.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    qz.add_argument("--variant", default=None,
+                    choices=("kmeans-flat", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8", "fp32", "int8"),
+                    help="quantiser to time: the bundle's own (default; k-means with an index: kmeans-indexed; "
+                    "AE: ae-fp32), kmeans-flat on an indexed bundle (exhaustive search), ae-int8 / int8 on an AE bundle")
+    qz.add_argument("--data", type=Path, default=None, metavar="DIR",
+                    help="data root whose train/scene15 images give the descriptors (default: $AEFABMAP_DATA; "
+                    "without it, synthetic frames)")
+    qz.add_argument("--repeats", type=int, default=200, help="timed calls (default 200)")
+    qz.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
+    qz.add_argument("--json", type=Path, metavar="OUT")
+    qz.set_defaults(func=run_quantizer)
     st = bsub.add_parser("stream", help="two processes over loopback Zenoh: frames/s, latency, 200 Hz flood, RSS at the cap")
     st.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
     st.add_argument("--rate", type=float, default=30.0, metavar="HZ", help="rate of the latency phase (default 30)")
@@ -170,6 +183,22 @@ def run_pipeline(args) -> int:
     print(f"{'total w/o verification':<24}{v['median']:>12.2f}{v['p95']:>10.2f}")
     t = doc["target"]
     print(f"target median <= 10 ms: wall {'MET' if t['met_wall'] else 'MISSED'}, CPU {'MET' if t['met_cpu'] else 'MISSED'}")
+    return 0
+
+
+def run_quantizer(args) -> int:
+    import os
+
+    from aefabmap.runtime.tools.quantizer_bench import QuantizerBenchConfig, bench_quantizer
+
+    data = args.data or os.environ.get("AEFABMAP_DATA")
+    cfg = QuantizerBenchConfig(bundle=str(_model(args)), variant=args.variant, repeats=args.repeats,
+                               data=str(data) if data else None, single_core=not args.all_cores)
+    doc = bench_quantizer(cfg)
+    _emit(doc, args.json)
+    print(f"\n{doc['variant']} ({doc['feature_kind']}, {doc['words']} words): {doc['ms_per_500_median']} ms per 500 "
+          f"descriptors (median; p95 {doc['ms_per_500_p95']}; CPU median {doc['cpu_ms_per_500_median']}), "
+          f"load {doc['machine']['load_average']}")
     return 0
 
 

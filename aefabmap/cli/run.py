@@ -13,6 +13,7 @@ import logging
 import threading
 
 from aefabmap.errors import AefabmapError, ConfigError
+from aefabmap.runtime.core.profiles import PROFILES, get_profile
 
 log = logging.getLogger("aefabmap.run")
 
@@ -84,6 +85,10 @@ def register(subparsers) -> argparse.ArgumentParser:
         "on the sibling key 'lcd' and log images, results and stats to MCAP. Stop with Ctrl-C/SIGTERM.",
     )
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
+    p.add_argument("--profile", default=None, choices=tuple(PROFILES), metavar="NAME",
+                   help="named preset (runtime/core/profiles.py): 'board' = ORB 500 keypoints, 3000-word flat "
+                   "k-means vocabulary, 1 thread, --memory-mb 64, --queue 2; explicit options win; the bundle must "
+                   "be the profile's model")
     p.add_argument("--key", default=None, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
     p.add_argument("--ros-topic", default=None, metavar="TOPIC",
                    help="instead of --key: ROS 2 image topic (sensor_msgs Image or CompressedImage) read over "
@@ -102,11 +107,12 @@ def register(subparsers) -> argparse.ArgumentParser:
                    "a directory (files lcd-YYYYmmdd-HHMMSS-0001.mcap) or a pattern with {n} (run-{n}.mcap)")
     add_log_rotation_options(p)
     p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
-    p.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="memory budget of the map (MB)")
+    p.add_argument("--memory-mb", type=float, default=None, metavar="MB",
+                   help="memory budget of the map (MB; default: none, or the profile's)")
     p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
                    help="pinhole intrinsics in pixels of the images: verify loops with an essential matrix")
-    p.add_argument("--queue", type=int, default=2, metavar="N",
-                   help="frames kept while busy; older ones are dropped (default 2)")
+    p.add_argument("--queue", type=int, default=None, metavar="N",
+                   help="frames kept while busy; older ones are dropped (default 2, or the profile's)")
     p.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
     from aefabmap.cli.state_options import add_state_options
@@ -118,7 +124,9 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from pathlib import Path
+
+    from aefabmap.runtime.adapters.bundle_reader import load_detector, read_manifest
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
     from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
@@ -145,14 +153,18 @@ def main(args: argparse.Namespace) -> int:
         # The live view draws the inlier matches: keep them (a few hundred floats a frame).
         verification = VerificationConfig(camera=getattr(args, "camera", None),
                                           keep_inlier_points=getattr(args, "foxglove", None) is not None)
-        detector = load_detector(args.model, DetectorConfig(max_places=args.max_places, memory_mb=args.memory_mb,
-                                                            verification=verification))
+        settings = run_settings(args)
+        if settings["profile"] is not None:  # before loading: the profile's model or nothing
+            get_profile(settings["profile"]).check_bundle(read_manifest(Path(args.model)))
+        detector = load_detector(args.model, DetectorConfig(
+            max_places=args.max_places, memory_mb=settings["memory_mb"], verification=verification,
+            threads=settings["threads"], quantizer_variant=settings["quantizer_variant"]))
         # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
-        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": args.memory_mb,
+        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": settings["memory_mb"],
                       "camera": list(verification.camera) if verification.camera else None}
 
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
-                              queue_size=args.queue, stats_period_s=5.0, image_log_every=args.image_every,
+                              queue_size=settings["queue"], stats_period_s=5.0, image_log_every=args.image_every,
                               run_config=run_config, result_key=getattr(args, "results_key", None), ros=ros,
                               log_rotation=rotation)
 
@@ -197,6 +209,27 @@ def main(args: argparse.Namespace) -> int:
             state_dir.close()
     print(json.dumps(summary.to_dict()))
     return 0
+
+
+def run_settings(args: argparse.Namespace) -> dict:
+    """memory_mb, queue, threads, quantizer_variant and profile of the parsed options: explicit
+    options first, then the --profile preset, then the defaults (no cap, queue 2, 1 thread)."""
+    name = getattr(args, "profile", None)
+    prof = get_profile(name) if name is not None else None
+    memory_mb = getattr(args, "memory_mb", None)
+    queue = getattr(args, "queue", None)
+    settings = {
+        "profile": name,
+        "memory_mb": memory_mb if memory_mb is not None else (prof.memory_mb if prof else None),
+        "queue": queue if queue is not None else (prof.queue if prof else 2),
+        "threads": prof.threads if prof else 1,
+        "quantizer_variant": prof.quantizer_variant if prof else "fp32",
+    }
+    if prof is not None:
+        import cv2
+
+        cv2.setNumThreads(prof.threads)
+    return settings
 
 
 def _fmt(v) -> str:

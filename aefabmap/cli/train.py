@@ -16,7 +16,19 @@ def register(sub) -> None:
     p.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
     p.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
     p.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")
-    p.add_argument("--quantizer", choices=("kmeans", "ae"), default="kmeans")
+    p.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",
+                   help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
+                   "O(branching x depth) distances (ORB: bit centres, popcount); ae: autoencoder")
+    p.add_argument("--branching", type=int, default=10, help="children per node of --quantizer kmeans-tree (default 10)")
+    p.add_argument("--index-buckets", type=int, default=0, metavar="S",
+                   help="--quantizer kmeans: add an inverted index of S buckets (same words as the flat search, "
+                   "fewer distances; 0: none, default)")
+    p.add_argument("--vocabulary-from", type=Path, default=None, metavar="BUNDLE",
+                   help="--quantizer kmeans: reuse this k-means bundle's centroids (same features and --words) "
+                   "instead of clustering again")
+    p.add_argument("--float-centers", action="store_true",
+                   help="kmeans-tree on a binary kind: mean (float) centres and L2 on unpacked bits instead of "
+                   "bit centres and popcount (slower; for comparison)")
     p.add_argument("--words", type=int, default=2000, help="vocabulary size K")
     p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering")
     p.add_argument("--seed", type=int, default=0)
@@ -43,6 +55,10 @@ def run(args) -> int:
         features=features,
         quantizer=args.quantizer,
         words=args.words,
+        branching=args.branching,
+        float_centers=args.float_centers,
+        index_buckets=args.index_buckets,
+        vocabulary_from=args.vocabulary_from,
         seed=args.seed,
         max_descriptors=args.max_descriptors,
         cache_dir=args.cache,

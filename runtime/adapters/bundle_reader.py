@@ -7,7 +7,15 @@ A bundle is a directory:
     train_obs_indptr.npy (M+1,) int64, train_obs_indices.npy (nnz,) uint16|uint32
                                    training observations (CSR rows of word ids) for the
                                    sampled new-place model and tf-idf weights
-    quantizer files                kmeans: vocabulary.npy (V, D) float32 centroids;
+    quantizer files                kmeans: vocabulary.npy (V, D) float32 centroids; optionally an
+                                   inverted index (manifest quantizer "index": buckets S, entries
+                                   E, distance): index_route_centers.npy (S, D/8) uint8 or (S, D)
+                                   float32, index_indptr.npy (S+1,), index_words.npy (E,);
+                                   kmeans-tree: vocab_tree_centers.npy (M, W) uint8 packed bits
+                                   ("distance": "hamming") or (M, D) float32 ("l2"),
+                                   vocab_tree_children.npy (M, B) int32,
+                                   vocab_tree_leaf_words.npy (M,) int32; the manifest's
+                                   quantizer entry gives "nodes" M and "branching" B;
                                    ae: quantizer_fp32.onnx, quantizer_int8.onnx
 Arrays load with allow_pickle=False. Every file is listed in manifest["files"] with its sha256;
 the runtime refuses a bundle whose version, shapes or checksums do not match.
@@ -38,7 +46,11 @@ BUNDLE_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 TREE_FILES = {"parent": "tree_parent.npy", "p": "tree_p.npy", "a": "tree_a.npy", "b": "tree_b.npy"}
 OBS_FILES = {"indptr": "train_obs_indptr.npy", "indices": "train_obs_indices.npy"}
-QUANTIZER_TYPES = ("kmeans", "ae")
+QUANTIZER_TYPES = ("kmeans", "kmeans-tree", "ae")
+TREE_QUANTIZER_FILES = ("centers", "children", "leaf_words")
+INDEX_QUANTIZER_FILES = ("index_centers", "index_indptr", "index_words")
+#: Bounds of a vocabulary tree's branching factor (children per node).
+MAX_TREE_BRANCHING = 256
 
 
 def sha256_file(path: Path) -> str:
@@ -83,7 +95,11 @@ class ModelBundle:
         return dict(self.manifest.get("detector", {"pzge": 0.39, "pzgne": 0.0}))
 
     def quantizer(self, variant: str = "fp32", threads: int = 1):
-        """Build the bundle's quantiser (Quantizer protocol). variant: "fp32" | "int8" (ae only)."""
+        """Build the bundle's quantiser (Quantizer protocol).
+
+        variant: "fp32" | "int8" (ae); a k-means bundle with an inverted index uses it unless
+        variant is "flat" (the exhaustive arg-min over the same words).
+        """
         q = self.manifest["quantizer"]
         files = q["files"]
         if self.quantizer_type == "kmeans":
@@ -95,7 +111,11 @@ class ModelBundle:
             )
             if not np.isfinite(centroids).all():
                 raise BundleError(f"{self.path}: {name} holds NaN or infinite centroids")
+            if "index" in q and variant != "flat":
+                return self._indexed(centroids)
             return NearestCentroidQuantizer(centroids)
+        if self.quantizer_type == "kmeans-tree":
+            return self._vocabulary_tree()
         if variant not in files:
             raise ConfigError(f"bundle {self.path} has no {variant!r} quantiser; it has {sorted(files)}")
         from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
@@ -106,6 +126,81 @@ class ModelBundle:
             descriptor_length=self.descriptor_length,
             threads=threads,
         )
+
+
+    def _indexed(self, centroids: np.ndarray):
+        """The flat vocabulary with its inverted index; shapes from the manifest, checked in the
+        .npy headers before loading, then the lists (validate_index)."""
+        from aefabmap.runtime.core.quantizer import IndexedCentroidQuantizer
+
+        q, v, d = self.manifest["quantizer"], self.vocabulary_size, self.descriptor_length
+        index, files = q["index"], q["files"]
+        if not isinstance(index, dict) or not all(k in files for k in INDEX_QUANTIZER_FILES):
+            raise BundleError(f"{self.path}: a k-means index names the files {INDEX_QUANTIZER_FILES}")
+        s, n, distance = index.get("buckets"), index.get("entries"), index.get("distance")
+        if not _is_int(s) or not 1 <= s <= v:
+            raise BundleError(f"{self.path}: index 'buckets' must be an integer in [1, {v}]")
+        if not _is_int(n) or not v <= n <= s * v:
+            raise BundleError(f"{self.path}: index 'entries' must be an integer in [{v}, {s * v}]")
+        if distance == "hamming":
+            if self.features.spec.distance != "hamming" or d % 8:
+                raise BundleError(f"{self.path}: Hamming routing centres need a binary feature kind")
+            centers = _load_array(self.path, files["index_centers"], kinds="u", shape=(s, d // 8))
+            want = np.uint8
+        elif distance == "l2":
+            centers = _load_array(self.path, files["index_centers"], kinds="f", shape=(s, d))
+            want = np.float32
+        else:
+            raise BundleError(f"{self.path}: index 'distance' must be 'hamming' or 'l2', got {str(distance)[:40]!r}")
+        if centers.dtype != want:
+            raise BundleError(f"{self.path}: {files['index_centers']} must hold {np.dtype(want)}, got {centers.dtype}")
+        indptr = _load_array(self.path, files["index_indptr"], kinds="iu", shape=(s + 1,))
+        words = _load_array(self.path, files["index_words"], kinds="iu", shape=(n,))
+        try:
+            return IndexedCentroidQuantizer(np.asarray(centroids, np.float32), centers, indptr, words)
+        except InputError as exc:
+            raise BundleError(f"{self.path}: invalid vocabulary index: {exc}") from exc
+
+    def _vocabulary_tree(self):
+        """The kmeans-tree quantiser; shapes come from the manifest and are checked in each
+        .npy header before loading, then the tree's structure (VocabularyTree validation)."""
+        from aefabmap.runtime.core.vocab_tree import VocabularyTree
+
+        q = self.manifest["quantizer"]
+        files, v, d = q["files"], self.vocabulary_size, self.descriptor_length
+        if set(files) != set(TREE_QUANTIZER_FILES):
+            raise BundleError(f"{self.path}: a kmeans-tree quantizer names the files {TREE_QUANTIZER_FILES}")
+        m, b, distance = q.get("nodes"), q.get("branching"), q.get("distance")
+        # Every inner node has >= 2 children: at most 2 V - 1 nodes.
+        if not _is_int(m) or not 3 <= m <= 2 * v - 1:
+            raise BundleError(f"{self.path}: kmeans-tree 'nodes' must be an integer in [3, {2 * v - 1}]")
+        if not _is_int(b) or not 2 <= b <= min(MAX_TREE_BRANCHING, v):
+            raise BundleError(f"{self.path}: kmeans-tree 'branching' must be an integer in [2, {min(MAX_TREE_BRANCHING, v)}]")
+        if distance == "hamming":
+            if self.features.spec.distance != "hamming" or d % 8:
+                raise BundleError(f"{self.path}: Hamming tree centres need a binary feature kind")
+            centers = _load_array(self.path, files["centers"], kinds="u", shape=(m, d // 8))
+            want = np.uint8
+        elif distance == "l2":
+            centers = _load_array(self.path, files["centers"], kinds="f", shape=(m, d))
+            want = np.float32
+        else:
+            raise BundleError(f"{self.path}: kmeans-tree 'distance' must be 'hamming' or 'l2', got {str(distance)[:40]!r}")
+        if centers.dtype != want:
+            raise BundleError(f"{self.path}: {files['centers']} must hold {np.dtype(want)}, got {centers.dtype}")
+        children = _load_array(self.path, files["children"], kinds="i", shape=(m, b))
+        leaf_words = _load_array(self.path, files["leaf_words"], kinds="i", shape=(m,))
+        try:
+            tree = VocabularyTree(centers, children, leaf_words)
+        except InputError as exc:
+            raise BundleError(f"{self.path}: invalid vocabulary tree: {exc}") from exc
+        if tree.vocabulary_size != v:
+            raise BundleError(f"{self.path}: vocabulary tree has {tree.vocabulary_size} leaves, manifest says {v} words")
+        return tree
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def load_bundle(path: str | Path, verify_checksums: bool = True) -> ModelBundle:

@@ -22,6 +22,7 @@ from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Feat
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 from aefabmap.runtime.core.messages import Candidate, FrameResult  # records live with the wire messages
+from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Ranking, Scorer
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.tree import ChowLiuTree
@@ -65,7 +66,8 @@ class DetectorConfig:
     exclude: frames a frame waits before it enters the map (delayed insertion); also the
         exclusion window: a query never sees its `exclude` predecessors.
     loop_threshold: a loop is declared when the best place's score reaches this.
-    quantizer_variant: "fp32" or "int8" (autoencoder bundles). threads: onnxruntime threads.
+    quantizer_variant: "fp32" or "int8" (autoencoder bundles); "flat" searches a k-means bundle
+        with an inverted index exhaustively instead. threads: onnxruntime threads.
     motion_model, naive_bayes, smoothing: FAB-MAP options (docs/fabmap2.md).
     fabmap_score: what `score` holds with the fabmap scorer: "probability" (the normalised
         posterior P of the best place, docs/evaluation.md's FAB-MAP score) or "llr" (log-likelihood
@@ -201,7 +203,7 @@ class LoopClosureDetector:
         """Word id of every keypoint (N,) int32 (repeats kept)."""
         if len(features) == 0:
             return np.zeros(0, np.int32)
-        return self.quantizer.quantize(self.kind.vectors(features.descriptors))
+        return quantize_raw(self.quantizer, self.kind, features.descriptors)
 
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""

@@ -157,7 +157,8 @@ def run_spawned_single_thread(fn, *args):
                 os.environ[k] = v
 
 
-def _pin_one_cpu() -> int | None:
+def pin_one_cpu() -> int | None:
+    """Pin this process to the last CPU it may run on; that CPU's number (None: not supported)."""
     try:
         cpus = sorted(os.sched_getaffinity(0))
         os.sched_setaffinity(0, {cpus[-1]})
@@ -178,7 +179,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     pinned = None
     if config.single_core:
         cv2.setNumThreads(1)
-        pinned = _pin_one_cpu()
+        pinned = pin_one_cpu()
     det_cfg = DetectorConfig(threads=1, verification=VerificationConfig(enabled=config.verification))
     det = load_detector(config.bundle, det_cfg)
     manifest = det.manifest

@@ -60,3 +60,49 @@ def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     # training distribution, hence the margin); int8 kernels saturating int16 gave 0.18.
     assert np.mean(w32 == w8) >= 0.97
     assert b.manifest["quantizer"]["int8_agreement"] >= 0.99  # measured on its training descriptors
+
+
+def test_tree_bundle_is_byte_reproducible_and_quantises_like_its_tree(image_dir, tmp_path):
+    a = train_bundle(config(image_dir, tmp_path / "t1", quantizer="kmeans-tree", branching=4))
+    b = train_bundle(config(image_dir, tmp_path / "t2", quantizer="kmeans-tree", branching=4))
+    files = sorted(p.name for p in a.path.iterdir())
+    assert "vocab_tree_centers.npy" in files and "vocabulary.npy" not in files
+    assert all((a.path / f).read_bytes() == (b.path / f).read_bytes() for f in files)
+    bundle = load_bundle(a.path)
+    q = bundle.manifest["quantizer"]
+    assert q["type"] == "kmeans-tree" and q["distance"] == "hamming" and q["branching"] == 4
+    assert bundle.vocabulary_size == 32 and a.summary["tree_depth"] >= 2
+    # Training observations are the words the runtime quantiser gives.
+    tree = bundle.quantizer()
+    assert all(np.array_equal(o, np.unique(o)) and o.max() < 32 for o in bundle.training_observations if o.size)
+    assert tree.vocabulary_size == 32
+
+
+def test_tree_with_float_centres_on_orb(image_dir, tmp_path):
+    res = train_bundle(config(image_dir, tmp_path / "f", quantizer="kmeans-tree", branching=4, float_centers=True))
+    bundle = load_bundle(res.path)
+    assert bundle.manifest["quantizer"]["distance"] == "l2"
+    assert not bundle.quantizer().accepts_packed_bits
+
+
+def test_index_over_an_existing_vocabulary_keeps_its_words(image_dir, tmp_path):
+    """--vocabulary-from + --index-buckets: same centroids and training observations as the flat
+    bundle (the index gives the flat words on every training descriptor); "flat" still loads."""
+    flat = train_bundle(config(image_dir, tmp_path / "flat"))
+    indexed = train_bundle(config(image_dir, tmp_path / "idx", vocabulary_from=flat.path, index_buckets=4))
+    a, b = load_bundle(flat.path), load_bundle(indexed.path)
+    assert (a.path / "vocabulary.npy").read_bytes() == (b.path / "vocabulary.npy").read_bytes()
+    assert all(np.array_equal(x, y) for x, y in zip(a.training_observations, b.training_observations))
+    q = b.manifest["quantizer"]
+    assert q["type"] == "kmeans" and q["index"]["buckets"] == 4 and q["index"]["distance"] == "hamming"
+    assert type(b.quantizer()).__name__ == "IndexedCentroidQuantizer"
+    assert type(b.quantizer("flat")).__name__ == "NearestCentroidQuantizer"
+    again = train_bundle(config(image_dir, tmp_path / "idx2", vocabulary_from=flat.path, index_buckets=4))
+    assert all((indexed.path / f.name).read_bytes() == f.read_bytes() for f in again.path.iterdir())
+
+
+def test_index_options_are_checked(image_dir, tmp_path):
+    with pytest.raises(Exception, match="apply to --quantizer kmeans"):
+        config(image_dir, tmp_path / "x", quantizer="kmeans-tree", index_buckets=4)
+    with pytest.raises(Exception, match="index-buckets"):
+        config(image_dir, tmp_path / "x", index_buckets=33)
