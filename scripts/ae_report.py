@@ -132,7 +132,35 @@ def main() -> None:
     args.out.write_text(json.dumps(report, indent=1))
     if args.plot:
         plot_curves(report, args.plot)
+    print(markdown(report))
     print(f"wrote {args.out}")
+
+
+def _pct(x) -> str:
+    return "-" if x is None else f"{100 * x:.1f}"
+
+
+def markdown(report: dict) -> str:
+    """One row per bundle: Lip6 and corridor (raw LLR / verified, tolerant R@100P and AUC), the
+    held-out pair word agreement, int8 cost and agreement, AE training time and epochs."""
+    head = ("bundle", "Lip6 raw R@100P", "Lip6 raw AUC", "Lip6 ver R@100P", "Lip6 ver AUC",
+            "corr raw R@100P", "corr raw AUC", "corr ver R@100P", "corr ver AUC",
+            "pair words same", "ms/500 (CPU)", "int8=fp32 (Lip6)", "train s / epochs")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, e in report["bundles"].items():
+        cells = [name]
+        for seq in ("lip6", "corridor"):
+            f = e.get(seq) or {}
+            cells += [_pct(f.get("raw_r100_tol")), _pct(f.get("raw_auc_tol")),
+                      _pct(f.get("ver_r100_tol")), _pct(f.get("ver_auc_tol"))]
+        var = "int8" if e["type"] == "ae" else "fp32"
+        cells.append(_pct(e.get(f"pair_word_agreement_{var}")))
+        cells.append(f"{e[f'cost_{var}']['cpu_ms']:.1f}")
+        cells.append(_pct(e.get("int8_agreement_lip6")))
+        t = e.get("train")
+        cells.append("-" if not t else f"{t['seconds']:.0f} / {t['epochs']} ({t['stop_reason']})")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def plot_curves(report: dict, out: Path) -> None:

@@ -60,3 +60,20 @@ def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     # training distribution, hence the margin); int8 kernels saturating int16 gave 0.18.
     assert np.mean(w32 == w8) >= 0.97
     assert b.manifest["quantizer"]["int8_agreement"] >= 0.99  # measured on its training descriptors
+
+
+@pytest.mark.slow
+def test_light_ae_with_matching_term_bundle(image_dir, tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    cache = tmp_path / "cache"
+    cfg = config(image_dir, tmp_path / "light", quantizer="ae", ae_arch="light", ae_match_weight=0.1,
+                 ae_warp_images=6, ae_frame_pairs=0, ae_epochs=3, ae_threads=1, cache_dir=cache)
+    res = train_bundle(cfg)
+    q = load_bundle(res.path).manifest["quantizer"]
+    t = q["train"]
+    assert t["config"]["arch"] == "light" and q["latent_dim"] == 32 and t["loss"] == "bce+match"
+    assert t["n_pairs_train"] > 0 and t["n_pairs_val"] > 0
+    assert [h["epoch"] for h in t["history"]] == list(range(1, t["epochs"] + 1))  # the loss curve
+    assert 0.0 <= q["pair_word_agreement"]["fp32"] <= 1.0
+    assert len(list(cache.glob("pairs-orb-*.npz"))) == 1  # pairs are cached like features
