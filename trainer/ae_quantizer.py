@@ -84,6 +84,7 @@ def build_ae_quantizer(
         vectors, feature_kind=feature_kind, seed=seed, config=config,
         pairs=None if train_pairs is None else (train_pairs.a, train_pairs.b),
         val_pairs=None if val_pairs is None else (val_pairs.a, val_pairs.b),
+        pair_groups=None if train_pairs is None else train_pairs.group,
     )
     timings["train_s"] = time.perf_counter() - t0
     encoder = result.model.encoder

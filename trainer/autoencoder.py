@@ -68,6 +68,10 @@ class AeConfig:
     match_weight: weight of the matching term (0: reconstruction only); needs pairs.
     match_temperature: InfoNCE temperature on squared code distances divided by their batch mean.
     match_batch: matching pairs per training step.
+    match_negatives: "batch": a step's pairs are drawn from all training pairs (negatives from
+        other images, easy to tell apart); "image": a step takes consecutive pairs of a random
+        arrangement of the pair groups, so the negatives mostly share the positive's image
+        (hard negatives, as in the held-out batches, which are kept in group order).
     threads: torch intra-op threads (results are reproducible for a fixed value).
     progress: show a tqdm bar (stderr) with the running loss.
     """
@@ -90,6 +94,7 @@ class AeConfig:
     match_weight: float = 0.0
     match_temperature: float = 0.1
     match_batch: int = 256
+    match_negatives: str = "batch"
 
     def __post_init__(self) -> None:
         if self.latent_dim is not None and (not isinstance(self.latent_dim, int) or self.latent_dim < 1):
@@ -100,6 +105,8 @@ class AeConfig:
             raise ConfigError(f"widths must be None or a non-empty tuple of positive integers, got {self.widths!r}")
         if self.max_seconds is not None and not (self.max_seconds > 0):
             raise ConfigError(f"max_seconds must be None or > 0, got {self.max_seconds!r}")
+        if self.match_negatives not in ("batch", "image"):
+            raise ConfigError(f"match_negatives must be 'batch' or 'image', got {self.match_negatives!r}")
         if self.match_weight < 0 or not (self.match_temperature > 0) or self.match_batch < 2:
             raise ConfigError("match_weight must be >= 0, match_temperature > 0 and match_batch >= 2")
         if self.scaling is not None and self.scaling not in SCALINGS:
@@ -377,11 +384,13 @@ def train_autoencoder(
     config: AeConfig | None = None,
     pairs: tuple[np.ndarray, np.ndarray] | None = None,
     val_pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    pair_groups: np.ndarray | None = None,
 ) -> TrainResult:
     """Train the autoencoder on descriptor vectors (N, D) float32 (training images only).
 
     pairs / val_pairs: matching descriptor vectors (a (P, D), b (P, D)) for the matching term
     (trained on `pairs`, held-out loss on `val_pairs`); required when config.match_weight > 0.
+    pair_groups: (P,) source image of each training pair (needed for match_negatives "image").
     Same inputs, seed and config.threads -> bit-identical weights (unless max_seconds ends the
     run: wall-clock time then decides the number of epochs). Early stopping on a held-out split
     of `vectors` (and `val_pairs`); the best epoch's weights are returned.
@@ -403,6 +412,11 @@ def train_autoencoder(
     val = torch.from_numpy(data[perm[:n_val]].copy())
     train = torch.from_numpy(data[perm[n_val:]].copy())
     pa_t, pb_t = torch.from_numpy(pa), torch.from_numpy(pb)
+    if cfg.match_negatives == "image":
+        if pair_groups is None or len(pair_groups) != pa.shape[0]:
+            raise InputError("match_negatives 'image' needs pair_groups, one per training pair")
+        _, group_idx = np.unique(np.asarray(pair_groups), return_inverse=True)
+        group_t = torch.from_numpy(group_idx.astype(np.int64))
     va_t, vb_t = torch.from_numpy(va), torch.from_numpy(vb)
 
     with deterministic_torch(cfg.threads):
@@ -431,6 +445,10 @@ def train_autoencoder(
             if use_pairs:
                 # Pairs cycle at their own pace: one pair batch per reconstruction batch.
                 pair_order = torch.randperm(pa_t.shape[0], generator=gen)
+                if cfg.match_negatives == "image":
+                    # Random group order, random order inside each group, groups kept together.
+                    rank = torch.randperm(int(group_t.max()) + 1, generator=gen).double()
+                    pair_order = torch.argsort(rank[group_t] + torch.rand(pa_t.shape[0], generator=gen, dtype=torch.float64))
                 n_pb = max(1, pa_t.shape[0] // cfg.match_batch)
             total, count = 0.0, 0
             bar = tqdm(range(n_batches), desc=f"AE epoch {epoch}/{cfg.max_epochs}", unit="batch",

@@ -61,6 +61,7 @@ class TrainConfig:
     ae_warp_images: int = 0
     ae_frame_pairs: int = 0
     ae_threads: int = 2
+    ae_match_negatives: str = "batch"
     cache_dir: Path | None = None
     show_progress: bool = True
 
@@ -228,6 +229,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                     patience=config.ae_patience,
                     max_seconds=config.ae_budget_s,
                     match_weight=config.ae_match_weight,
+                    match_negatives=config.ae_match_negatives,
                     threads=config.ae_threads,
                     progress=config.show_progress,
                 ),

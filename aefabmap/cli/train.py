@@ -30,6 +30,8 @@ def register(sub) -> None:
     p.add_argument("--ae-budget-s", type=float, default=None, help="wall-clock budget for autoencoder training (s)")
     p.add_argument("--ae-match-weight", type=float, default=0.0,
                    help="weight of the matching term on latent codes (0: reconstruction only)")
+    p.add_argument("--ae-match-negatives", choices=("batch", "image"), default="batch",
+                   help="negatives of the matching term: any training pair, or pairs of the same image")
     p.add_argument("--ae-warp-images", type=int, default=0,
                    help="training images warped by random homographies to give matching pairs")
     p.add_argument("--ae-frame-pairs", type=int, default=0,
@@ -68,6 +70,7 @@ def run(args) -> int:
         ae_warp_images=args.ae_warp_images,
         ae_frame_pairs=args.ae_frame_pairs,
         ae_threads=args.ae_threads,
+        ae_match_negatives=args.ae_match_negatives,
         show_progress=not args.no_progress,
     )
     result = train_bundle(config)

@@ -164,3 +164,13 @@ def test_matching_term_pulls_pairs_together(orb_vectors):
     assert matched.summary()["loss"] == "bce+match"
     with pytest.raises(InputError):
         train_autoencoder(orb_vectors, feature_kind="orb", config=cfg)  # no pairs
+
+
+def test_image_negatives_need_groups_and_train(orb_vectors):
+    a, b = orb_vectors[:1000], orb_vectors[:1000].copy()
+    cfg = AeConfig(**{**LIGHT.__dict__, "max_epochs": 1, "match_weight": 0.1, "match_negatives": "image"})
+    with pytest.raises(InputError):
+        train_autoencoder(orb_vectors, feature_kind="orb", config=cfg, pairs=(a[:800], b[:800]), val_pairs=(a[800:], b[800:]))
+    res = train_autoencoder(orb_vectors, feature_kind="orb", config=cfg, pairs=(a[:800], b[:800]),
+                            val_pairs=(a[800:], b[800:]), pair_groups=np.repeat(np.arange(8), 100))
+    assert res.history[0]["val_match"] is not None
