@@ -34,8 +34,7 @@ from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor  # no
 from aefabmap.trainer.ae_quantizer import PAIR_VAL_FRACTION  # noqa: E402
 from aefabmap.trainer.train import cached_match_pairs, find_training_images  # noqa: E402
 
-# The pair settings of scripts/ae_matrix.sh.
-WARP_IMAGES, FRAME_PAIRS, SEED = 600, 400, 0
+SEED = 0
 
 
 def lip6_vectors(data: Path, features: FeatureConfig, n: int) -> np.ndarray:
@@ -81,6 +80,8 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("AEFABMAP_DATA", "data")))
     ap.add_argument("--results", nargs="+", type=Path, default=[])
     ap.add_argument("--cache", type=Path, default=None, help="feature/pair cache of the training runs")
+    ap.add_argument("--warp-images", type=int, default=600, help="pair settings of the runs (ae_matrix.sh: 600)")
+    ap.add_argument("--frame-pairs", type=int, default=400, help="(ae_matrix.sh: 400)")
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--plot", type=Path, default=None, help="PNG of the AE held-out loss curves")
@@ -97,7 +98,7 @@ def main() -> None:
         kind = fc.kind
         if kind not in lip6:
             lip6[kind] = (lip6_vectors(args.data, fc, 500), lip6_vectors(args.data, fc, 20_000))
-            _, val = cached_match_pairs(files, fc, args.cache, warp_images=WARP_IMAGES, frame_pairs=FRAME_PAIRS,
+            _, val = cached_match_pairs(files, fc, args.cache, warp_images=args.warp_images, frame_pairs=args.frame_pairs,
                                         seed=SEED, show_progress=False).split(PAIR_VAL_FRACTION, SEED)
             pairs[kind] = val
         x500, x20k = lip6[kind]
@@ -124,6 +125,7 @@ def main() -> None:
             entry["train"]["match_weight"] = t["config"].get("match_weight", 0.0)
             entry["history"] = t.get("history", [])
             entry["timings"] = q.get("timings")
+            entry["search"] = q.get("search")  # a re-vocabulary (tree) of another bundle's encoder
         for seq in ("lip6", "corridor"):
             entry[seq] = eval_figures(args.results, path.name, seq)
         report["bundles"][path.name] = entry
@@ -170,7 +172,7 @@ def plot_curves(report: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    aes = {n: e for n, e in report["bundles"].items() if e["type"] == "ae" and e.get("history")}
+    aes = {n: e for n, e in report["bundles"].items() if e["type"] == "ae" and e.get("history") and not e.get("search")}
     if not aes:
         return
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))

@@ -48,7 +48,8 @@ def test_kmeans_bundle_and_cache(image_dir, tmp_path, monkeypatch):
 def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
-    res = train_bundle(config(image_dir, tmp_path / "ae", quantizer="ae"))
+    # One thread: on a loaded machine two torch threads waiting for each other are ~15x slower.
+    res = train_bundle(config(image_dir, tmp_path / "ae", quantizer="ae", ae_threads=1))
     b = load_bundle(res.path)
     assert b.quantizer_type == "ae"
     assert set(b.manifest["quantizer"]["files"]) == {"fp32", "int8"}
