@@ -124,3 +124,66 @@ def _normalise(model) -> None:
         dims = vi.type.tensor_type.shape.dim
         if len(dims) and not dims[0].HasField("dim_value"):
             dims[0].dim_param = "batch"
+
+
+def attach_tree_search(model, tree) -> None:
+    """Replace the flat codebook arg-min of a quantiser graph (fp32 or int8 ModelProto) by the
+    two-level search of a trainer.latent_vocabulary.LatentTree, in place; sets vocabulary_size.
+
+    codes -> coarse arg-max -> Gather the cell's leaf block (B, M, L) -> batched dot products ->
+    arg-max -> Gather the leaf's word id. The encoder part (and its int8 Q/DQ) is untouched.
+    """
+    from onnx import TensorProto, helper, numpy_helper
+
+    g = model.graph
+    codes = OUTPUT_NAMES[1]
+    nodes = list(g.node)
+    downstream: set[int] = set()  # indices: protobuf wrappers have no stable identity
+    frontier = {codes}
+    changed = True
+    while changed:  # every node that (transitively) consumes `codes`: the old arg-min
+        changed = False
+        for i, node in enumerate(nodes):
+            if i not in downstream and any(x in frontier for x in node.input):
+                downstream.add(i)
+                frontier.update(node.output)
+                changed = True
+    keep = [copy.deepcopy(n) for i, n in enumerate(nodes) if i not in downstream]
+    used = {i for n in keep for i in n.input}
+    inits = [t for t in g.initializer if t.name in used]
+    del g.node[:]
+    g.node.extend(keep)
+    del g.initializer[:]
+    g.initializer.extend(inits)
+    coarse = np.ascontiguousarray(tree.coarse.T, np.float32)
+    arrays = {
+        "tree_coarse_t": coarse,
+        "tree_coarse_half": (0.5 * np.einsum("lc,lc->c", coarse, coarse)).astype(np.float32),
+        "tree_leaves": tree.leaves.astype(np.float32),
+        "tree_leaf_half": tree.leaf_half.astype(np.float32),
+        "tree_ids": tree.ids.astype(np.int64),
+        "tree_axes2": np.array([2], np.int64),
+        "tree_axes1": np.array([1], np.int64),
+    }
+    g.initializer.extend(numpy_helper.from_array(a, n) for n, a in arrays.items())
+    mk = helper.make_node
+    g.node.extend([
+        mk("MatMul", [codes, "tree_coarse_t"], ["tree_cs"], name="tree_coarse_mm"),
+        mk("Sub", ["tree_cs", "tree_coarse_half"], ["tree_cd"], name="tree_coarse_sub"),
+        mk("ArgMax", ["tree_cd"], ["tree_ci"], name="tree_coarse_argmax", axis=1, keepdims=0),
+        mk("Gather", ["tree_leaves", "tree_ci"], ["tree_w"], name="tree_gather_leaves", axis=0),
+        mk("Unsqueeze", [codes, "tree_axes2"], ["tree_z"], name="tree_unsqueeze"),
+        mk("MatMul", ["tree_w", "tree_z"], ["tree_s3"], name="tree_leaf_mm"),
+        mk("Squeeze", ["tree_s3", "tree_axes2"], ["tree_s"], name="tree_squeeze"),
+        mk("Gather", ["tree_leaf_half", "tree_ci"], ["tree_h"], name="tree_gather_half", axis=0),
+        mk("Sub", ["tree_s", "tree_h"], ["tree_d"], name="tree_leaf_sub"),
+        mk("ArgMax", ["tree_d"], ["tree_j"], name="tree_leaf_argmax", axis=1, keepdims=1),
+        mk("Gather", ["tree_ids", "tree_ci"], ["tree_cell_ids"], name="tree_gather_ids", axis=0),
+        mk("GatherElements", ["tree_cell_ids", "tree_j"], ["tree_word2"], name="tree_pick", axis=1),
+        mk("Squeeze", ["tree_word2", "tree_axes1"], ["tree_word64"], name="tree_squeeze_word"),
+        mk("Cast", ["tree_word64"], [OUTPUT_NAMES[0]], name="tree_cast", to=TensorProto.INT32),
+    ])
+    meta = {p.key: p.value for p in model.metadata_props}
+    meta["vocabulary_size"] = str(tree.size)
+    meta["search"] = f"tree:{tree.coarse.shape[0]}x{tree.leaves.shape[1]}"
+    set_metadata(model, **meta)

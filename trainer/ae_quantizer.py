@@ -16,11 +16,15 @@ from aefabmap.errors import ConfigError, InputError
 
 if TYPE_CHECKING:  # torch stays a lazy import: the runtime never loads this module
     from aefabmap.trainer.autoencoder import AeConfig
+    from aefabmap.trainer.match_pairs import MatchPairs
 
 FP32_NAME = "quantizer_fp32.onnx"
 INT8_NAME = "quantizer_int8.onnx"
 # Held-out vectors on which the int8 graph is compared with the fp32 graph.
 AGREEMENT_SAMPLE = 20_000
+# Share of matching-pair groups (source images / frame pairs) held out for early stopping and
+# for the pair word agreement reported in the manifest.
+PAIR_VAL_FRACTION = 0.15
 
 
 def build_ae_quantizer(
@@ -34,6 +38,7 @@ def build_ae_quantizer(
     config: AeConfig | None = None,
     kmeans_iterations: int = 25,
     progress=None,
+    pairs: MatchPairs | None = None,
 ) -> dict:
     """Train the AE-VQ quantiser on training descriptor vectors and write its ONNX files.
 
@@ -42,6 +47,9 @@ def build_ae_quantizer(
     out_dir: receives quantizer_fp32.onnx and quantizer_int8.onnx.
     calibration_vectors: (M, D) float32 for int8 calibration; default: `vectors`.
     config: AeConfig (None -> defaults). progress: optional callable(stage: str) for the CLI.
+    pairs: matching descriptor pairs (trainer/match_pairs.py); split by group into training
+        pairs (matching term, when config.match_weight > 0) and held-out pairs (early stopping,
+        and "pair_word_agreement": the share of held-out pairs whose two descriptors get one word).
     Returns the manifest entry: {"type": "ae", "files": {...}, "latent_dim", "train", "int8_agreement", ...}.
     Same inputs and seed -> byte-identical files.
     """
@@ -69,7 +77,15 @@ def build_ae_quantizer(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     stage("autoencoder")
-    result = train_autoencoder(vectors, feature_kind=feature_kind, seed=seed, config=config)
+    train_pairs = val_pairs = None
+    if pairs is not None and len(pairs):
+        train_pairs, val_pairs = pairs.split(PAIR_VAL_FRACTION, seed)
+    result = train_autoencoder(
+        vectors, feature_kind=feature_kind, seed=seed, config=config,
+        pairs=None if train_pairs is None else (train_pairs.a, train_pairs.b),
+        val_pairs=None if val_pairs is None else (val_pairs.a, val_pairs.b),
+        pair_groups=None if train_pairs is None else train_pairs.group,
+    )
     timings["train_s"] = time.perf_counter() - t0
     encoder = result.model.encoder
 
@@ -102,6 +118,12 @@ def build_ae_quantizer(
     w32 = q32.quantize(sample)
     agreement = float(np.mean(w32 == q8.quantize(sample)))
     used = np.bincount(w32, minlength=words)
+    pair_agreement = None
+    if val_pairs is not None and len(val_pairs):
+        pair_agreement = {
+            variant: round(float(np.mean(q.quantize(val_pairs.a) == q.quantize(val_pairs.b))), 6)
+            for variant, q in (("fp32", q32), ("int8", q8))
+        } | {"pairs": len(val_pairs)}
 
     return {
         "type": "ae",
@@ -114,6 +136,7 @@ def build_ae_quantizer(
         "int8_agreement": round(agreement, 6),
         "agreement_sample": int(sample.shape[0]),
         "words_used_fraction": round(float(np.mean(used > 0)), 6),
+        "pair_word_agreement": pair_agreement,
         "timings": {k: round(v, 2) for k, v in timings.items()},
     }
 

@@ -1,13 +1,20 @@
-"""The paper's 1-D convolutional autoencoder over descriptor vectors (AE-VQ, section 3.1).
+"""The AE-VQ autoencoders over descriptor vectors: the paper's 1-D conv stack and a light MLP.
 
-A descriptor vector (D,) is read as a one-channel 1-D signal of length D:
+arch "paper" (section 3.1): a descriptor vector (D,) is read as a one-channel 1-D signal of length D:
 
     encoder: scale to [0,1] -> [Conv1d(k3)+BN+ReLU] x2 at width w, MaxPool(2)   for w in widths
              -> flatten -> Linear -> latent code (latent_dim,)
     decoder: Linear -> [Conv1d(k3)+BN+ReLU] x2 at width w, Upsample(2)          for w in reversed(widths)
              -> Conv1d(k3, 1 channel) -> sigmoid
 
-trained self-supervised with binary cross-entropy against the [0,1]-scaled input (eq. 1).
+arch "light": scale -> [Linear + ReLU] for w in widths -> Linear -> latent, mirrored decoder
+(hundreds of times less arithmetic per descriptor than the conv stack: it converges in minutes
+on 2 CPU cores and its int8 graph runs at k-means cost).
+
+trained self-supervised with binary cross-entropy against the [0,1]-scaled input (eq. 1),
+optionally plus a matching term (`match_weight`): an InfoNCE loss that pulls the codes of the
+two descriptors of a matching pair (same scene point, trainer/match_pairs.py) together and
+pushes the other pairs of the batch away, so both land on the same word more often.
 The [0,1] scaling (per-row min-max for SIFT, identity for ORB bits) lives inside the encoder
 module, so the exported ONNX graph takes raw descriptor vectors.
 
@@ -31,18 +38,25 @@ from aefabmap.errors import ConfigError, InputError
 from aefabmap.runtime.core.feature_kinds import get_kind
 
 SCALINGS = ("minmax", "none")
+ARCHS = ("paper", "light")
+DEFAULT_WIDTHS = {"paper": (32, 64, 128), "light": (256,)}
+# Light arch: a 32-D code keeps the fp32 codebook arg-min of a 2000-word vocabulary near 1 ms
+# per 500 descriptors on one core (64-D: ~1.7 ms), the int8 budget of the whole quantiser.
+DEFAULT_LIGHT_LATENT = 32
 
 
 @dataclass(frozen=True)
 class AeConfig:
     """Autoencoder architecture and training settings.
 
-    latent_dim: size of the dense bottleneck; None -> D // 2 (64 for SIFT as in the
+    arch: "paper" (1-D conv stack) or "light" (MLP), see the module doc.
+    latent_dim: size of the dense bottleneck; None -> paper: D // 2 (64 for SIFT as in the
         authors' notebook, 128 for ORB: the 256 rBRIEF tests were selected to be
         uncorrelated, so there is little redundancy to squeeze and a 64-D code loses
-        most of the reconstruction).
-    widths: conv widths of the encoder stages; each stage is a Conv+BN+ReLU pair
-        followed by a 2x max-pool, so D must be divisible by 2 ** len(widths).
+        most of the reconstruction); light: DEFAULT_LIGHT_LATENT.
+    widths: None -> DEFAULT_WIDTHS[arch]. paper: conv widths of the encoder stages; each stage
+        is a Conv+BN+ReLU pair followed by a 2x max-pool, so D must be divisible by
+        2 ** len(widths). light: hidden layer sizes of the MLP.
     scaling: "minmax" (per-row min-max to [0,1]), "none" (input already in [0,1]),
         or None -> the feature kind's `ae_scaling` ("minmax" for SIFT, "none" for ORB bits).
     max_epochs: upper bound on passes over the training split.
@@ -50,12 +64,21 @@ class AeConfig:
     batch_size, learning_rate, weight_decay: Adam settings.
     val_fraction: share of the (subsampled) vectors held out for early stopping.
     patience: epochs without a val-loss improvement of at least min_delta before stopping.
+    max_seconds: wall-clock training budget; no new epoch starts once it is spent (None: none).
+    match_weight: weight of the matching term (0: reconstruction only); needs pairs.
+    match_temperature: InfoNCE temperature on squared code distances divided by their batch mean.
+    match_batch: matching pairs per training step.
+    match_negatives: "batch": a step's pairs are drawn from all training pairs (negatives from
+        other images, easy to tell apart); "image": a step takes consecutive pairs of a random
+        arrangement of the pair groups, so the negatives mostly share the positive's image
+        (hard negatives, as in the held-out batches, which are kept in group order).
     threads: torch intra-op threads (results are reproducible for a fixed value).
     progress: show a tqdm bar (stderr) with the running loss.
     """
 
+    arch: str = "paper"
     latent_dim: int | None = None
-    widths: tuple[int, ...] = (32, 64, 128)
+    widths: tuple[int, ...] | None = None
     scaling: str | None = None
     max_epochs: int = 3
     max_descriptors: int = 100_000
@@ -67,12 +90,25 @@ class AeConfig:
     min_delta: float = 1e-4
     threads: int = 2
     progress: bool = True
+    max_seconds: float | None = None
+    match_weight: float = 0.0
+    match_temperature: float = 0.1
+    match_batch: int = 256
+    match_negatives: str = "batch"
 
     def __post_init__(self) -> None:
         if self.latent_dim is not None and (not isinstance(self.latent_dim, int) or self.latent_dim < 1):
             raise ConfigError(f"latent_dim must be None or a positive integer, got {self.latent_dim!r}")
-        if not self.widths or any((not isinstance(w, int)) or w < 1 for w in self.widths):
-            raise ConfigError(f"widths must be a non-empty tuple of positive integers, got {self.widths!r}")
+        if self.arch not in ARCHS:
+            raise ConfigError(f"arch must be one of {ARCHS}, got {self.arch!r}")
+        if self.widths is not None and (not self.widths or any((not isinstance(w, int)) or w < 1 for w in self.widths)):
+            raise ConfigError(f"widths must be None or a non-empty tuple of positive integers, got {self.widths!r}")
+        if self.max_seconds is not None and not (self.max_seconds > 0):
+            raise ConfigError(f"max_seconds must be None or > 0, got {self.max_seconds!r}")
+        if self.match_negatives not in ("batch", "image"):
+            raise ConfigError(f"match_negatives must be 'batch' or 'image', got {self.match_negatives!r}")
+        if self.match_weight < 0 or not (self.match_temperature > 0) or self.match_batch < 2:
+            raise ConfigError("match_weight must be >= 0, match_temperature > 0 and match_batch >= 2")
         if self.scaling is not None and self.scaling not in SCALINGS:
             raise ConfigError(f"scaling must be None or one of {SCALINGS}, got {self.scaling!r}")
         for name in ("max_epochs", "max_descriptors", "batch_size", "threads"):
@@ -91,18 +127,20 @@ class AeConfig:
         kind = get_kind(feature_kind)  # ConfigError for an unknown kind
         if descriptor_length != kind.vector_length:
             raise ConfigError(f"{kind.name} descriptor vectors have length {kind.vector_length}, got {descriptor_length}")
-        factor = 2 ** len(self.widths)
-        if descriptor_length % factor:
+        widths = tuple(self.widths) if self.widths is not None else DEFAULT_WIDTHS[self.arch]
+        factor = 2 ** len(widths)
+        if self.arch == "paper" and descriptor_length % factor:
             raise ConfigError(
                 f"descriptor length {descriptor_length} is not divisible by 2**len(widths) = {factor}"
             )
-        latent = self.latent_dim if self.latent_dim is not None else descriptor_length // 2
+        default_latent = descriptor_length // 2 if self.arch == "paper" else DEFAULT_LIGHT_LATENT
+        latent = self.latent_dim if self.latent_dim is not None else default_latent
         scaling = self.scaling if self.scaling is not None else kind.ae_scaling
-        return AeConfig(**{**asdict(self), "latent_dim": latent, "scaling": scaling, "widths": tuple(self.widths)})
+        return AeConfig(**{**asdict(self), "latent_dim": latent, "scaling": scaling, "widths": widths})
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d["widths"] = list(self.widths)
+        d["widths"] = None if self.widths is None else list(self.widths)
         return d
 
 
@@ -188,15 +226,60 @@ class Decoder(nn.Module):
         return self.body(h).squeeze(1)
 
 
+class LightEncoder(nn.Module):
+    """MLP encoder: raw descriptor vectors (B, D) -> latent codes (B, latent_dim); same interface as Encoder."""
+
+    def __init__(self, descriptor_length: int, latent_dim: int, widths: tuple[int, ...], scaling: str) -> None:
+        super().__init__()
+        self.descriptor_length = descriptor_length
+        self.latent_dim = latent_dim
+        self.scale = RowScale(scaling)
+        layers: list[nn.Module] = []
+        c = descriptor_length
+        for w in widths:
+            layers += [nn.Linear(c, w), nn.ReLU(inplace=True)]
+            c = w
+        layers.append(nn.Linear(c, latent_dim))
+        self.body = nn.Sequential(*layers)
+
+    def scaled(self, x: torch.Tensor) -> torch.Tensor:
+        return self.scale(x)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.body(self.scale(x))
+
+
+class LightDecoder(nn.Module):
+    """MLP decoder: latent codes (B, latent_dim) -> reconstruction logits (B, D)."""
+
+    def __init__(self, descriptor_length: int, latent_dim: int, widths: tuple[int, ...]) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        c = latent_dim
+        for w in reversed(widths):
+            layers += [nn.Linear(c, w), nn.ReLU(inplace=True)]
+            c = w
+        layers.append(nn.Linear(c, descriptor_length))
+        self.body = nn.Sequential(*layers)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.body(z)
+
+
 class Autoencoder(nn.Module):
     """Encoder + decoder; forward returns reconstruction logits (B, D)."""
 
     def __init__(self, descriptor_length: int, config: AeConfig) -> None:
         super().__init__()
-        if config.latent_dim is None or config.scaling is None:
+        if config.latent_dim is None or config.scaling is None or config.widths is None:
             raise ConfigError("Autoencoder needs a resolved AeConfig (call config.resolved(D, kind))")
-        self.encoder = Encoder(descriptor_length, config.latent_dim, tuple(config.widths), config.scaling)
-        self.decoder = Decoder(descriptor_length, config.latent_dim, tuple(config.widths))
+        widths = tuple(config.widths)
+        if config.arch == "light":
+            self.encoder = LightEncoder(descriptor_length, config.latent_dim, widths, config.scaling)
+            self.decoder = LightDecoder(descriptor_length, config.latent_dim, widths)
+        else:
+            self.encoder = Encoder(descriptor_length, config.latent_dim, widths, config.scaling)
+            self.decoder = Decoder(descriptor_length, config.latent_dim, widths)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.decoder(self.encoder(x))
@@ -208,7 +291,10 @@ class TrainResult:
 
     model: the best (lowest val loss) autoencoder, in eval mode.
     config: the resolved AeConfig used.
-    history: per epoch {"epoch", "train_loss", "val_loss", "seconds"} (BCE, nats per element).
+    history: per epoch {"epoch", "train_loss", "val_loss", "val_recon", "val_match", "seconds"}:
+        BCE in nats per element; with a matching term, loss = BCE + match_weight * InfoNCE
+        (val_match: InfoNCE on held-out pairs, also reported when match_weight is 0).
+    stop_reason: "patience", "budget" or "max_epochs".
     """
 
     model: Autoencoder
@@ -220,20 +306,27 @@ class TrainResult:
     n_val: int
     seconds: float
     history: list[dict] = field(default_factory=list)
+    stop_reason: str = "max_epochs"
+    n_pairs_train: int = 0
+    n_pairs_val: int = 0
 
     def summary(self) -> dict:
-        """JSON-able training summary for the bundle manifest."""
+        """JSON-able training summary for the bundle manifest (history included: the loss curve)."""
         return {
-            "loss": "bce",
+            "loss": "bce" if self.config.match_weight == 0 else "bce+match",
             "val_loss": round(float(self.best_val_loss), 6),
             "train_loss": round(float(self.history[self.best_epoch - 1]["train_loss"]), 6) if self.history else None,
             "best_epoch": self.best_epoch,
             "epochs": self.epochs_run,
+            "stop_reason": self.stop_reason,
             "n_descriptors": self.n_train + self.n_val,
             "n_train": self.n_train,
             "n_val": self.n_val,
+            "n_pairs_train": self.n_pairs_train,
+            "n_pairs_val": self.n_pairs_val,
             "seconds": round(self.seconds, 1),
             "config": self.config.to_dict(),
+            "history": [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in h.items()} for h in self.history],
         }
 
 
@@ -270,19 +363,47 @@ def subsample(vectors: np.ndarray, limit: int, seed: int) -> np.ndarray:
     return vectors[idx]
 
 
+def match_loss(za: torch.Tensor, zb: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Symmetric InfoNCE on codes za, zb (B, L) of matching pairs (row i of each is one pair).
+
+    Logits are negative squared L2 distances (the quantiser's distance) divided by their batch
+    mean (detached, so the term cannot win by shrinking or inflating the code scale) and by
+    `temperature`; the positive of row i is column i, the other B - 1 pairs are negatives.
+    """
+    d2 = torch.cdist(za, zb).pow(2)
+    logits = -d2 / (d2.detach().mean().clamp_min(1e-12) * temperature)
+    target = torch.arange(za.shape[0])
+    return 0.5 * (nn.functional.cross_entropy(logits, target) + nn.functional.cross_entropy(logits.T, target))
+
+
 def train_autoencoder(
-    vectors: np.ndarray, *, feature_kind: str, seed: int = 0, config: AeConfig | None = None
+    vectors: np.ndarray,
+    *,
+    feature_kind: str,
+    seed: int = 0,
+    config: AeConfig | None = None,
+    pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    val_pairs: tuple[np.ndarray, np.ndarray] | None = None,
+    pair_groups: np.ndarray | None = None,
 ) -> TrainResult:
     """Train the autoencoder on descriptor vectors (N, D) float32 (training images only).
 
-    Same inputs, seed and config.threads -> bit-identical weights. Early stopping on a
-    held-out split; the best epoch's weights are returned.
+    pairs / val_pairs: matching descriptor vectors (a (P, D), b (P, D)) for the matching term
+    (trained on `pairs`, held-out loss on `val_pairs`); required when config.match_weight > 0.
+    pair_groups: (P,) source image of each training pair (needed for match_negatives "image").
+    Same inputs, seed and config.threads -> bit-identical weights (unless max_seconds ends the
+    run: wall-clock time then decides the number of epochs). Early stopping on a held-out split
+    of `vectors` (and `val_pairs`); the best epoch's weights are returned.
     """
     from tqdm import tqdm  # trainer-only dependency
 
     vectors = _check_train_vectors(vectors)
     d = int(vectors.shape[1])
     cfg = (config or AeConfig()).resolved(d, feature_kind)
+    pa, pb = _check_pairs(pairs, d)
+    va, vb = _check_pairs(val_pairs, d)
+    if cfg.match_weight > 0 and (pa.shape[0] < 2 or va.shape[0] < 2):
+        raise InputError("match_weight > 0 needs at least 2 training and 2 held-out matching pairs")
     t0 = time.perf_counter()
     data = subsample(vectors, cfg.max_descriptors, seed)
     rng = np.random.default_rng(seed + 1)
@@ -290,6 +411,13 @@ def train_autoencoder(
     n_val = max(1, int(round(cfg.val_fraction * data.shape[0])))
     val = torch.from_numpy(data[perm[:n_val]].copy())
     train = torch.from_numpy(data[perm[n_val:]].copy())
+    pa_t, pb_t = torch.from_numpy(pa), torch.from_numpy(pb)
+    if cfg.match_negatives == "image":
+        if pair_groups is None or len(pair_groups) != pa.shape[0]:
+            raise InputError("match_negatives 'image' needs pair_groups, one per training pair")
+        _, group_idx = np.unique(np.asarray(pair_groups), return_inverse=True)
+        group_t = torch.from_numpy(group_idx.astype(np.int64))
+    va_t, vb_t = torch.from_numpy(va), torch.from_numpy(vb)
 
     with deterministic_torch(cfg.threads):
         torch.manual_seed(seed)
@@ -304,11 +432,24 @@ def train_autoencoder(
         bad = 0
         history: list[dict] = []
         epochs_run = 0
+        stop = "max_epochs"
         for epoch in range(1, cfg.max_epochs + 1):
+            if cfg.max_seconds is not None and time.perf_counter() - t0 >= cfg.max_seconds:
+                stop = "budget"
+                break
             te = time.perf_counter()
             model.train()
             order = torch.randperm(train.shape[0], generator=gen)
             n_batches = math.ceil(train.shape[0] / cfg.batch_size)
+            use_pairs = cfg.match_weight > 0
+            if use_pairs:
+                # Pairs cycle at their own pace: one pair batch per reconstruction batch.
+                pair_order = torch.randperm(pa_t.shape[0], generator=gen)
+                if cfg.match_negatives == "image":
+                    # Random group order, random order inside each group, groups kept together.
+                    rank = torch.randperm(int(group_t.max()) + 1, generator=gen).double()
+                    pair_order = torch.argsort(rank[group_t] + torch.rand(pa_t.shape[0], generator=gen, dtype=torch.float64))
+                n_pb = max(1, pa_t.shape[0] // cfg.match_batch)
             total, count = 0.0, 0
             bar = tqdm(range(n_batches), desc=f"AE epoch {epoch}/{cfg.max_epochs}", unit="batch",
                        disable=not cfg.progress, leave=False, mininterval=0.5)
@@ -319,6 +460,11 @@ def train_autoencoder(
                 x = train[idx]
                 target = model.encoder.scaled(x)
                 loss = loss_fn(model(x), target)
+                if use_pairs:
+                    k = b % n_pb
+                    j = pair_order[k * cfg.match_batch : (k + 1) * cfg.match_batch]
+                    loss = loss + cfg.match_weight * match_loss(
+                        model.encoder(pa_t[j]), model.encoder(pb_t[j]), cfg.match_temperature)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -327,9 +473,12 @@ def train_autoencoder(
                 if b % 20 == 0:
                     bar.set_postfix(loss=f"{total / max(count, 1):.4f}")
             bar.close()
-            val_loss = evaluate_loss(model, val, cfg.batch_size * 8)
+            val_recon = evaluate_loss(model, val, cfg.batch_size * 8)
+            val_match = evaluate_match_loss(model, va_t, vb_t, cfg.match_batch, cfg.match_temperature)
+            val_loss = val_recon + (cfg.match_weight * val_match if use_pairs else 0.0)
             epochs_run = epoch
             history.append({"epoch": epoch, "train_loss": total / max(count, 1), "val_loss": val_loss,
+                            "val_recon": val_recon, "val_match": None if math.isnan(val_match) else val_match,
                             "seconds": round(time.perf_counter() - te, 2)})
             if val_loss < best - cfg.min_delta:
                 best, best_epoch, bad = val_loss, epoch, 0
@@ -337,11 +486,41 @@ def train_autoencoder(
             else:
                 bad += 1
                 if bad > cfg.patience:
+                    stop = "patience"
                     break
         model.load_state_dict(best_state)
         model.eval()
     return TrainResult(model, cfg, best, best_epoch, epochs_run, int(train.shape[0]), int(n_val),
-                       time.perf_counter() - t0, history)
+                       time.perf_counter() - t0, history, stop, int(pa.shape[0]), int(va.shape[0]))
+
+
+def _check_pairs(pairs, d: int) -> tuple[np.ndarray, np.ndarray]:
+    if pairs is None:
+        return np.zeros((0, d), np.float32), np.zeros((0, d), np.float32)
+    a, b = (np.ascontiguousarray(p, dtype=np.float32) for p in pairs)
+    if a.ndim != 2 or a.shape != b.shape or a.shape[1] != d:
+        raise InputError(f"matching pairs must be two (P, {d}) arrays, got {a.shape} and {b.shape}")
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise InputError("matching pairs contain NaN or infinite values")
+    return a, b
+
+
+@torch.no_grad()
+def evaluate_match_loss(model: Autoencoder, a: torch.Tensor, b: torch.Tensor, batch: int, temperature: float) -> float:
+    """Mean matching loss of held-out pairs (a, b) (P, D) in fixed consecutive batches (nan if P < 2)."""
+    if a.shape[0] < 2:
+        return float("nan")
+    was_training = model.training
+    model.eval()
+    total, n = 0.0, 0
+    for s in range(0, a.shape[0], batch):
+        if a.shape[0] - s < 2:
+            break
+        m = min(batch, a.shape[0] - s)
+        total += float(match_loss(model.encoder(a[s : s + m]), model.encoder(b[s : s + m]), temperature)) * m
+        n += m
+    model.train(was_training)
+    return total / n
 
 
 @torch.no_grad()

@@ -40,6 +40,14 @@ class TrainConfig:
     vocabulary_from: quantizer "kmeans" only: take the centroids of this k-means bundle (same
         feature settings) instead of clustering again (e.g. to add an index to it).
     ae_epochs / ae_descriptors: autoencoder training budget (quantizer "ae" only).
+    ae_arch / ae_latent: "paper" conv stack or "light" MLP; latent size (None: the arch's default).
+    ae_patience / ae_budget_s: early-stopping patience (epochs) and wall-clock training budget.
+    ae_threads: torch and onnxruntime threads of the AE stages (on a loaded machine 1 thread
+        trains an order of magnitude faster than 2 that keep waiting for each other).
+    ae_match_weight: weight of the matching term on latent codes (0: reconstruction only).
+    ae_warp_images / ae_frame_pairs: sources of matching pairs (synthetic homography warps of
+        training images; consecutive frames of the drives among them), built whenever either is
+        > 0: they train the matching term and give the held-out pair word agreement.
     cache_dir: where extracted training features are kept between runs (None: no cache);
         entries are keyed by the feature settings and the image list, so a stale entry is
         never reused.
@@ -59,6 +67,15 @@ class TrainConfig:
     kmeans_iterations: int = 25
     ae_epochs: int = 3
     ae_descriptors: int = 100_000
+    ae_arch: str = "paper"
+    ae_latent: int | None = None
+    ae_patience: int = 2
+    ae_budget_s: float | None = None
+    ae_match_weight: float = 0.0
+    ae_warp_images: int = 0
+    ae_frame_pairs: int = 0
+    ae_threads: int = 2
+    ae_match_negatives: str = "batch"
     cache_dir: Path | None = None
     show_progress: bool = True
 
@@ -129,6 +146,36 @@ def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_di
     return per_image
 
 
+def cached_match_pairs(files: list[Path], features: FeatureConfig, cache_dir: Path | None, *, warp_images: int,
+                       frame_pairs: int, seed: int, show_progress: bool):
+    """trainer.match_pairs.build_match_pairs, reusing a cache entry for the same settings and images."""
+    from aefabmap.trainer.match_pairs import MatchPairs, build_match_pairs
+
+    def build():
+        return build_match_pairs(files, FeatureExtractor(features), warp_images=warp_images,
+                                 frame_pairs=frame_pairs, seed=seed, progress=show_progress)
+
+    if cache_dir is None:
+        return build()
+    key = hashlib.sha256(
+        (repr(sorted(features.to_dict().items())) + f"\n{warp_images}:{frame_pairs}:{seed}\n"
+         + "\n".join(f"{f}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files)).encode()
+    ).hexdigest()[:20]
+    entry = Path(cache_dir) / f"pairs-{features.kind}-{key}.npz"
+    if entry.is_file():
+        try:
+            with np.load(entry, allow_pickle=False) as z:
+                return MatchPairs(z["a"], z["b"], z["group"])
+        except (OSError, ValueError, KeyError):
+            pass  # unreadable cache entry: build again and overwrite it
+    pairs = build()
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    tmp = entry.with_suffix(".tmp.npz")
+    np.savez(tmp, a=pairs.a, b=pairs.b, group=pairs.group)
+    tmp.replace(entry)
+    return pairs
+
+
 def sample_vectors(per_image: list[np.ndarray], kind: FeatureKind, n: int, seed: int) -> np.ndarray:
     """Up to n descriptor vectors (the kind's vector form) drawn uniformly (seeded) from all training images."""
     counts = np.array([len(a) for a in per_image])
@@ -193,6 +240,13 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             from aefabmap.trainer.ae_quantizer import build_ae_quantizer
             from aefabmap.trainer.autoencoder import AeConfig
 
+            pairs = None
+            if config.ae_warp_images > 0 or config.ae_frame_pairs > 0:
+                t1 = time.perf_counter()
+                pairs = cached_match_pairs(files, config.features, config.cache_dir, warp_images=config.ae_warp_images,
+                                           frame_pairs=config.ae_frame_pairs, seed=config.seed,
+                                           show_progress=config.show_progress)
+                timings["match_pairs_s"] = time.perf_counter() - t1
             q_manifest = build_ae_quantizer(
                 sample,
                 words=config.words,
@@ -200,17 +254,25 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                 feature_kind=kind.name,
                 out_dir=Path(work),
                 config=AeConfig(
+                    arch=config.ae_arch,
+                    latent_dim=config.ae_latent,
                     max_epochs=config.ae_epochs,
                     max_descriptors=config.ae_descriptors,
+                    patience=config.ae_patience,
+                    max_seconds=config.ae_budget_s,
+                    match_weight=config.ae_match_weight,
+                    match_negatives=config.ae_match_negatives,
+                    threads=config.ae_threads,
                     progress=config.show_progress,
                 ),
+                pairs=pairs,
             )
             q_files = {name: Path(work) / name for name in q_manifest["files"].values()}
             quantizer = OnnxQuantizer(
                 Path(work) / q_manifest["files"]["fp32"],
                 vocabulary_size=config.words,
                 descriptor_length=config.features.descriptor_length,
-                threads=2,
+                threads=config.ae_threads,
             )
         timings["vocabulary_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()

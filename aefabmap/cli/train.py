@@ -35,6 +35,20 @@ def register(sub) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
     p.add_argument("--ae-epochs", type=int, default=3, help="autoencoder epochs (--quantizer ae)")
     p.add_argument("--ae-descriptors", type=int, default=100_000, help="descriptors the autoencoder trains on")
+    p.add_argument("--ae-arch", choices=("paper", "light"), default="paper",
+                   help="autoencoder: the paper's 1-D conv stack or a light MLP (fast to train and run)")
+    p.add_argument("--ae-latent", type=int, default=None, help="latent code size (default: paper D/2, light 32)")
+    p.add_argument("--ae-patience", type=int, default=2, help="epochs without held-out improvement before stopping")
+    p.add_argument("--ae-budget-s", type=float, default=None, help="wall-clock budget for autoencoder training (s)")
+    p.add_argument("--ae-match-weight", type=float, default=0.0,
+                   help="weight of the matching term on latent codes (0: reconstruction only)")
+    p.add_argument("--ae-match-negatives", choices=("batch", "image"), default="batch",
+                   help="negatives of the matching term: any training pair, or pairs of the same image")
+    p.add_argument("--ae-warp-images", type=int, default=0,
+                   help="training images warped by random homographies to give matching pairs")
+    p.add_argument("--ae-frame-pairs", type=int, default=0,
+                   help="consecutive-frame pairs of the training drives matched to give matching pairs")
+    p.add_argument("--ae-threads", type=int, default=2, help="threads of the autoencoder stages (training, ONNX)")
     p.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
@@ -64,6 +78,15 @@ def run(args) -> int:
         cache_dir=args.cache,
         ae_epochs=args.ae_epochs,
         ae_descriptors=args.ae_descriptors,
+        ae_arch=args.ae_arch,
+        ae_latent=args.ae_latent,
+        ae_patience=args.ae_patience,
+        ae_budget_s=args.ae_budget_s,
+        ae_match_weight=args.ae_match_weight,
+        ae_warp_images=args.ae_warp_images,
+        ae_frame_pairs=args.ae_frame_pairs,
+        ae_threads=args.ae_threads,
+        ae_match_negatives=args.ae_match_negatives,
         show_progress=not args.no_progress,
     )
     result = train_bundle(config)

@@ -23,12 +23,13 @@ WORDS = 64
 # Three short epochs keep the fixture fast. A barely trained encoder gives codes with small
 # Voronoi margins, the hard case for int8: it must still agree with fp32 on >= 99 % of words.
 TINY = AeConfig(max_epochs=3, max_descriptors=3000, batch_size=64, threads=1, progress=False)
+CONFIGS = {"paper": TINY, "light": AeConfig(arch="light", **{k: v for k, v in TINY.__dict__.items() if k != "arch"})}
 
 
 class Exported:
     """A tiny trained quantiser of one feature kind, its files and held-out test vectors."""
 
-    def __init__(self, kind: str, out: Path) -> None:
+    def __init__(self, kind: str, out: Path, arch: str = "paper") -> None:
         d = train_dir()
         train_paths = sorted((d / "camvid").glob("*.jpg"))[:15]
         # Held-out images from another dataset: parity must not depend on training data.
@@ -36,7 +37,7 @@ class Exported:
         self.kind = kind
         self.train = descriptor_sample(train_paths, kind, limit=3000)
         self.test = descriptor_sample(test_paths, kind, limit=2000)
-        res = train_autoencoder(self.train, feature_kind=kind, seed=0, config=TINY)
+        res = train_autoencoder(self.train, feature_kind=kind, seed=0, config=CONFIGS[arch])
         self.encoder = res.model.encoder
         self.codebook = fit_latent_vocabulary(self.encoder, self.train, WORDS, seed=0, max_iterations=10).codebook
         self.fp32 = export_quantizer_onnx(self.encoder, self.codebook, out / f"{kind}_fp32.onnx")
@@ -55,9 +56,10 @@ class Exported:
         return words.numpy(), codes.numpy(), scores.numpy()
 
 
-@pytest.fixture(scope="module", params=["orb", "sift"])
+@pytest.fixture(scope="module", params=["orb", "sift", "orb-light", "sift-light"])
 def exported(request, tmp_path_factory) -> Exported:
-    return Exported(request.param, tmp_path_factory.mktemp(f"ae_{request.param}"))
+    kind, _, arch = request.param.partition("-")
+    return Exported(kind, tmp_path_factory.mktemp(f"ae_{request.param}"), arch or "paper")
 
 
 pytestmark = pytest.mark.slow  # ~10-20 s per feature kind for the shared fixture
@@ -76,7 +78,7 @@ def test_graph_contract_and_checker(exported):
     onnx.checker.check_model(onnx.load(str(exported.int8)))
     int8_ops = {n.op_type for n in onnx.load(str(exported.int8)).graph.node}
     assert "QuantizeLinear" in int8_ops and "DequantizeLinear" in int8_ops
-    assert "ConvInteger" not in int8_ops  # static QDQ, not dynamic
+    assert "ConvInteger" not in int8_ops and "MatMulInteger" not in int8_ops  # static QDQ, not dynamic
 
 
 def test_fp32_onnx_matches_torch_eager(exported):

@@ -110,3 +110,67 @@ def test_bad_training_input():
     bad[0, 0] = np.nan
     with pytest.raises(InputError):
         train_autoencoder(bad, feature_kind="sift", config=TINY)
+
+
+LIGHT = AeConfig(arch="light", max_epochs=2, max_descriptors=2000, batch_size=128, threads=1, progress=False)
+
+
+def test_light_arch_resolves_and_has_the_same_interface():
+    cfg = AeConfig(arch="light").resolved(256, "orb")
+    assert cfg.widths == (256,) and cfg.latent_dim == 32
+    model = Autoencoder(256, cfg).eval()
+    with torch.no_grad():
+        assert model.encoder(torch.rand(3, 256)).shape == (3, 32)
+        assert model(torch.rand(3, 256)).shape == (3, 256)
+    with pytest.raises(ConfigError):
+        AeConfig(arch="resnet")
+
+
+def test_light_ae_trains_quickly_on_tiny_data(orb_vectors):
+    res = train_autoencoder(orb_vectors, feature_kind="orb", seed=0, config=LIGHT)
+    assert res.best_val_loss < 0.69  # better than a constant 0.5 prediction
+    assert [h["epoch"] for h in res.history] == [1, 2]
+    assert res.summary()["history"][0]["val_recon"] > 0
+
+
+def test_early_stopping_stops_on_a_flat_held_out_loss(orb_vectors):
+    # min_delta larger than any possible gain: only epoch 1 counts as an improvement, so with
+    # patience 1 the run stops after epoch 3 of 50 and keeps epoch 1's weights.
+    cfg = AeConfig(arch="light", max_epochs=50, max_descriptors=2000, patience=1, min_delta=10.0,
+                   threads=1, progress=False)
+    res = train_autoencoder(orb_vectors, feature_kind="orb", seed=0, config=cfg)
+    assert (res.epochs_run, res.best_epoch, res.stop_reason) == (3, 1, "patience")
+
+
+def test_time_budget_ends_training(orb_vectors):
+    cfg = AeConfig(arch="light", max_epochs=50, max_descriptors=2000, max_seconds=1e-6, threads=1, progress=False)
+    res = train_autoencoder(orb_vectors, feature_kind="orb", seed=0, config=cfg)
+    assert res.stop_reason == "budget" and res.epochs_run == 0
+
+
+def test_matching_term_pulls_pairs_together(orb_vectors):
+    # Synthetic pairs: a descriptor and a copy with 8 of its 256 bits flipped (a near-duplicate).
+    rng = np.random.default_rng(0)
+    a = orb_vectors[:1200]
+    b = a.copy()
+    flip = rng.random(b.shape).argsort(axis=1)[:, :8]
+    np.put_along_axis(b, flip, 1.0 - np.take_along_axis(b, flip, axis=1), axis=1)
+    tr, va = (a[:1000], b[:1000]), (a[1000:], b[1000:])
+    plain = train_autoencoder(orb_vectors, feature_kind="orb", seed=0, config=LIGHT, pairs=tr, val_pairs=va)
+    cfg = AeConfig(**{**LIGHT.__dict__, "match_weight": 1.0})
+    matched = train_autoencoder(orb_vectors, feature_kind="orb", seed=0, config=cfg, pairs=tr, val_pairs=va)
+    # The held-out matching loss is reported for both; training on it must lower it.
+    assert matched.history[-1]["val_match"] < plain.history[-1]["val_match"]
+    assert matched.summary()["loss"] == "bce+match"
+    with pytest.raises(InputError):
+        train_autoencoder(orb_vectors, feature_kind="orb", config=cfg)  # no pairs
+
+
+def test_image_negatives_need_groups_and_train(orb_vectors):
+    a, b = orb_vectors[:1000], orb_vectors[:1000].copy()
+    cfg = AeConfig(**{**LIGHT.__dict__, "max_epochs": 1, "match_weight": 0.1, "match_negatives": "image"})
+    with pytest.raises(InputError):
+        train_autoencoder(orb_vectors, feature_kind="orb", config=cfg, pairs=(a[:800], b[:800]), val_pairs=(a[800:], b[800:]))
+    res = train_autoencoder(orb_vectors, feature_kind="orb", config=cfg, pairs=(a[:800], b[:800]),
+                            val_pairs=(a[800:], b[800:]), pair_groups=np.repeat(np.arange(8), 100))
+    assert res.history[0]["val_match"] is not None

@@ -48,7 +48,8 @@ def test_kmeans_bundle_and_cache(image_dir, tmp_path, monkeypatch):
 def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
-    res = train_bundle(config(image_dir, tmp_path / "ae", quantizer="ae"))
+    # One thread: on a loaded machine two torch threads waiting for each other are ~15x slower.
+    res = train_bundle(config(image_dir, tmp_path / "ae", quantizer="ae", ae_threads=1))
     b = load_bundle(res.path)
     assert b.quantizer_type == "ae"
     assert set(b.manifest["quantizer"]["files"]) == {"fp32", "int8"}
@@ -106,3 +107,20 @@ def test_index_options_are_checked(image_dir, tmp_path):
         config(image_dir, tmp_path / "x", quantizer="kmeans-tree", index_buckets=4)
     with pytest.raises(Exception, match="index-buckets"):
         config(image_dir, tmp_path / "x", index_buckets=33)
+
+
+@pytest.mark.slow
+def test_light_ae_with_matching_term_bundle(image_dir, tmp_path):
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    cache = tmp_path / "cache"
+    cfg = config(image_dir, tmp_path / "light", quantizer="ae", ae_arch="light", ae_match_weight=0.1,
+                 ae_warp_images=6, ae_frame_pairs=0, ae_epochs=3, ae_threads=1, cache_dir=cache)
+    res = train_bundle(cfg)
+    q = load_bundle(res.path).manifest["quantizer"]
+    t = q["train"]
+    assert t["config"]["arch"] == "light" and q["latent_dim"] == 32 and t["loss"] == "bce+match"
+    assert t["n_pairs_train"] > 0 and t["n_pairs_val"] > 0
+    assert [h["epoch"] for h in t["history"]] == list(range(1, t["epochs"] + 1))  # the loss curve
+    assert 0.0 <= q["pair_word_agreement"]["fp32"] <= 1.0
+    assert len(list(cache.glob("pairs-orb-*.npz"))) == 1  # pairs are cached like features
