@@ -133,7 +133,7 @@ class ModelBundle:
         .npy headers before loading, then the lists (validate_index)."""
         from aefabmap.runtime.core.quantizer import IndexedCentroidQuantizer
 
-        q, v, d = self.manifest["quantizer"], self.vocabulary_size, self.descriptor_length
+        q, v = self.manifest["quantizer"], self.vocabulary_size
         index, files = q["index"], q["files"]
         if not isinstance(index, dict) or not all(k in files for k in INDEX_QUANTIZER_FILES):
             raise BundleError(f"{self.path}: a k-means index names the files {INDEX_QUANTIZER_FILES}")
@@ -142,18 +142,7 @@ class ModelBundle:
             raise BundleError(f"{self.path}: index 'buckets' must be an integer in [1, {v}]")
         if not _is_int(n) or not v <= n <= s * v:
             raise BundleError(f"{self.path}: index 'entries' must be an integer in [{v}, {s * v}]")
-        if distance == "hamming":
-            if self.features.spec.distance != "hamming" or d % 8:
-                raise BundleError(f"{self.path}: Hamming routing centres need a binary feature kind")
-            centers = _load_array(self.path, files["index_centers"], kinds="u", shape=(s, d // 8))
-            want = np.uint8
-        elif distance == "l2":
-            centers = _load_array(self.path, files["index_centers"], kinds="f", shape=(s, d))
-            want = np.float32
-        else:
-            raise BundleError(f"{self.path}: index 'distance' must be 'hamming' or 'l2', got {str(distance)[:40]!r}")
-        if centers.dtype != want:
-            raise BundleError(f"{self.path}: {files['index_centers']} must hold {np.dtype(want)}, got {centers.dtype}")
+        centers = self._centres(files["index_centers"], s, distance, "index")
         indptr = _load_array(self.path, files["index_indptr"], kinds="iu", shape=(s + 1,))
         words = _load_array(self.path, files["index_words"], kinds="iu", shape=(n,))
         try:
@@ -161,13 +150,29 @@ class ModelBundle:
         except InputError as exc:
             raise BundleError(f"{self.path}: invalid vocabulary index: {exc}") from exc
 
+    def _centres(self, name: str, rows: int, distance, what: str) -> np.ndarray:
+        """Routing centres (rows, D // 8) uint8 for Hamming or (rows, D) float32 for L2, as the
+        manifest's `distance` says; header checked before loading (index and tree alike)."""
+        d = self.descriptor_length
+        if distance == "hamming":
+            if self.features.spec.distance != "hamming" or d % 8:
+                raise BundleError(f"{self.path}: Hamming {what} centres need a binary feature kind")
+            centers, want = _load_array(self.path, name, kinds="u", shape=(rows, d // 8)), np.uint8
+        elif distance == "l2":
+            centers, want = _load_array(self.path, name, kinds="f", shape=(rows, d)), np.float32
+        else:
+            raise BundleError(f"{self.path}: {what} 'distance' must be 'hamming' or 'l2', got {str(distance)[:40]!r}")
+        if centers.dtype != want:
+            raise BundleError(f"{self.path}: {name} must hold {np.dtype(want)}, got {centers.dtype}")
+        return centers
+
     def _vocabulary_tree(self):
         """The kmeans-tree quantiser; shapes come from the manifest and are checked in each
         .npy header before loading, then the tree's structure (VocabularyTree validation)."""
         from aefabmap.runtime.core.vocab_tree import VocabularyTree
 
         q = self.manifest["quantizer"]
-        files, v, d = q["files"], self.vocabulary_size, self.descriptor_length
+        files, v = q["files"], self.vocabulary_size
         if set(files) != set(TREE_QUANTIZER_FILES):
             raise BundleError(f"{self.path}: a kmeans-tree quantizer names the files {TREE_QUANTIZER_FILES}")
         m, b, distance = q.get("nodes"), q.get("branching"), q.get("distance")
@@ -176,18 +181,7 @@ class ModelBundle:
             raise BundleError(f"{self.path}: kmeans-tree 'nodes' must be an integer in [3, {2 * v - 1}]")
         if not _is_int(b) or not 2 <= b <= min(MAX_TREE_BRANCHING, v):
             raise BundleError(f"{self.path}: kmeans-tree 'branching' must be an integer in [2, {min(MAX_TREE_BRANCHING, v)}]")
-        if distance == "hamming":
-            if self.features.spec.distance != "hamming" or d % 8:
-                raise BundleError(f"{self.path}: Hamming tree centres need a binary feature kind")
-            centers = _load_array(self.path, files["centers"], kinds="u", shape=(m, d // 8))
-            want = np.uint8
-        elif distance == "l2":
-            centers = _load_array(self.path, files["centers"], kinds="f", shape=(m, d))
-            want = np.float32
-        else:
-            raise BundleError(f"{self.path}: kmeans-tree 'distance' must be 'hamming' or 'l2', got {str(distance)[:40]!r}")
-        if centers.dtype != want:
-            raise BundleError(f"{self.path}: {files['centers']} must hold {np.dtype(want)}, got {centers.dtype}")
+        centers = self._centres(files["centers"], m, distance, "kmeans-tree")
         children = _load_array(self.path, files["children"], kinds="i", shape=(m, b))
         leaf_words = _load_array(self.path, files["leaf_words"], kinds="i", shape=(m,))
         try:
