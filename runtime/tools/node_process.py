@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from aefabmap.errors import InputError, TransportError
-from aefabmap.runtime.core.messages import RunSummary
+from aefabmap.runtime.core.messages import FrameResult, RunSummary, StatsMessage
 
 #: Environment of a node with one BLAS/OpenMP thread (as deploy/aefabmap.service sets it).
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -93,3 +93,63 @@ def stop_node(node: subprocess.Popen, timeout_s: float = 30.0) -> RunSummary | N
         except InputError:
             continue
     return None
+
+
+class ResultCollector:
+    """The node's results and stats as they arrive (zenoh callback threads), counted and waited on.
+
+    Subclasses keep what they need of each message (`_keep_result`, `_keep_stats`, called
+    under `cond`); messages that fail validation are counted in `invalid`.
+    """
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.processed = 0
+        self.invalid = 0
+        self.last_recv = time.monotonic()
+
+    def _keep_result(self, res: FrameResult, recv_ns: int) -> None:
+        pass
+
+    def _keep_stats(self, msg: StatsMessage) -> None:
+        pass
+
+    def on_result(self, sample) -> None:
+        recv_ns = time.time_ns()
+        try:
+            res = FrameResult.from_json(sample.payload.to_bytes())
+        except InputError:
+            self.invalid += 1
+            return
+        with self.cond:
+            self.processed += 1
+            self._keep_result(res, recv_ns)
+            self.last_recv = time.monotonic()
+            self.cond.notify_all()
+
+    def on_stats(self, sample) -> None:
+        try:
+            msg = StatsMessage.from_json(sample.payload.to_bytes())
+        except InputError:
+            self.invalid += 1
+            return
+        with self.cond:
+            self._keep_stats(msg)
+
+    def count(self) -> int:
+        with self.cond:
+            return self.processed
+
+    def wait_processed(self, n: int, timeout_s: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: self.processed >= n, timeout_s)
+
+    def drain(self, expected: int, idle_s: float, max_s: float) -> None:
+        """Wait until `expected` results came or none for idle_s (at most max_s)."""
+        deadline = time.monotonic() + max_s
+        with self.cond:
+            while self.processed < expected:
+                left = min(self.last_recv + idle_s, deadline) - time.monotonic()
+                if left <= 0:
+                    return
+                self.cond.wait(left)

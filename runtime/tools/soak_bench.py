@@ -33,9 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.errors import BundleError, ConfigError, InputError, TransportError
+from aefabmap.errors import BundleError, ConfigError, TransportError
 from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
+    ResultCollector,
     connect_when_listening,
     free_tcp_port,
     process_rss_mb,
@@ -163,12 +164,11 @@ def log_disk_usage(directory: Path) -> dict:
 # =============================================================================== pipeline
 
 
-class _Tally:
-    """Counts the node's results and keeps its last stats (zenoh callback threads)."""
+class _Tally(ResultCollector):
+    """Counts the node's results and keeps its last stats."""
 
     def __init__(self) -> None:
-        self.cond = threading.Condition()
-        self.processed = 0
+        super().__init__()
         self.places_last: int | None = None
         self.places_max = 0
         self.evictions = 0
@@ -176,50 +176,17 @@ class _Tally:
         self.latency_ms: list[float] = []  # publish stamp -> result received here
         self.stats: StatsMessage | None = None
         self.n_stats = 0
-        self.invalid = 0
-        self.last_recv = time.monotonic()
 
-    def on_result(self, sample) -> None:
-        recv_ns = time.time_ns()
-        try:
-            res = FrameResult.from_json(sample.payload.to_bytes())
-        except InputError:
-            self.invalid += 1
-            return
-        with self.cond:
-            self.processed += 1
-            self.places_last = res.n_places
-            self.places_max = max(self.places_max, res.n_places or 0)
-            self.evictions += res.evicted_place is not None
-            self.loops += bool(res.loop)
-            if res.stamp_ns:
-                self.latency_ms.append((recv_ns - res.stamp_ns) / 1e6)
-            self.last_recv = time.monotonic()
-            self.cond.notify_all()
+    def _keep_result(self, res: FrameResult, recv_ns: int) -> None:
+        self.places_last = res.n_places
+        self.places_max = max(self.places_max, res.n_places or 0)
+        self.evictions += res.evicted_place is not None
+        self.loops += bool(res.loop)
+        if res.stamp_ns:
+            self.latency_ms.append((recv_ns - res.stamp_ns) / 1e6)
 
-    def on_stats(self, sample) -> None:
-        try:
-            msg = StatsMessage.from_json(sample.payload.to_bytes())
-        except InputError:
-            self.invalid += 1
-            return
-        with self.cond:
-            self.stats, self.n_stats = msg, self.n_stats + 1
-
-    def wait_processed(self, n: int, timeout_s: float) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: self.processed >= n, timeout_s)
-
-    def drain(self, expected: int, idle_s: float, max_s: float) -> None:
-        """Wait until `expected` results came or none for idle_s (at most max_s)."""
-        deadline = time.monotonic() + max_s
-        with self.cond:
-            while self.processed < expected:
-                now = time.monotonic()
-                left = min(self.last_recv + idle_s, deadline) - now
-                if left <= 0:
-                    return
-                self.cond.wait(left)
+    def _keep_stats(self, msg: StatsMessage) -> None:
+        self.stats, self.n_stats = msg, self.n_stats + 1
 
 
 class _Probe:

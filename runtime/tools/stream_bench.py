@@ -47,10 +47,11 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.errors import BundleError, ConfigError, InputError, TransportError
+from aefabmap.errors import BundleError, ConfigError, TransportError
 from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
     SINGLE_THREAD_ENV,
+    ResultCollector,
     connect_when_listening,
     free_tcp_port,
     process_rss_mb,
@@ -321,24 +322,16 @@ class StreamBenchConfig:
             raise ConfigError("window, queue and max_places must be >= 1")
 
 
-class _Results:
-    """Collects the node's results and stats as they arrive (zenoh callback threads)."""
+class _Results(ResultCollector):
+    """Keeps every result (as a record) and stats message of the node."""
 
     def __init__(self) -> None:
-        self.cond = threading.Condition()
-        self.results: list[dict] = []  # {"recv_ns", "stamp_ns", "frame_seq", "n_places", "node_ms"}
+        super().__init__()
+        self.results: list[dict] = []  # {"recv_ns", "stamp_ns", "frame_seq", "n_places", "node_ms", ...}
         self.stats: list[StatsMessage] = []
-        self.invalid = 0  # messages that failed validation
-        self.last_recv = time.monotonic()
 
-    def on_result(self, sample) -> None:
-        recv_ns = time.time_ns()
-        try:
-            res = FrameResult.from_json(sample.payload.to_bytes())
-        except InputError:
-            self.invalid += 1
-            return
-        rec = {
+    def _keep_result(self, res: FrameResult, recv_ns: int) -> None:
+        self.results.append({
             "recv_ns": recv_ns,
             "recv_mono": time.monotonic(),
             "stamp_ns": res.stamp_ns,
@@ -347,39 +340,10 @@ class _Results:
             "node_ms": res.latency_ms,
             "timings_ms": res.timings_ms,
             "loop": res.loop,
-        }
-        with self.cond:
-            self.results.append(rec)
-            self.last_recv = time.monotonic()
-            self.cond.notify_all()
+        })
 
-    def on_stats(self, sample) -> None:
-        try:
-            msg = StatsMessage.from_json(sample.payload.to_bytes())
-        except InputError:
-            self.invalid += 1
-            return
-        with self.cond:
-            self.stats.append(msg)
-
-    def count(self) -> int:
-        with self.cond:
-            return len(self.results)
-
-    def wait_count(self, n: int, timeout_s: float) -> bool:
-        with self.cond:
-            return self.cond.wait_for(lambda: len(self.results) >= n, timeout_s)
-
-    def drain(self, expected_total: int, idle_s: float, max_s: float) -> None:
-        """Wait until `expected_total` results came or none arrived for idle_s (max max_s)."""
-        deadline = time.monotonic() + max_s
-        with self.cond:
-            while len(self.results) < expected_total:
-                now = time.monotonic()
-                idle_left = self.last_recv + idle_s - now
-                if idle_left <= 0 or now >= deadline:
-                    return
-                self.cond.wait(min(idle_left, deadline - now))
+    def _keep_stats(self, msg: StatsMessage) -> None:
+        self.stats.append(msg)
 
     def window(self, t0_ns: int, t1_ns: int) -> list[dict]:
         with self.cond:
@@ -502,7 +466,7 @@ def bench_stream(config: StreamBenchConfig) -> dict:
             raise TransportError(f"the runtime node did not subscribe to {key} within {config.start_timeout_s} s")
         for _ in range(5):
             n = warm.put()
-            if not coll.wait_count(n, config.start_timeout_s):
+            if not coll.wait_processed(n, config.start_timeout_s):
                 raise TransportError("the runtime node did not answer the warm-up frames")
         warm.close()
         if config.throughput_seconds > 0:
@@ -567,7 +531,7 @@ def _phase_closed_loop(session, key, frames, coll: _Results, cfg: StreamBenchCon
     while time.monotonic() < end:
         # Keep `window` frames in flight: publish when fewer than window are unanswered.
         target = ph.published - lost - cfg.window + 1
-        if target > 0 and not coll.wait_count(base + target, 2.0):
+        if target > 0 and not coll.wait_processed(base + target, 2.0):
             lost += 1  # a frame went missing (dropped): do not stall on it
             continue
         ph.put()
