@@ -41,13 +41,5 @@ for name in "$@"; do
       --ae-warp-images 600 --ae-frame-pairs 400 "${extra[@]}" \
       --out "$bundles/$name" --cache "$bundles/cache" --no-progress
   fi
-  for seq in lip6:lip6_outdoor/ground_truth.npy:50 corridor:validation/corridor/gt.npy:20; do
-    IFS=: read -r tag gt exclude <<<"$seq"
-    images=$data/$(dirname "$gt")
-    [ "$tag" = corridor ] && images=$data/validation/corridor/images
-    out=$results/${name}_$tag
-    echo "== eval $name on $tag" >&2
-    "${cli[@]}" eval --model "$bundles/$name" --images "$images" --gt "$data/$gt" --exclude "$exclude" \
-      --variant int8 --fabmap-score llr --json "$out.json" --no-progress
-  done
+  "$(dirname "$0")/eval_sequences.sh" "$data" "$bundles/$name" "$results/$name" --variant int8
 done

@@ -35,15 +35,7 @@ for name in "${names[@]}"; do
     "${cli[@]}" train --images "$data/train/camvid" "$data/train/scene15" --features "$features" \
       --quantizer "$quantizer" --words "$words" --seed 0 --out "$bundles/$name" --cache "$bundles/cache" --no-progress
   fi
-  # Lip6: the protocol's exclusion window (50); corridor: its README's (20).
-  for seq in lip6:lip6_outdoor/ground_truth.npy:50 corridor:validation/corridor/gt.npy:20; do
-    IFS=: read -r tag gt exclude <<<"$seq"
-    images=$data/$(dirname "$gt")
-    [ "$tag" = corridor ] && images=$data/validation/corridor/images
-    out=$results/${name}_$tag
-    echo "== eval $name on $tag" >&2
-    "${cli[@]}" eval --model "$bundles/$name" --images "$images" --gt "$data/$gt" --exclude "$exclude" \
-      --fabmap-score llr --json "$out.json" --frames "$out.frames.jsonl" --failures "$out.failures" --no-progress
-  done
+  "$(dirname "$0")/eval_sequences.sh" "$data" "$bundles/$name" "$results/$name" \
+    --frames "{out}.frames.jsonl" --failures "{out}.failures"
 done
 "$py" -m aefabmap.runtime.tools.results_table "$results"/*.json
