@@ -30,6 +30,9 @@ def register(sub) -> None:
     p.add_argument("--no-verify", action="store_true", help="raw FAB-MAP/BoW only: no geometric verification")
     p.add_argument("--verify-top-k", type=int, default=None, metavar="K",
                    help=f"candidates verified per frame (default {VerificationConfig.top_k})")
+    p.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
+                   help=f"keypoints per frame extracted and matched for verification (default "
+                   f"{VerificationConfig.keypoints}; FAB-MAP observes the bundle's budget)")
     p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
                    help="pinhole intrinsics in pixels of the images: verify with an essential matrix "
                         "(cheirality-checked) instead of a fundamental matrix")
@@ -73,6 +76,8 @@ def run(args) -> int:
     verification = VerificationConfig(enabled=not args.no_verify, camera=getattr(args, "camera", None))
     if args.verify_top_k is not None:
         verification = dataclasses.replace(verification, top_k=args.verify_top_k)
+    if args.verify_keypoints is not None:
+        verification = dataclasses.replace(verification, keypoints=args.verify_keypoints)
     if args.failures:
         verification = dataclasses.replace(verification, keep_inlier_points=True)
     rows, runs, table = {}, {}, {}

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -138,7 +138,14 @@ class LoopClosureDetector:
         self.bundle = bundle
         self.config = config or DetectorConfig()
         c = self.config
-        self.extractor = FeatureExtractor(bundle.features)
+        v = c.verification
+        # FAB-MAP observes the strongest `max_features` keypoints, as the bundle was trained;
+        # verification may extract and match more of them (VerificationConfig.keypoints).
+        self._observed_keypoints = bundle.features.max_features
+        extract = bundle.features
+        if v.enabled and v.keypoints is not None and v.keypoints > extract.max_features:
+            extract = replace(extract, max_features=v.keypoints)
+        self.extractor = FeatureExtractor(extract)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
         det = bundle.detector
@@ -158,10 +165,9 @@ class LoopClosureDetector:
         else:
             self.scorer = BowScorer(BowIndex(bundle.vocabulary_size, bundle.training_observations))
         self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
-        v = c.verification
         self.store: KeypointStore | None = None
         if v.enabled:
-            self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.max_keypoints)
+            self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)
@@ -229,9 +235,14 @@ class LoopClosureDetector:
         """Score one frame given its keypoints' word ids, then queue it for delayed insertion.
 
         words: (N,) word id of every keypoint; features: the frame's keypoints (same order and
-        count as words) for geometric verification. Without features the frame is neither
-        verified nor stored for verifying later frames (verified is then always False).
+        count as words, strongest first) for geometric verification. Without features the frame
+        is neither verified nor stored for verifying later frames (verified is then always
+        False). With features, FAB-MAP observes the words of the bundle's keypoint budget (the
+        first `features.max_features`); verification uses them all.
         """
+        all_words = words
+        if features is not None:
+            words = words[: self._observed_keypoints]
         seq = self._sequence
         self._sequence += 1
         inserted_frame = inserted_place = evicted = None
@@ -254,11 +265,11 @@ class LoopClosureDetector:
         query_kps = None
         if self.store is not None:
             if features is not None:
-                if len(features) != words.size:
-                    raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
-                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape)
+                if len(features) != all_words.size:
+                    raise InputError(f"features ({len(features)}) and words ({all_words.size}) differ in count")
+                query_kps = self.store.pack(features.keypoints, all_words, features.descriptors, features.image_shape)
             t0 = time.perf_counter()
-            check = self._verify(features, words, ranked.order, top, seq)
+            check = self._verify(features, all_words, ranked.order, top, seq)
             check.timing_ms = (time.perf_counter() - t0) * 1e3
             loop = check.verified
         if loop:

@@ -40,6 +40,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.feature_kinds import DISTANCES
+from aefabmap.runtime.core.features import MAX_FEATURES
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, significance
 from aefabmap.runtime.core.conditioning import (
     enforce_rank2,
@@ -71,8 +72,11 @@ class VerificationConfig:
     bruteforce_track: the same retry for every tracked place (see `track`): on the training
         revisit sequences (camvid, see the README) it raised verified recall of revisits 2 s
         from the first pass from 80% to 86% (240 px: 79% to 86%), no false loop.
-    max_keypoints: keypoints per place kept in the store and used for matching (strongest
-        first); None keeps every keypoint the extractor gave.
+    keypoints: keypoints per frame extracted, stored and matched for verification (strongest
+        first); None: the bundle's budget (`FeatureConfig.max_features`). FAB-MAP observes the
+        words of the bundle's budget only (the strongest ones, as in training), so a larger
+        verification budget changes the geometric evidence, not the vocabulary's statistics.
+        Set by measurement on training pairs (README, "Keypoint budget").
     ratio: Lowe ratio test, nearest / second-nearest descriptor distance of the same word.
     ratio_bruteforce: ratio test of brute-force matching (nearest / second-nearest of all
         place keypoints: a stricter test than within one word, where the second-nearest is
@@ -162,7 +166,7 @@ class VerificationConfig:
     top_k: int = 5
     bruteforce_fallback: int = 1
     bruteforce_track: bool = True
-    max_keypoints: int | None = None
+    keypoints: int | None = 1000
     ratio: float = 0.9
     ratio_bruteforce: float = 0.9
     max_hamming: int = 64
@@ -205,8 +209,8 @@ class VerificationConfig:
             raise ConfigError(f"verification bruteforce_fallback must be >= 0, got {self.bruteforce_fallback}")
         if self.top_k < 1:
             raise ConfigError(f"verification top_k must be >= 1, got {self.top_k}")
-        if self.max_keypoints is not None and self.max_keypoints < 8:
-            raise ConfigError(f"verification max_keypoints must be None or >= 8, got {self.max_keypoints}")
+        if self.keypoints is not None and not (8 <= self.keypoints <= MAX_FEATURES):
+            raise ConfigError(f"verification keypoints must be None or in [8, {MAX_FEATURES}], got {self.keypoints}")
         if not (0.0 < self.ratio <= 1.0):
             raise ConfigError(f"verification ratio must lie in (0, 1], got {self.ratio}")
         if self.method not in GEOMETRY_METHODS:

@@ -205,6 +205,31 @@ def test_detector_verifies_a_revisit_and_every_frame_gets_a_result(tmp_path):
     assert doc["verified"] is True and doc["inliers"] == r.inliers and doc["nfa"] == r.nfa
 
 
+def test_fabmap_observes_the_bundle_budget_and_verification_matches_more(tmp_path):
+    """The bundle was trained on its strongest max_features keypoints: FAB-MAP sees exactly those
+    words; the store and the geometric test get the larger verification budget."""
+    from aefabmap.runtime.core.verification import VerificationConfig as VC
+
+    det = _detector(tmp_path, verification=VC(keypoints=900))
+    budget = det.bundle.features.max_features
+    assert budget < 900 and det.extractor.config.max_features == 900
+    frame = texture(5)
+    feats = det.extractor.extract(frame)
+    assert len(feats) > budget  # the texture has more corners than the bundle's budget
+    words = det.words_of(feats)
+    seen = []
+    det.scorer.rank = lambda w, _rank=det.scorer.rank: (seen.append(np.asarray(w).copy()), _rank(w))[1]
+    r = det.process(frame)
+    assert r.n_keypoints == len(feats) and np.array_equal(seen[-1], words[:budget])
+    assert r.n_words == np.unique(words[:budget]).size
+    assert len(det._pending[-1][2]) == len(feats) and np.array_equal(det._pending[-1][1], words[:budget])
+    # With the verification budget at the bundle's, nothing more is extracted.
+    small = _detector(tmp_path / "small", verification=VC(keypoints=None))
+    assert small.extractor.config.max_features == budget
+    with pytest.raises(ConfigError):
+        VC(keypoints=4)
+
+
 def test_store_is_in_map_bytes_and_evicted_places_leave_it(tmp_path):
     det = _detector(tmp_path, max_places=3)
     base = det.map_bytes()
