@@ -34,6 +34,8 @@ def register(sub) -> None:
                     help="word sets of the pre-filled places: the bundle's training observations (default) "
                     "or synthetic observations of the same mean size")
     pl.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
+    pl.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
+                    help="keypoints per frame extracted and matched for verification (default: the runtime's)")
     pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     pl.add_argument("--json", type=Path, metavar="OUT")
     pl.set_defaults(func=run_pipeline)
@@ -167,6 +169,7 @@ def run_pipeline(args) -> int:
     cfg = PipelineBenchConfig(
         bundle=str(_model(args)), places=args.places, frames=args.frames, warmup=args.warmup,
         prefill=args.prefill, verification=not args.no_verification, single_core=not args.all_cores,
+        verify_keypoints=args.verify_keypoints,
     )
     doc = bench_pipeline(cfg)
     _emit(doc, args.json)

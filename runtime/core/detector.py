@@ -341,6 +341,7 @@ class LoopClosureDetector:
             radius = independence_radius(self.kind.window_radius(features.sizes), v)
             tried: set[int] = set()
             cap = v.max_trials if v.max_trials is not None else np.inf
+            bf_cap = v.max_bruteforce if v.max_bruteforce is not None else np.inf
 
             def attempt(pid: int, source: str, bruteforce: bool = False) -> bool:
                 if pid in tried or check.tried >= cap or not np.isfinite(ranking[pid]):
@@ -350,6 +351,8 @@ class LoopClosureDetector:
                 if place is None or len(place) == 0:
                     return False
                 check.tried += 1
+                bruteforce = bruteforce and check.bruteforce < bf_cap
+                check.bruteforce += bruteforce
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                 place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance,
                                 radius=radius)
@@ -539,6 +542,7 @@ class _Check:
     best_place: int | None = None
     place: int | None = None
     tried: int = 0
+    bruteforce: int = 0  # candidates given the brute-force retry
     source: str | None = None
     geometry_ok: bool = False
     temporal_ok: bool | None = None

@@ -158,6 +158,8 @@ class VerificationConfig:
     island_candidates: how many of the FAB-MAP candidates (best first) get island neighbours.
     max_trials: cap on candidates verified per frame (track + FAB-MAP + island), bounding the
         worst-case cost; None: no cap.
+    max_bruteforce: cap on candidates per frame given the brute-force retry (tracked places
+        first, then FAB-MAP's), bounding the worst-case cost; None: no cap.
     keep_inlier_points: return the inlier point pairs (`GeometryResult.inlier_points`), for
         evaluation evidence (match images); off in the runtime, where nothing reads them.
     """
@@ -196,6 +198,7 @@ class VerificationConfig:
     island: int = 0
     island_candidates: int = 1
     max_trials: int | None = None
+    max_bruteforce: int | None = None
     keep_inlier_points: bool = False
 
     def __post_init__(self) -> None:
@@ -203,6 +206,8 @@ class VerificationConfig:
             raise ConfigError(f"verification track_memory must be >= 1, got {self.track_memory}")
         if self.track < 0 or self.island < 0 or self.island_candidates < 0:
             raise ConfigError(f"verification track and island must be >= 0, got {self.track}, {self.island}")
+        if self.max_bruteforce is not None and self.max_bruteforce < 0:
+            raise ConfigError(f"verification max_bruteforce must be None or >= 0, got {self.max_bruteforce}")
         if self.max_trials is not None and self.max_trials < 1:
             raise ConfigError(f"verification max_trials must be None or >= 1, got {self.max_trials}")
         if self.bruteforce_fallback < 0:

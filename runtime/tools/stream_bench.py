@@ -42,7 +42,7 @@ import tempfile
 import threading
 import time
 import uuid
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +109,7 @@ class PipelineBenchConfig:
     frames (after `warmup` untimed ones). prefill: "train" (the bundle's training
     observations, cycled) or "synthetic" (synthetic_observations with the bundle's mean words
     per image). verification: geometric verification on (the runtime's default) or off.
+    verify_keypoints: VerificationConfig.keypoints (None: the runtime's default).
     single_core: spawn a process pinned to one CPU with one thread everywhere.
     """
 
@@ -118,6 +119,7 @@ class PipelineBenchConfig:
     warmup: int = 10
     prefill: str = "train"
     verification: bool = True
+    verify_keypoints: int | None = None
     seed: int = 0
     single_core: bool = True
 
@@ -181,7 +183,10 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     if config.single_core:
         cv2.setNumThreads(1)
         pinned = pin_one_cpu()
-    det_cfg = DetectorConfig(threads=1, verification=VerificationConfig(enabled=config.verification))
+    verification = VerificationConfig(enabled=config.verification)
+    if config.verify_keypoints is not None:
+        verification = replace(verification, keypoints=config.verify_keypoints)
+    det_cfg = DetectorConfig(threads=1, verification=verification)
     det = load_detector(config.bundle, det_cfg)
     manifest = det.manifest
     vocab = det.bundle.vocabulary_size
@@ -242,6 +247,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "places_in_map": {"min": int(min(n_places)), "max": int(max(n_places))},
         "map_bytes": int(det.map_bytes()),
         "verification": config.verification,
+        "verify_keypoints": verification.keypoints,
         "frames_timed": len(total_wall),
         "warmup_frames": config.warmup,
         "keypoints_median": float(np.median(n_kps)),

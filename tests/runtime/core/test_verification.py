@@ -372,6 +372,30 @@ def test_island_tries_the_temporal_neighbours_of_a_failed_candidate(tmp_path):
     assert not r[6].verified and r[6].candidates_tried == 1
 
 
+def test_bruteforce_retries_per_frame_are_capped(tmp_path, monkeypatch):
+    from aefabmap.runtime.core import detector as detector_module
+
+    flags: list[list[bool]] = []
+    real = detector_module.verify_pair
+
+    def spy(*args, bruteforce=False, **kw):
+        flags[-1].append(bool(bruteforce))
+        return real(*args, bruteforce=bruteforce, **kw)
+
+    monkeypatch.setattr(detector_module, "verify_pair", spy)
+    seq = _revisit_sequence()
+    for cap, most in ((None, None), (1, 1), (0, 0)):
+        flags.clear()
+        det = _detector(tmp_path / str(cap), verification=VerificationConfig(max_bruteforce=cap))
+        for img in seq:
+            flags.append([])
+            det.process(img)
+        # After the verified revisit frames, the unrelated frame (index 9) retries its tracked
+        # places and its best FAB-MAP candidate by brute force, up to the cap.
+        counts = [sum(f) for f in flags]
+        assert counts[9] >= 2 if most is None else max(counts) == most
+
+
 def test_bruteforce_retry_uses_the_same_acontrario_criterion(extractor):
     place = texture(1)
     query = cv2.warpPerspective(place, PERSPECTIVE, (place.shape[1], place.shape[0]))
@@ -393,7 +417,7 @@ def test_bruteforce_retry_uses_the_same_acontrario_criterion(extractor):
 
 
 def test_candidate_generation_config_is_validated():
-    for kw in ({"track": -1}, {"island": -1}, {"max_trials": 0}, {"track_memory": 0}, {"ratio_bruteforce": 0.0},
+    for kw in ({"track": -1}, {"island": -1}, {"max_trials": 0}, {"max_bruteforce": -1}, {"track_memory": 0}, {"ratio_bruteforce": 0.0},
                {"min_inliers_h": 3}, {"island_candidates": -1}, {"min_f_sigma_ratio": 1.0},
                {"h_max_scale": 0.5}, {"min_extent": 1.0}, {"max_log10_nfa": float("nan")},
                {"camera": "1,2,3"}, {"camera": (0.0, 1.0, 2.0, 3.0)}, {"camera": "a,b,c,d"}):
