@@ -27,6 +27,7 @@ from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer,
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.tree import ChowLiuTree
 from aefabmap.runtime.core.verification import (
+    NO_WORD,
     GeometryResult,
     VerificationConfig,
     independence_radius,
@@ -206,10 +207,14 @@ class LoopClosureDetector:
         return self._place_frame[: self._id_range()]
 
     def words_of(self, features: Features) -> np.ndarray:
-        """Word id of every keypoint (N,) int32 (repeats kept)."""
-        if len(features) == 0:
-            return np.zeros(0, np.int32)
-        return quantize_raw(self.quantizer, self.kind, features.descriptors)
+        """Word id of every keypoint (N,) int64 (repeats kept): the bundle's keypoint budget (the
+        first `features.max_features`, strongest first) is quantised; keypoints beyond it, kept
+        for verification only, get NO_WORD (the brute-force retry matches them)."""
+        n = min(len(features), self._observed_keypoints)
+        words = np.full(len(features), NO_WORD, np.int64)
+        if n:
+            words[:n] = quantize_raw(self.quantizer, self.kind, features.descriptors[:n])
+        return words
 
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""

@@ -7,7 +7,9 @@ field     type              meaning
 ========= ================= =========================================================
 xy        2 x uint16        position as a fraction of the image's longer side, in
                             units of 1/65535 (0.01 px at 640 px, 0.06 px at 4000 px)
-word      uint16 / int32    visual word id (uint16 when the vocabulary has <= 65536 words)
+word      uint16 / int32    visual word id (uint16 when the vocabulary has < 65536 words);
+                            a keypoint kept for geometry only (verification.NO_WORD) is
+                            stored as the type's largest value (uint16) or -1 (int32)
 desc      B x uint8         the feature kind's store form (FeatureKind.compress):
                             ORB's 32 bytes as extracted; SIFT's 128 floats rescaled
                             per row to uint8
@@ -28,9 +30,12 @@ import numpy as np
 from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.feature_kinds import FeatureKind
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
+from aefabmap.runtime.core.verification import NO_WORD
 
 # numpy array header (~112 B) + PlaceKeypoints object + dict slot + shape tuple, rounded up.
 PLACE_OVERHEAD_BYTES = 256
+# uint16 code of NO_WORD (vocabularies up to 65535 words store word ids as uint16).
+_NO_WORD_UINT16 = 65535
 _XY_SCALE = 65535.0
 
 
@@ -55,8 +60,11 @@ class PlaceKeypoints:
 
     @property
     def words(self) -> np.ndarray:
-        """(K,) int64 word ids."""
-        return self.records["word"].astype(np.int64)
+        """(K,) int64 word ids (NO_WORD for keypoints kept for geometry only)."""
+        w = self.records["word"].astype(np.int64)
+        if self.records.dtype["word"] == np.uint16:
+            w[w == _NO_WORD_UINT16] = NO_WORD
+        return w
 
     @property
     def descriptors(self) -> np.ndarray:
@@ -81,7 +89,7 @@ class KeypointStore:
         if not isinstance(kind, FeatureKind):
             raise InputError(f"kind must be a FeatureKind, got {type(kind).__name__}")
         self.kind = kind
-        word_type = np.uint16 if vocabulary_size <= 65536 else np.int32
+        word_type = np.uint16 if vocabulary_size <= _NO_WORD_UINT16 else np.int32
         self.dtype = np.dtype([("xy", np.uint16, (2,)), ("word", word_type), ("desc", np.uint8, (kind.store_bytes,))])
         self.max_keypoints = max_keypoints
         self.vocabulary_size = vocabulary_size
@@ -108,7 +116,8 @@ class KeypointStore:
         if n:
             scale = _XY_SCALE / max(max(shape), 1)
             rec["xy"] = np.clip(np.rint(np.asarray(keypoints[:n], np.float64) * scale), 0, _XY_SCALE)
-            rec["word"] = words[:n]
+            w = np.asarray(words[:n], np.int64)
+            rec["word"] = np.where(w == NO_WORD, _NO_WORD_UINT16 if self.dtype["word"] == np.uint16 else NO_WORD, w)
             rec["desc"] = self.kind.compress(descriptors[:n])
         return PlaceKeypoints(rec, shape)
 
@@ -161,7 +170,10 @@ class KeypointStore:
         """Checked inverse of pack_places for ``n_places`` places; raises StateError."""
         has = st.array("has", "b", (n_places,))
         shape = st.array("image_shape", "iu", (n_places, 2), lo=0, hi=1 << 16)
-        word = st.array("word", "iu", (None,), lo=0, hi=self.vocabulary_size, as_int64=False)
+        word = st.array("word", "iu", (None,), lo=NO_WORD, hi=max(self.vocabulary_size, _NO_WORD_UINT16 + 1), as_int64=False)
+        no_word = _NO_WORD_UINT16 if self.dtype["word"] == np.uint16 else NO_WORD
+        if np.any((word >= self.vocabulary_size) & (word != no_word)) or np.any((word < 0) & (word != no_word)):
+            raise StateError(f"map state: keypoint word ids outside the vocabulary of {self.vocabulary_size} words")
         k = word.size
         ptr = check_ptr(st, "ptr", n_places, k)
         xy = st.array("xy", "iu", (k, 2), lo=0, hi=int(_XY_SCALE) + 1, as_int64=False)

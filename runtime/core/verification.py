@@ -49,6 +49,10 @@ from aefabmap.runtime.core.conditioning import (
     rank2_fundamental,
 )
 
+#: Word id of a keypoint kept for geometry only (beyond the bundle's keypoint budget, so never
+#: quantised): same-word matching skips it, the brute-force retry matches it like any other.
+NO_WORD = -1
+
 GEOMETRY_METHODS = ("magsac", "ransac")
 MODELS = ("F", "E", "H")
 REJECT_REASONS = ("no_evidence", "chance", "degenerate", "collinear", "clustered", "cheirality")
@@ -357,7 +361,7 @@ def match_keypoints(
 ) -> np.ndarray:
     """Putative matches between a query and a place, restricted to shared visual words.
 
-    q_words (N,), p_words (M,): word ids; q_desc (N, B) raw descriptors (binary kinds: uint8;
+    q_words (N,), p_words (M,): word ids (NO_WORD: not quantised, skipped); q_desc (N, B) raw descriptors (binary kinds: uint8;
     float kinds: float32, or uint8 in store form, see FeatureKind.compress); p_desc likewise
     (M, B). distance: the feature kind's distance, "hamming" or "l2" (FeatureKind.distance).
     Returns (K, 2) int64 rows (query index, place index): mutual nearest neighbours among
@@ -367,7 +371,10 @@ def match_keypoints(
     cap = _distance_cap(distance, q_desc, c)
     if q_words.size == 0 or p_words.size == 0:
         return np.zeros((0, 2), np.int64)
-    qi, pi = _same_word_pairs(np.asarray(q_words, np.int64), np.asarray(p_words, np.int64))
+    q_words, p_words = np.asarray(q_words, np.int64), np.asarray(p_words, np.int64)
+    q_keep, p_keep = np.flatnonzero(q_words != NO_WORD), np.flatnonzero(p_words != NO_WORD)
+    qi, pi = _same_word_pairs(q_words[q_keep], p_words[p_keep])
+    qi, pi = q_keep[qi], p_keep[pi]
     if qi.size == 0:
         return np.zeros((0, 2), np.int64)
     if distance == "hamming":

@@ -23,7 +23,7 @@ from aefabmap.runtime.core.features import (
     descriptor_vectors,
 )
 from aefabmap.runtime.core.keypoint_store import KeypointStore
-from aefabmap.runtime.core.verification import VerificationConfig, match_keypoints
+from aefabmap.runtime.core.verification import NO_WORD, VerificationConfig, match_keypoints
 from tests.conftest import make_synthetic_bundle
 from tests.runtime.core.test_verification import PERSPECTIVE, texture
 
@@ -111,7 +111,9 @@ def test_registered_binary_kind_runs_through_bundle_and_detector(akaze, tmp_path
     centroids = np.load(bundle / "vocabulary.npy")
     bits = np.unpackbits(feats.descriptors, axis=1).astype(np.float32)
     expect = np.argmin(((bits[:, None, :] - centroids[None]) ** 2).sum(axis=2), axis=1)
-    assert np.array_equal(det.words_of(feats), expect)
+    budget = det.bundle.features.max_features  # beyond it: verification-only keypoints, no word
+    words = det.words_of(feats)
+    assert np.array_equal(words[:budget], expect[:budget]) and np.all(words[budget:] == NO_WORD)
     det.process(place)
     r = det.process(query)
     assert r.verified and r.verified_frame == 0 and r.inliers >= 15

@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 
 from aefabmap import ConfigError
+from aefabmap.errors import StateError
 from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.core.feature_kinds import get_kind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.keypoint_store import PLACE_OVERHEAD_BYTES, KeypointStore
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.verification import (
+    NO_WORD,
     VerificationConfig,
     estimate_geometry,
     hamming_rows,
@@ -153,6 +155,25 @@ def test_keypoint_store_round_trip_and_bytes():
     assert store.nbytes() == 0 and store.get(7) is None
 
 
+def test_geometry_only_keypoints_are_stored_and_skipped_by_same_word_matching():
+    rng = np.random.default_rng(2)
+    desc = rng.integers(0, 256, (6, 32), dtype=np.uint8)
+    words = np.array([3, 3, NO_WORD, 7, NO_WORD, NO_WORD])
+    for vocabulary in (2000, 70000):  # uint16 and int32 word ids
+        store = KeypointStore(get_kind("orb"), vocabulary_size=vocabulary)
+        place = store.pack(rng.uniform(0, 100, (6, 2)), words, desc, (100, 100))
+        assert np.array_equal(place.words, words)
+        st = store.pack_places([place])
+        (back,) = store.unpack_places(st, 1)
+        assert np.array_equal(back.words, words)
+        st.arrays["word"][0] = vocabulary  # outside the vocabulary, and not the no-word code
+        with pytest.raises(StateError):
+            store.unpack_places(st, 1)
+    # Identical descriptors: only the pairs that share a real word match.
+    pairs = match_keypoints(words, desc, words, desc, VerificationConfig(ratio=1.0), distance="hamming")
+    assert sorted(pairs[:, 0].tolist()) == [0, 1, 3]
+
+
 def test_sift_descriptors_are_stored_as_bytes_and_still_match():
     rng = np.random.default_rng(1)
     d = rng.random((40, 128)).astype(np.float32)
@@ -217,6 +238,8 @@ def test_fabmap_observes_the_bundle_budget_and_verification_matches_more(tmp_pat
     feats = det.extractor.extract(frame)
     assert len(feats) > budget  # the texture has more corners than the bundle's budget
     words = det.words_of(feats)
+    # Only the budget is quantised: the rest are matched by the brute-force retry alone.
+    assert np.all(words[:budget] >= 0) and np.all(words[budget:] == NO_WORD)
     seen = []
     det.scorer.rank = lambda w, _rank=det.scorer.rank: (seen.append(np.asarray(w).copy()), _rank(w))[1]
     r = det.process(frame)
