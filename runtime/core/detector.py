@@ -239,11 +239,12 @@ class LoopClosureDetector:
     def process_words(self, words: np.ndarray, stamp_ns: int = 0, features: Features | None = None) -> FrameResult:
         """Score one frame given its keypoints' word ids, then queue it for delayed insertion.
 
-        words: (N,) word id of every keypoint; features: the frame's keypoints (same order and
-        count as words, strongest first) for geometric verification. Without features the frame
-        is neither verified nor stored for verifying later frames (verified is then always
-        False). With features, FAB-MAP observes the words of the bundle's keypoint budget (the
-        first `features.max_features`); verification uses them all.
+        words: (N,) word id of every keypoint (NO_WORD beyond the bundle's budget, see
+        `words_of`); features: the frame's keypoints (same order and count as words, strongest
+        first) for geometric verification. Without features the frame is neither verified nor
+        stored for verifying later frames (verified is then always False). With features,
+        FAB-MAP observes the words of the bundle's keypoint budget (the first
+        `features.max_features`); verification uses every keypoint.
         """
         all_words = words
         if features is not None:

@@ -364,9 +364,9 @@ def match_keypoints(
 ) -> np.ndarray:
     """Putative matches between a query and a place, restricted to shared visual words.
 
-    q_words (N,), p_words (M,): word ids (NO_WORD: not quantised, skipped); q_desc (N, B) raw descriptors (binary kinds: uint8;
-    float kinds: float32, or uint8 in store form, see FeatureKind.compress); p_desc likewise
-    (M, B). distance: the feature kind's distance, "hamming" or "l2" (FeatureKind.distance).
+    q_words (N,), p_words (M,): word ids (NO_WORD: not quantised, skipped); q_desc (N, B) raw
+    descriptors (binary kinds: uint8; float kinds: float32, or uint8 in store form, see
+    FeatureKind.compress); p_desc likewise (M, B). distance: the feature kind's distance, "hamming" or "l2" (FeatureKind.distance).
     Returns (K, 2) int64 rows (query index, place index): mutual nearest neighbours among
     same-word keypoints that pass the distance cap and the ratio test.
     """
