@@ -16,9 +16,14 @@ import numpy as np
 import zenoh
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, result_key_for, stats_key_for
 from aefabmap.runtime.core.detector import FrameResult
 from aefabmap.runtime.tools.node_process import free_tcp_port
+
+#: The image key the stream tests publish on, and the node's result / stats keys for it.
+KEY = "robot/camera/image"
+RESULTS = result_key_for(KEY)
+STATS = stats_key_for(RESULTS)
 
 
 def session_pair() -> tuple[SessionConfig, SessionConfig]:

@@ -24,6 +24,8 @@ from aefabmap.runtime.core.messages import MESSAGE_FORMAT_VERSION, StatusMessage
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
 from .stream_fakes import (
+    KEY,
+    RESULTS,
     FakeDetector,
     JsonCollector,
     NodeThread,
@@ -32,8 +34,6 @@ from .stream_fakes import (
 )
 
 pytestmark = pytest.mark.timeout(60)
-KEY = "robot/camera/image"
-RESULTS = "robot/camera/lcd"
 
 
 def _wait_sample(q: queue.Queue, kind: zenoh.SampleKind, timeout_s: float) -> zenoh.Sample:

@@ -25,6 +25,9 @@ from aefabmap.runtime.adapters.zenoh_transport import (
 from aefabmap.runtime.tools.node_process import free_tcp_port
 
 from .stream_fakes import (
+    KEY,
+    RESULTS,
+    STATS,
     FakeDetector,
     JsonCollector,
     NodeThread,
@@ -33,9 +36,6 @@ from .stream_fakes import (
 )
 
 pytestmark = pytest.mark.timeout(90)
-KEY = "robot/camera/image"
-RESULTS = "robot/camera/lcd"
-STATS = "robot/camera/lcd/stats"
 
 #: Attachments a hostile or broken publisher may send; each must be refused (counted).
 HOSTILE_ATTACHMENTS = [

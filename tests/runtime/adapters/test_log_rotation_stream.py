@@ -19,6 +19,7 @@ from aefabmap.runtime.adapters.zenoh_transport import open_session
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
 from .stream_fakes import (
+    KEY,
     FakeDetector,
     JsonCollector,
     NodeThread,
@@ -28,7 +29,6 @@ from .stream_fakes import (
 )
 
 pytestmark = pytest.mark.timeout(120)
-KEY = "robot/camera/image"
 NO_LIMITS = {"images_min_free_mb": 0.0, "results_min_free_mb": 0.0}
 
 

@@ -22,10 +22,8 @@ from aefabmap.runtime.tools.synthetic_route import (
 )
 from tests.conftest import make_synthetic_bundle
 
-from .stream_fakes import JsonCollector, session_pair
+from .stream_fakes import KEY, RESULTS, JsonCollector, session_pair
 
-KEY = "robot/camera/image"
-RESULTS = "robot/camera/lcd"
 CLI = [sys.executable, "-m", "aefabmap.cli.main"]
 N, HALF = 120, 60  # two laps: frames 60.. revisit frames 0..59 (run's exclusion window is 50)
 

@@ -28,6 +28,9 @@ from aefabmap.runtime.tools.publisher import (
 from aefabmap.runtime.tools.synthetic_route import write_sequence
 
 from .stream_fakes import (
+    KEY,
+    RESULTS,
+    STATS,
     FakeDetector,
     JsonCollector,
     NodeThread,
@@ -36,9 +39,6 @@ from .stream_fakes import (
 )
 
 pytestmark = pytest.mark.timeout(90)
-KEY = "robot/camera/image"
-RESULTS = "robot/camera/lcd"
-STATS = "robot/camera/lcd/stats"
 
 
 def test_end_to_end_publish_detect_log(tmp_path):

@@ -24,6 +24,7 @@ from aefabmap.runtime.adapters.zenoh_transport import open_session
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
 from .stream_fakes import (
+    KEY,
     FakeDetector,
     JsonCollector,
     NodeThread,
@@ -33,7 +34,6 @@ from .stream_fakes import (
 )
 
 pytestmark = pytest.mark.timeout(90)
-KEY = "robot/camera/image"
 
 
 @pytest.fixture(scope="module")
