@@ -8,15 +8,25 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import signal
+import subprocess
+import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import zenoh
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, result_key_for, stats_key_for
+from aefabmap.runtime.adapters.zenoh_transport import (
+    FramePublisher,
+    SessionConfig,
+    open_session,
+    result_key_for,
+    stats_key_for,
+)
 from aefabmap.runtime.core.detector import FrameResult
 from aefabmap.runtime.tools.node_process import free_tcp_port
 
@@ -250,3 +260,48 @@ def mounted_tmpfs(directory, size: str = "1m"):
         yield directory
     finally:
         subprocess.run(["umount", str(directory)], capture_output=True, timeout=10, check=False)
+
+
+#: The command line of the package, as a child process runs it.
+CLI = [sys.executable, "-m", "aefabmap.cli.main"]
+
+
+@dataclass
+class NodeRun:
+    """What `run_node_process` saw: the results collected (up to the awaited sequence), the
+    publisher's stdout, and the node's stdout, stderr and exit code after SIGTERM."""
+
+    results: list[dict]
+    published: str
+    stdout: str
+    stderr: str
+    returncode: int
+
+
+def run_node_process(run_args: list[str], images_dir, last_seq: int, *, rate: int = 30,
+                     timeout_s: float = 90.0) -> NodeRun:
+    """Start `aefabmap run RUN_ARGS --key KEY --listen EP` as a child process, feed it the images of
+    images_dir with `aefabmap publish` once it subscribed, wait for the result of sequence
+    last_seq, then stop it with SIGTERM (killed if it does not exit)."""
+    listen, connect = session_pair()
+    ep = listen.listen[0]
+    run = subprocess.Popen(CLI + ["run", *run_args, "--key", KEY, "--listen", ep],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with open_session(connect) as s:
+            results = JsonCollector(s, RESULTS)
+            probe = FramePublisher(s, KEY)
+            assert probe.wait_for_subscriber(60), "the node never subscribed"
+            probe.close()
+            pub = subprocess.run(CLI + ["publish", "--images", str(images_dir), "--key", KEY, "--rate", str(rate),
+                                        "--connect", ep], capture_output=True, text=True, timeout=60, check=False)
+            assert pub.returncode == 0, pub.stderr
+            docs = results.wait_for(lambda d: d["sequence"] == last_seq, timeout_s=timeout_s)
+            results.close()
+        run.send_signal(signal.SIGTERM)
+        out, err = run.communicate(timeout=60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(10)
+    return NodeRun(docs, pub.stdout, out, err, run.returncode)

@@ -4,9 +4,7 @@ uninterrupted run."""
 
 from __future__ import annotations
 
-import signal
 import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -14,7 +12,6 @@ import pytest
 from aefabmap.runtime.adapters.bundle_reader import load_detector
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.replay import NONDETERMINISTIC_FIELDS
-from aefabmap.runtime.adapters.zenoh_transport import FramePublisher, open_session
 from aefabmap.runtime.core.detector import DetectorConfig
 from aefabmap.runtime.tools.synthetic_route import (
     generate_loop_sequence,
@@ -22,9 +19,7 @@ from aefabmap.runtime.tools.synthetic_route import (
 )
 from tests.conftest import make_synthetic_bundle
 
-from .stream_fakes import KEY, RESULTS, JsonCollector, session_pair
-
-CLI = [sys.executable, "-m", "aefabmap.cli.main"]
+from .stream_fakes import CLI, KEY, run_node_process, session_pair
 N, HALF = 120, 60  # two laps: frames 60.. revisit frames 0..59 (run's exclusion window is 50)
 
 
@@ -34,31 +29,11 @@ def _deterministic(doc: dict) -> dict:
 
 def _run_half(bundle, state, log_path, images_dir, first_seq: int, last_seq: int):
     """One `run` process fed the images of images_dir, stopped by SIGTERM; (its results, stderr)."""
-    listen, connect = session_pair()
-    ep = listen.listen[0]
-    run = subprocess.Popen(CLI + ["run", "--model", str(bundle), "--key", KEY, "--listen", ep, "--mcap", str(log_path),
-                                  "--queue", "256", "--state", str(state), "--snapshot-every", "20p"],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        with open_session(connect) as s:
-            results = JsonCollector(s, RESULTS)
-            probe = FramePublisher(s, KEY)
-            assert probe.wait_for_subscriber(60), "the node never subscribed"
-            probe.close()
-            pub = subprocess.run(CLI + ["publish", "--images", str(images_dir), "--key", KEY, "--rate", "30",
-                                        "--connect", ep], capture_output=True, text=True, timeout=60, check=False)
-            assert pub.returncode == 0, pub.stderr
-            docs = results.wait_for(lambda d: d["sequence"] == last_seq, timeout_s=90)
-            results.close()
-        run.send_signal(signal.SIGTERM)
-        _out, err = run.communicate(timeout=60)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait(10)
-    assert run.returncode == 0, err
-    assert [d["sequence"] for d in docs] == list(range(first_seq, last_seq + 1))
-    return docs, err
+    node = run_node_process(["--model", str(bundle), "--mcap", str(log_path), "--queue", "256", "--state", str(state),
+                             "--snapshot-every", "20p"], images_dir, last_seq)
+    assert node.returncode == 0, node.stderr
+    assert [d["sequence"] for d in node.results] == list(range(first_seq, last_seq + 1))
+    return node.results, node.stderr
 
 
 @pytest.mark.slow

@@ -28,6 +28,7 @@ from aefabmap.runtime.tools.publisher import (
 from aefabmap.runtime.tools.synthetic_route import write_sequence
 
 from .stream_fakes import (
+    CLI,
     KEY,
     RESULTS,
     STATS,
@@ -35,6 +36,7 @@ from .stream_fakes import (
     JsonCollector,
     NodeThread,
     sample_images,
+    run_node_process,
     session_pair,
 )
 
@@ -287,41 +289,19 @@ def test_cli_processes_run_publish_replay_with_a_real_bundle(tmp_path):
     """`aefabmap run` and `aefabmap publish` as processes; SIGTERM stops run; replay --check passes."""
     import json
     import subprocess
-    import sys
 
     from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
     from tests.conftest import make_synthetic_bundle
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
     make_demo_sequence(tmp_path / "seq", n_frames=16, seed=2, size=(160, 120))
-    listen, connect = session_pair()
-    ep = listen.listen[0]
     log_path = tmp_path / "run.mcap"
-    cli = [sys.executable, "-m", "aefabmap.cli.main"]
-    run = subprocess.Popen(cli + ["run", "--model", str(bundle), "--key", KEY, "--listen", ep, "--mcap",
-                                  str(log_path), "--queue", "32"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True)
-    try:
-        with open_session(connect) as s:
-            results = JsonCollector(s, RESULTS)
-            probe = FramePublisher(s, KEY)
-            assert probe.wait_for_subscriber(60), "the node never subscribed"
-            probe.close()
-            pub = subprocess.run(cli + ["publish", "--images", str(tmp_path / "seq"), "--key", KEY, "--rate", "50",
-                                        "--connect", ep], capture_output=True, text=True, timeout=60)
-            assert pub.returncode == 0, pub.stderr
-            assert json.loads(pub.stdout.strip().splitlines()[-1])["published"] == 16
-            results.wait_for(lambda d: d["sequence"] == 15, timeout_s=60)
-            results.close()
-        run.send_signal(signal.SIGTERM)
-        out, err = run.communicate(timeout=30)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait(10)
-    assert run.returncode == 0, err
-    assert json.loads(out.strip().splitlines()[-1])["frames_processed"] == 16
-    rep = subprocess.run(cli + ["replay", str(log_path), "--model", str(bundle), "--check", "--out",
+    node = run_node_process(["--model", str(bundle), "--mcap", str(log_path), "--queue", "32"], tmp_path / "seq",
+                            15, rate=50, timeout_s=60)
+    assert json.loads(node.published.strip().splitlines()[-1])["published"] == 16
+    assert node.returncode == 0, node.stderr
+    assert json.loads(node.stdout.strip().splitlines()[-1])["frames_processed"] == 16
+    rep = subprocess.run(CLI + ["replay", str(log_path), "--model", str(bundle), "--check", "--out",
                                 str(tmp_path / "re.mcap")], capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr
     assert json.loads(rep.stdout.strip().splitlines()[-1])["check"]["compared"] == 16
