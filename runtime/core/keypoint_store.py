@@ -15,9 +15,9 @@ desc      B x uint8         the feature kind's store form (FeatureKind.compress)
                             per row to uint8
 ========= ================= =========================================================
 
-So an ORB keypoint costs 4 + 2 + 32 = 38 bytes (500 keypoints: 19 000 bytes per place) and a
-SIFT keypoint 134 bytes, plus PLACE_OVERHEAD_BYTES per place for the array header, the
-image shape and the dictionary slot. `nbytes()` is kept as a running total so the
+So an ORB keypoint costs 4 + 2 + 32 = 38 bytes (1000 keypoints, the verification default:
+38 000 bytes per place) and a SIFT keypoint 134 bytes, plus PLACE_OVERHEAD_BYTES per place for
+the array header, the image shape and the dictionary slot. `nbytes()` is kept as a running total so the
 detector's memory cap can ask for it on every insertion.
 """
 
