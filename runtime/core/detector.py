@@ -462,8 +462,10 @@ class LoopClosureDetector:
         v = int(self.bundle.vocabulary_size)
         if st.scalar("vocabulary_size", int) != v:
             raise StateError(f"map state has a vocabulary of {st.scalars['vocabulary_size']} words, the bundle {v}")
-        if self.store is not None and st.scalar("max_keypoints", (int, type(None))) != self.store.max_keypoints:
-            raise StateError("map state was built with another max_keypoints per place")
+        if self.store is not None:
+            # A map kept with another verification budget loads when every stored place fits this
+            # run's cap (the keypoint store checks the counts): places keep the keypoints they have.
+            st.scalar("max_keypoints", (int, type(None)))
         seq = st.scalar("sequence", int, lo=0, hi=2**62)
         track_seq = st.scalar("track_seq", int, lo=-2, hi=seq)
         track_frame = st.scalar("track_frame", int, lo=-1, hi=max(seq, 1))

@@ -106,6 +106,25 @@ def test_hostile_states_are_refused(bundle, route):
     assert "scorer" in _refused(bundle, _copy(good), CONFIGS["bow"])
 
 
+def test_a_map_saved_with_a_smaller_verification_budget_loads_and_keeps_working(bundle, route):
+    """A map of an earlier version (verification on the bundle's own budget) is not lost when the
+    verification budget grows; a map whose places hold more keypoints than the cap is refused."""
+    import dataclasses
+
+    from aefabmap.runtime.core.verification import VerificationConfig
+
+    def config(keypoints):
+        return dataclasses.replace(CONFIGS["fabmap-verified-capped"], verification=VerificationConfig(keypoints=keypoints))
+
+    small = _state(bundle, route, config(None))
+    det = load_detector(bundle, config(900))
+    det.load_state(_copy(small))
+    results = [det.process(img, 40 + i) for i, img in enumerate(route[40:])]
+    assert any(r.verified for r in results)  # the second lap still closes loops onto stored places
+    big = _state(bundle, route, config(900))
+    assert "keypoint counts" in _refused(bundle, big, config(150))
+
+
 def test_a_state_packs_the_map_it_was_taken_of_even_after_more_frames(bundle, route):
     """The keypoints are packed late (MapState.resolve, in the snapshot thread): frames processed
     in between (evicting places, reusing their ids) must not leak into it."""
