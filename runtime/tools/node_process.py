@@ -1,7 +1,7 @@
-"""Supervising an `aefabmap run` child process over loopback (demo, stream benchmark).
+"""Supervising an `aefabmap run` child process over loopback (demo, stream and soak benchmarks).
 
-Adapter code: starts the node, connects to it once it listens, stops it with SIGTERM and
-reads its JSON run summary.
+Adapter code: the benchmark's working directory, starts the node, connects to it once it
+listens, stops it with SIGTERM and reads its JSON run summary.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Sequence
@@ -21,6 +22,18 @@ from aefabmap.runtime.core.messages import FrameResult, RunSummary, StatsMessage
 
 #: Environment of a node with one BLAS/OpenMP thread (as deploy/aefabmap.service sets it).
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def bench_workdir(workdir: str | Path | None, prefix: str) -> tuple[Path, tempfile.TemporaryDirectory | None]:
+    """A benchmark's working directory: ``workdir`` (created if missing), or a new temporary
+    directory named ``prefix...`` when None. Returns (path, the temporary directory to clean up,
+    or None for a given workdir, which is kept)."""
+    if workdir is None:
+        tmp = tempfile.TemporaryDirectory(prefix=prefix)
+        return Path(tmp.name), tmp
+    path = Path(workdir)
+    path.mkdir(parents=True, exist_ok=True)
+    return path, None
 
 
 def free_tcp_port() -> int:

@@ -20,7 +20,8 @@ import numpy as np
 
 from aefabmap.errors import BundleError, ConfigError
 from aefabmap.runtime.core.profiles import bundle_variants
-from aefabmap.runtime.tools.stream_bench import SINGLE_THREAD_ENV, _stats, machine_info, pin_one_cpu
+from aefabmap.runtime.tools.node_process import SINGLE_THREAD_ENV
+from aefabmap.runtime.tools.stream_bench import _stats, machine_info, pin_one_cpu, run_spawned_single_thread
 
 #: Quantiser variants: the bundle's quantizer type and, for the autoencoder, the precision.
 VARIANTS = ("kmeans-flat", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8")
@@ -102,20 +103,7 @@ def bench_quantizer(config: QuantizerBenchConfig) -> dict:
         raise BundleError(f"model bundle {config.bundle} does not exist")
     if not config.single_core:
         return _bench_here(config)
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    saved = {k: os.environ.get(k) for k in SINGLE_THREAD_ENV}
-    os.environ.update(SINGLE_THREAD_ENV)  # inherited by the spawned child before it imports numpy
-    try:
-        with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as ex:
-            return ex.submit(_bench_here, config).result()
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+    return run_spawned_single_thread(_bench_here, config)
 
 
 def _bench_here(config: QuantizerBenchConfig) -> dict:

@@ -24,7 +24,6 @@ frames); ``range_mb`` = max - min of them, ``met`` when range_mb <= ``flat_mb``
 
 from __future__ import annotations
 
-import tempfile
 import threading
 import time
 import uuid
@@ -37,6 +36,7 @@ from aefabmap.errors import BundleError, ConfigError, TransportError
 from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
     ResultCollector,
+    bench_workdir,
     connect_when_listening,
     free_tcp_port,
     process_rss_mb,
@@ -450,13 +450,7 @@ def bench_soak(config: SoakConfig) -> dict:
     out: dict = {"benchmark": "soak", "config": asdict(config), "machine": machine_info(),
                  "pipeline": None, "core": None}
     if config.frames:
-        tmp = None
-        if config.workdir is None:
-            tmp = tempfile.TemporaryDirectory(prefix="aefabmap-soak-")
-            workdir = Path(tmp.name)
-        else:
-            workdir = Path(config.workdir)
-            workdir.mkdir(parents=True, exist_ok=True)
+        workdir, tmp = bench_workdir(config.workdir, "aefabmap-soak-")
         try:
             out["pipeline"] = _soak_pipeline(config, workdir)
         finally:

@@ -38,7 +38,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import uuid
@@ -52,6 +51,7 @@ from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
     SINGLE_THREAD_ENV,
     ResultCollector,
+    bench_workdir,
     connect_when_listening,
     free_tcp_port,
     process_rss_mb,
@@ -440,13 +440,7 @@ def bench_stream(config: StreamBenchConfig) -> dict:
 
     if not Path(config.bundle).is_dir():
         raise BundleError(f"model bundle {config.bundle} does not exist")
-    tmp = None
-    if config.workdir is None:
-        tmp = tempfile.TemporaryDirectory(prefix="aefabmap-bench-")
-        workdir = Path(tmp.name)
-    else:
-        workdir = Path(config.workdir)
-        workdir.mkdir(parents=True, exist_ok=True)
+    workdir, tmp = bench_workdir(config.workdir, "aefabmap-bench-")
     frames = synthetic_frames(config.n_frames, seed=config.seed)
     key = f"aefabmap/bench/{uuid.uuid4().hex[:8]}/image"
     rkey = result_key_for(key)
