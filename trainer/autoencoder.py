@@ -176,14 +176,25 @@ def _conv_pair(c_in: int, c_out: int) -> list[nn.Module]:
     ]
 
 
-class Encoder(nn.Module):
-    """Raw descriptor vectors (B, D) float32 -> latent codes (B, latent_dim) float32."""
+class _ScaledEncoder(nn.Module):
+    """What every encoder shares: its sizes and the row scaling to [0, 1] of its input."""
 
-    def __init__(self, descriptor_length: int, latent_dim: int, widths: tuple[int, ...], scaling: str) -> None:
+    def __init__(self, descriptor_length: int, latent_dim: int, scaling: str) -> None:
         super().__init__()
         self.descriptor_length = descriptor_length
         self.latent_dim = latent_dim
         self.scale = RowScale(scaling)
+
+    def scaled(self, x: torch.Tensor) -> torch.Tensor:
+        """The [0,1]-scaled input (B, D): the reconstruction target."""
+        return self.scale(x)
+
+
+class Encoder(_ScaledEncoder):
+    """Raw descriptor vectors (B, D) float32 -> latent codes (B, latent_dim) float32."""
+
+    def __init__(self, descriptor_length: int, latent_dim: int, widths: tuple[int, ...], scaling: str) -> None:
+        super().__init__(descriptor_length, latent_dim, scaling)
         layers: list[nn.Module] = []
         c = 1
         for w in widths:
@@ -193,10 +204,6 @@ class Encoder(nn.Module):
         self.features = nn.Sequential(*layers)
         self.reduced_length = descriptor_length // (2 ** len(widths))
         self.fc = nn.Linear(c * self.reduced_length, latent_dim)
-
-    def scaled(self, x: torch.Tensor) -> torch.Tensor:
-        """The [0,1]-scaled input (B, D): the reconstruction target."""
-        return self.scale(x)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.features(self.scale(x).unsqueeze(1))
@@ -226,14 +233,11 @@ class Decoder(nn.Module):
         return self.body(h).squeeze(1)
 
 
-class LightEncoder(nn.Module):
+class LightEncoder(_ScaledEncoder):
     """MLP encoder: raw descriptor vectors (B, D) -> latent codes (B, latent_dim); same interface as Encoder."""
 
     def __init__(self, descriptor_length: int, latent_dim: int, widths: tuple[int, ...], scaling: str) -> None:
-        super().__init__()
-        self.descriptor_length = descriptor_length
-        self.latent_dim = latent_dim
-        self.scale = RowScale(scaling)
+        super().__init__(descriptor_length, latent_dim, scaling)
         layers: list[nn.Module] = []
         c = descriptor_length
         for w in widths:
@@ -241,9 +245,6 @@ class LightEncoder(nn.Module):
             c = w
         layers.append(nn.Linear(c, latent_dim))
         self.body = nn.Sequential(*layers)
-
-    def scaled(self, x: torch.Tensor) -> torch.Tensor:
-        return self.scale(x)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.body(self.scale(x))
