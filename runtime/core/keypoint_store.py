@@ -91,6 +91,8 @@ class KeypointStore:
         self.kind = kind
         word_type = np.uint16 if vocabulary_size <= _NO_WORD_UINT16 else np.int32
         self.dtype = np.dtype([("xy", np.uint16, (2,)), ("word", word_type), ("desc", np.uint8, (kind.store_bytes,))])
+        # How NO_WORD is stored in the word field.
+        self._no_word = _NO_WORD_UINT16 if word_type == np.uint16 else NO_WORD
         self.max_keypoints = max_keypoints
         self.vocabulary_size = vocabulary_size
         self._places: dict[int, PlaceKeypoints] = {}
@@ -117,7 +119,7 @@ class KeypointStore:
             scale = _XY_SCALE / max(max(shape), 1)
             rec["xy"] = np.clip(np.rint(np.asarray(keypoints[:n], np.float64) * scale), 0, _XY_SCALE)
             w = np.asarray(words[:n], np.int64)
-            rec["word"] = np.where(w == NO_WORD, _NO_WORD_UINT16 if self.dtype["word"] == np.uint16 else NO_WORD, w)
+            rec["word"] = np.where(w == NO_WORD, self._no_word, w)
             rec["desc"] = self.kind.compress(descriptors[:n])
         return PlaceKeypoints(rec, shape)
 
@@ -171,8 +173,7 @@ class KeypointStore:
         has = st.array("has", "b", (n_places,))
         shape = st.array("image_shape", "iu", (n_places, 2), lo=0, hi=1 << 16)
         word = st.array("word", "iu", (None,), lo=NO_WORD, hi=max(self.vocabulary_size, _NO_WORD_UINT16 + 1), as_int64=False)
-        no_word = _NO_WORD_UINT16 if self.dtype["word"] == np.uint16 else NO_WORD
-        if np.any((word >= self.vocabulary_size) & (word != no_word)) or np.any((word < 0) & (word != no_word)):
+        if np.any(((word >= self.vocabulary_size) | (word < 0)) & (word != self._no_word)):
             raise StateError(f"map state: keypoint word ids outside the vocabulary of {self.vocabulary_size} words")
         k = word.size
         ptr = check_ptr(st, "ptr", n_places, k)
