@@ -323,27 +323,69 @@ class _health:
 class stop_on_signals:
     """Context manager: SIGINT/SIGTERM set ``stop_event`` (previous handlers restored on exit).
 
-    Only installs handlers when used from the main thread (signal module restriction).
+    The event is set by a watcher thread, never by the handler itself: a Python signal handler
+    runs on the main thread between two bytecodes, possibly while that thread holds the event's
+    internal lock (entering or leaving ``Event.wait``), and ``Event.set()`` there would wait for
+    that lock forever. The C-level handler writes the signal number to a pipe
+    (``signal.set_wakeup_fd``), and the watcher reads it. Only installs handlers when used from
+    the main thread (signal module restriction).
     """
+
+    _SIGNALS = ("SIGINT", "SIGTERM")
 
     def __init__(self, stop_event: threading.Event) -> None:
         self.stop_event = stop_event
         self._saved: dict[int, Any] = {}
+        self._pipe: tuple[int, int] | None = None
+        self._old_wakeup_fd = -1
+        self._watcher: threading.Thread | None = None
 
     def __enter__(self) -> threading.Event:
+        import os
         import signal
 
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._saved[sig] = signal.signal(sig, self._handle)
+        if threading.current_thread() is not threading.main_thread():
+            return self.stop_event
+        r, w = os.pipe()
+        os.set_blocking(w, False)  # the C handler must never block on a full pipe
+        self._pipe = (r, w)
+        self._old_wakeup_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        wanted = {int(getattr(signal, name)) for name in self._SIGNALS}
+        self._watcher = threading.Thread(target=self._watch, args=(r, wanted), name="stop-on-signals", daemon=True)
+        self._watcher.start()
+        for sig in wanted:
+            self._saved[sig] = signal.signal(sig, _ignore_in_python)
         return self.stop_event
 
-    def _handle(self, signum, frame) -> None:  # noqa: ARG002 - signal handler signature
-        self.stop_event.set()
+    def _watch(self, fd: int, wanted: set[int]) -> None:
+        import os
+
+        while True:
+            try:
+                data = os.read(fd, 64)
+            except OSError:
+                return
+            if not data:  # write end closed: the block is over
+                return
+            if wanted.intersection(data):
+                self.stop_event.set()
 
     def __exit__(self, *exc_info) -> None:
+        import os
         import signal
 
         for sig, handler in self._saved.items():
             signal.signal(sig, handler)
         self._saved.clear()
+        if self._pipe is not None:
+            r, w = self._pipe
+            signal.set_wakeup_fd(self._old_wakeup_fd)
+            os.close(w)
+            if self._watcher is not None:
+                self._watcher.join(5)
+            os.close(r)
+            self._pipe, self._watcher = None, None
+
+
+def _ignore_in_python(signum, frame) -> None:  # noqa: ARG001 - signal handler signature
+    """The Python-level handler of stop_on_signals: the wakeup pipe carries the signal."""

@@ -205,6 +205,37 @@ def test_sigterm_sets_the_stop_event():
     assert signal.getsignal(signal.SIGTERM) is before
 
 
+# The main thread holds the stop event's internal lock while it enters and leaves Event.wait
+# (the node's receive loop waits on it many times a second). A handler that called
+# Event.set() itself would, when the signal lands in that window, wait forever for a lock
+# its own thread holds: `run` hung on SIGTERM once in CI this way. Run in a child process
+# so that the old behaviour fails by timeout instead of hanging the suite.
+_SIGNAL_IN_WAIT_WINDOW = """
+import os, signal, threading
+from aefabmap.runtime.adapters.node import stop_on_signals
+stop = threading.Event()
+with stop_on_signals(stop):
+    with stop._cond:  # the state of the main thread inside Event.wait's prologue / epilogue
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000):  # bytecodes: the handler runs here, with the lock held
+            pass
+    assert stop.wait(5), "the stop event was never set"
+print("stopped")
+"""
+
+
+def test_sigterm_while_the_main_thread_holds_the_stop_events_lock_does_not_deadlock():
+    import subprocess
+    import sys
+
+    try:
+        proc = subprocess.run([sys.executable, "-c", _SIGNAL_IN_WAIT_WINDOW], capture_output=True, text=True,
+                              timeout=20, check=False)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the signal handler deadlocked on the stop event's lock")
+    assert proc.returncode == 0 and proc.stdout.strip() == "stopped", proc.stderr
+
+
 def test_rss_is_measured():
     value = rss_mb()
     assert value is None or 5 < value < 10_000
