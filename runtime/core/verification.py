@@ -613,6 +613,10 @@ def independence_radius(window_radii: np.ndarray, config: VerificationConfig) ->
     return max(float(c.duplicate_radius), c.independence * float(np.median(window_radii)))
 
 
+# Offsets (in cells) of the four grids of `distinct_matches`.
+_GRID_OFFSETS = np.array([(0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)])
+
+
 def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: float) -> np.ndarray:
     """Indices of matches xq (K, 2) -> xp (K, 2) keeping one per location in EITHER image.
 
@@ -629,16 +633,22 @@ def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: 
     k = xq.shape[0]
     if radius_q <= 0 or radius_p <= 0 or k < 2:
         return np.arange(k, dtype=np.int64)
-    keep = np.ones(k, bool)
-    for x, r in ((xq, radius_q), (xp, radius_p)):
-        for offset in ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5)):
-            # Cell indices (clipped to 15 bits per axis: ~32k cells a side) in one int64.
-            cells = np.clip(np.floor(x / r + offset), 0, 2**15 - 1).astype(np.int64)
-            _, first = np.unique(cells[:, 0] * 2**15 + cells[:, 1], return_index=True)
-            firsts = np.zeros(k, bool)
-            firsts[first] = True
-            keep &= firsts
-    return np.flatnonzero(keep).astype(np.int64)
+    # One sort for the eight grids: a cell is (x << 15) + y (clipped to 15 bits per axis, ~32k
+    # cells a side) with the grid number above bit 30; key * n + position sorts the matches of a
+    # cell by position, so the first of each run is the cell's first match (keys < 2^33 and
+    # n = 8 k, so no overflow below a billion matches).
+    keys = np.empty((8, k), np.int64)
+    for g, (x, r) in enumerate(((xq, radius_q), (xp, radius_p))):
+        cells = np.clip(np.floor(x[None, :, :] / r + _GRID_OFFSETS[:, None, :]), 0, 2**15 - 1).astype(np.int64)
+        grid = np.arange(4 * g, 4 * g + 4, dtype=np.int64)[:, None] << 30
+        keys[4 * g: 4 * g + 4] = (cells[..., 0] << 15) + cells[..., 1] + grid
+    n = keys.size
+    cell, position = np.divmod(np.sort(keys.ravel() * n + np.arange(n, dtype=np.int64)), n)
+    first = np.empty(n, bool)
+    first[0], first[1:] = True, cell[1:] != cell[:-1]
+    firsts = np.zeros(n, bool)
+    firsts[position[first]] = True
+    return np.flatnonzero(firsts.reshape(8, k).all(axis=0)).astype(np.int64)
 
 
 def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider, res: GeometryResult) -> float:

@@ -204,6 +204,30 @@ def test_close_matches_on_either_side_of_a_cell_border_count_once():
     assert distinct_matches(xq, xp, 0.0, 3.0).tolist() == [0, 1, 2]
 
 
+def _distinct_by_definition(xq, xp, rq, rp):
+    """The rule written out: keep a match when no earlier match shares any of its 8 cells."""
+    seen, kept = set(), []
+    for i in range(len(xq)):
+        cells = {(g, side, int(np.floor(x[i, 0] / r + ox)), int(np.floor(x[i, 1] / r + oy)))
+                 for side, (x, r) in enumerate(((xq, rq), (xp, rp)))
+                 for g, (ox, oy) in enumerate(((0, 0), (0.5, 0), (0, 0.5), (0.5, 0.5)))}
+        if not cells & seen:
+            kept.append(i)
+        seen |= cells
+    return kept
+
+
+def test_distinct_matches_keeps_the_first_match_of_every_cell():
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        k = int(rng.integers(2, 120))
+        xq, xp = rng.uniform(0, 300, (k, 2)), rng.uniform(0, 200, (k, 2))
+        if trial % 2:
+            xq = np.round(xq / 9) * 9  # many shared cells
+        rq, rp = rng.uniform(1, 20), rng.uniform(1, 20)
+        assert distinct_matches(xq, xp, rq, rp).tolist() == _distinct_by_definition(xq, xp, rq, rp)
+
+
 def test_independence_radius_follows_the_descriptor_window():
     orb, sift = get_kind("orb"), get_kind("sift")
     sizes = np.array([2.0, 2.0, 4.0])
