@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from aefabmap.errors import InputError, StateError
-from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
+from aefabmap.runtime.core.map_state import MapState
+from aefabmap.runtime.core.postings import PostingLists
 from aefabmap.runtime.core.scatter import prepare as prepare_scatter
 from aefabmap.runtime.core.scatter import scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
@@ -137,184 +138,70 @@ def as_word_set(obs, vocabulary_size: int) -> np.ndarray:
     return arr
 
 
-def _grown(n: int) -> int:
-    """Next capacity of a full posting buffer of n entries: +25 % keeps the mean slack near 11 %
-    (doubling leaves ~28 %), at the price of more (memcpy-cheap) regrowths."""
-    return n + max(4, n >> 2)
-
-
 class InvertedIndex:
-    """Word -> places postings in growable per-word numpy buffers.
+    """FAB-MAP's places: word -> place postings (runtime/core/postings.py) plus each place's
+    default score (the sum of d1 over its words, what a query that touches none of them scores).
 
     Cost of a query is proportional to the postings it touches, not to the number of places.
-    Ids of removed places are reused by later additions, so that memory stays bounded when
-    a capped map keeps evicting and adding.
     A posting holds only its place id, as int32 (the per-word weight is the query's): 4 bytes.
-    Per-place word lists (uint16 when V <= 65536) make removal cost proportional to the place's
-    words. At 300 words a place costs ~300 * (4 * 1.1 + 2) bytes + 17 (alive, default, list slot).
+    At 300 words a place costs ~300 * (4 * 1.1 + 2) bytes + 17 (alive, default, list slot).
     """
 
     def __init__(self, vocabulary_size: int) -> None:
         self.vocabulary_size = vocabulary_size
-        self._buf: list[np.ndarray | None] = [None] * vocabulary_size
-        self._len = np.zeros(vocabulary_size, np.int32)  # postings per word (< 2^31: one per place)
-        self._alive = np.zeros(0, bool)
+        self.postings = PostingLists(vocabulary_size)
         self._default = np.zeros(0, np.float64)
-        self._words: list[np.ndarray | None] = []  # each place's word ids, for removal
-        self._word_dtype = np.uint16 if vocabulary_size <= 65536 else np.uint32
-        self.n_places = 0  # size of the id range (dead ids included)
-        self._free: list[int] = []  # removed ids, reused first
-        self.n_alive = 0
-        self._buffer_bytes = 0  # bytes of posting buffers and word lists, kept up to date
+
+    @property
+    def n_places(self) -> int:
+        return self.postings.n_places
+
+    @property
+    def n_alive(self) -> int:
+        return self.postings.n_alive
+
+    @property
+    def alive(self) -> np.ndarray:
+        return self.postings.alive
 
     def add(self, words: np.ndarray, default: float) -> int:
         """Append a place with sorted unique word ids and its default score; returns its id."""
-        pid = self._free.pop() if self._free else self.n_places
-        if pid >= np.iinfo(np.int32).max:
-            raise InputError("inverted index is full (2^31 places)")
-        if pid >= self._alive.size:
-            cap = max(64, 2 * self._alive.size)
-            self._alive = np.concatenate([self._alive, np.zeros(cap - self._alive.size, bool)])
-            self._default = np.concatenate([self._default, np.zeros(cap - self._default.size)])
-        self._alive[pid] = True
+        pid = self.postings.add(words)
+        if self._default.size < self.postings.capacity:
+            self._default = np.concatenate([self._default, np.zeros(self.postings.capacity - self._default.size)])
         self._default[pid] = default
-        buf, lens = self._buf, self._len
-        for q in words.tolist():
-            b = buf[q]
-            n = lens[q]
-            if b is None:
-                b = buf[q] = np.empty(4, np.int32)
-                self._buffer_bytes += b.nbytes
-            elif n == b.size:
-                nb = np.empty(_grown(n), np.int32)
-                nb[:n] = b
-                self._buffer_bytes += nb.nbytes - b.nbytes
-                b = buf[q] = nb
-            b[n] = pid
-            lens[q] = n + 1
-        stored = words.astype(self._word_dtype)
-        self._buffer_bytes += stored.nbytes
-        if pid == self.n_places:
-            self._words.append(stored)
-            self.n_places += 1
-        else:
-            self._words[pid] = stored
-        self.n_alive += 1
         return pid
 
     def remove(self, pid: int) -> None:
         """Forget a place: its postings are compacted out of each of its words' buffers."""
-        if not (0 <= pid < self.n_places) or not self._alive[pid]:
-            raise InputError(f"place {pid} is not in the index")
-        for q in self._words[pid].tolist():
-            n = self._len[q]
-            b = self._buf[q]
-            keep = b[:n][b[:n] != pid]
-            b[: keep.size] = keep
-            self._len[q] = keep.size
-            if keep.size == 0:
-                self._buf[q] = None
-                self._buffer_bytes -= b.nbytes
-            elif keep.size * 4 <= b.size and b.size > 8:
-                self._buf[q] = b[: max(4, 2 * keep.size)].copy()
-                self._buffer_bytes += self._buf[q].nbytes - b.nbytes
-        self._buffer_bytes -= self._words[pid].nbytes
-        self._words[pid] = None
-        self._alive[pid] = False
+        self.postings.remove(pid)
         self._default[pid] = 0.0
-        self._free.append(pid)
-        self.n_alive -= 1
 
     def place_words(self, pid: int) -> np.ndarray:
-        w = self._words[pid]
-        if w is None:
-            raise InputError(f"place {pid} was removed")
-        return w
-
-    @property
-    def alive(self) -> np.ndarray:
-        return self._alive[: self.n_places]
+        return self.postings.place_words(pid)
 
     def scores(self, touched: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """default + sum of weights over each place's touched postings, shape (n_places,)."""
-        n = self.n_places
-        lens = self._len[touched]
+        lens = self.postings.lengths(touched)
         has = lens > 0
         touched, weights, lens = touched[has], weights[has], lens[has]
-        buf = self._buf
-        rows = [buf[q][:k] for q, k in zip(touched.tolist(), lens.tolist())]
-        return scatter_scores(self._default[:n], rows, weights, lens)
+        rows = self.postings.rows(touched, lens)
+        return scatter_scores(self._default[: self.n_places], rows, weights, lens)
 
     def state(self) -> MapState:
-        """Everything add/remove built: postings in their order and with their buffer
-        capacities (memory accounting must come out the same), word lists, free-id order."""
-        st = MapState()
-        n = self.n_places
-        st.scalars.update(n_places=n, capacity=int(self._alive.size))
-        st.arrays["alive"] = self._alive[:n].copy()
-        st.arrays["words_ptr"], st.arrays["words"] = pack_ragged(self._words, self._word_dtype)
-        st.arrays["post_cap"] = np.array([0 if b is None else b.size for b in self._buf], np.int64)
-        st.arrays["post_ptr"], st.arrays["postings"] = pack_ragged(
-            [None if b is None else b[:k] for b, k in zip(self._buf, self._len.tolist())], np.int64)
-        st.arrays["free"] = np.array(self._free, np.int64)
-        return st
+        """The postings' state (defaults are recomputed from the words on load)."""
+        return self.postings.state()
 
     def load_state(self, st: MapState, default) -> None:
         """Replace the contents by a checked state; default(words int64) -> a place's default score."""
-        v = self.vocabulary_size
-        n = st.scalar("n_places", int, lo=0, hi=np.iinfo(np.int32).max)
-        cap = st.scalar("capacity", int, lo=n, hi=max(64, 2 * n) + 1)
-        alive = st.array("alive", "b", (n,))
-        words = st.array("words", "iu", (None,), lo=0, hi=v)
-        wptr = check_ptr(st, "words_ptr", n, words.size)
-        post_cap = st.array("post_cap", "iu", (v,), lo=0)
-        postings = st.array("postings", "iu", (None,), lo=0, hi=max(n, 1))
-        pptr = check_ptr(st, "post_ptr", v, postings.size)
-        free = st.array("free", "iu", (None,), lo=0, hi=max(n, 1))
-        lens = np.diff(pptr)
-        rows = np.diff(wptr)
-        if np.any(rows[~alive] != 0):
-            raise StateError("map state: a removed place still has words")
-        if np.any(lens > post_cap) or np.any((post_cap == 0) != (lens == 0)) or np.any(post_cap > 8 * lens + 8):
-            raise StateError("map state: posting capacities do not fit their lengths")
-        if np.unique(free).size != free.size or set(free.tolist()) != set(np.flatnonzero(~alive).tolist()):
-            raise StateError("map state: free ids are not exactly the removed places")
-        # Each place's words strictly increasing, and the postings exactly the (word, place) pairs.
-        place_of = np.repeat(np.arange(n, dtype=np.int64), rows)
-        if words.size > 1:
-            same = place_of[1:] == place_of[:-1]
-            if np.any(words[1:][same] <= words[:-1][same]):
-                raise StateError("map state: a place's word ids are not sorted and unique")
-        word_of = np.repeat(np.arange(v, dtype=np.int64), lens)
-        a = np.lexsort((place_of, words))
-        b = np.lexsort((postings, word_of))
-        if words.size != postings.size or np.any(words[a] != word_of[b]) or np.any(place_of[a] != postings[b]):
-            raise StateError("map state: postings do not match the places' words")
-        self.n_places, self.n_alive = n, int(alive.sum())
-        self._alive = np.zeros(cap, bool)
-        self._alive[:n] = alive
-        self._default = np.zeros(cap, np.float64)
-        self._words = [None] * n
-        self._buffer_bytes = 0
-        for pid in np.flatnonzero(alive).tolist():
-            w = words[wptr[pid]:wptr[pid + 1]]
-            self._words[pid] = w.astype(self._word_dtype)
-            self._buffer_bytes += self._words[pid].nbytes
-            self._default[pid] = default(w)
-        self._buf = [None] * v
-        self._len = lens.astype(np.int32)
-        for q in np.flatnonzero(post_cap).tolist():
-            b = np.empty(int(post_cap[q]), np.int32)
-            b[: lens[q]] = postings[pptr[q]:pptr[q + 1]]
-            self._buf[q] = b
-            self._buffer_bytes += b.nbytes
-        self._free = free.tolist()
+        self.postings.load_state(st)
+        self._default = np.zeros(self.postings.capacity, np.float64)
+        for pid in np.flatnonzero(self.postings.alive).tolist():
+            self._default[pid] = default(self.postings.place_words(pid).astype(np.int64))
 
     def nbytes(self) -> int:
         """Bytes held by posting buffers, per-place word lists and per-place arrays (O(1))."""
-        # 8 bytes per list slot of self._words, plus the fixed per-word arrays.
-        per_place = self._alive.nbytes + self._default.nbytes + 8 * len(self._words)
-        return int(self._buffer_bytes + per_place + self._len.nbytes)
+        return self.postings.nbytes() + int(self._default.nbytes)
 
 
 class StaticPostings:
