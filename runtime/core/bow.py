@@ -6,10 +6,10 @@ import numpy as np
 
 from aefabmap.errors import InputError
 from aefabmap.runtime.core.map_state import MapState
-from aefabmap.runtime.core.postings import PostingLists
+from aefabmap.runtime.core.postings import PostingLists, PostingsView
 
 
-class BowIndex:
+class BowIndex(PostingsView):
     """Places as L2-normalised tf-idf vectors; a query's cosine similarity to every place.
 
     idf_q = log(M / df_q) from M training observations (df_q: observations holding word q;
@@ -30,20 +30,6 @@ class BowIndex:
             raise InputError("BoW needs training observations for its idf weights")
         self.idf = np.log(m / np.maximum(df, 1)).astype(np.float64)
         self.postings = PostingLists(vocabulary_size, weighted=True)
-
-    @property
-    def n_places(self) -> int:
-        """Size of the id range (removed ids included)."""
-        return self.postings.n_places
-
-    @property
-    def n_alive(self) -> int:
-        return self.postings.n_alive
-
-    @property
-    def alive(self) -> np.ndarray:
-        """(n_places,) bool: which ids hold a place."""
-        return self.postings.alive
 
     def vector(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Word ids with repeats (one per keypoint) -> (unique word ids, unit tf-idf weights)."""

@@ -11,7 +11,7 @@ import numpy as np
 
 from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState
-from aefabmap.runtime.core.postings import PostingLists
+from aefabmap.runtime.core.postings import PostingLists, PostingsView
 from aefabmap.runtime.core.scatter import prepare as prepare_scatter
 from aefabmap.runtime.core.scatter import scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
@@ -138,7 +138,7 @@ def as_word_set(obs, vocabulary_size: int) -> np.ndarray:
     return arr
 
 
-class InvertedIndex:
+class InvertedIndex(PostingsView):
     """FAB-MAP's places: word -> place postings (runtime/core/postings.py) plus each place's
     default score (the sum of d1 over its words, what a query that touches none of them scores).
 
@@ -152,18 +152,6 @@ class InvertedIndex:
         self.postings = PostingLists(vocabulary_size)
         self._default = np.zeros(0, np.float64)
 
-    @property
-    def n_places(self) -> int:
-        return self.postings.n_places
-
-    @property
-    def n_alive(self) -> int:
-        return self.postings.n_alive
-
-    @property
-    def alive(self) -> np.ndarray:
-        return self.postings.alive
-
     def add(self, words: np.ndarray, default: float) -> int:
         """Append a place with sorted unique word ids and its default score; returns its id."""
         pid = self.postings.add(words)
@@ -176,9 +164,6 @@ class InvertedIndex:
         """Forget a place: its postings are compacted out of each of its words' buffers."""
         self.postings.remove(pid)
         self._default[pid] = 0.0
-
-    def place_words(self, pid: int) -> np.ndarray:
-        return self.postings.place_words(pid)
 
     def scores(self, touched: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """default + sum of weights over each place's touched postings, shape (n_places,)."""

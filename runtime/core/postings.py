@@ -237,3 +237,27 @@ class PostingLists:
         """Bytes of posting buffers, word lists, the alive flags and list slots (O(1))."""
         # 8 bytes per list slot of self._words, plus the fixed per-word length array.
         return int(self._buffer_bytes + self._alive.nbytes + 8 * len(self._words) + self._len.nbytes)
+
+
+class PostingsView:
+    """Base of an index whose places live in ``self.postings`` (a PostingLists): the id range,
+    the live places and their words, as the scorers read them."""
+
+    postings: PostingLists
+
+    @property
+    def n_places(self) -> int:
+        """Size of the id range (removed ids included)."""
+        return self.postings.n_places
+
+    @property
+    def n_alive(self) -> int:
+        return self.postings.n_alive
+
+    @property
+    def alive(self) -> np.ndarray:
+        """(n_places,) bool: which ids hold a place."""
+        return self.postings.alive
+
+    def place_words(self, pid: int) -> np.ndarray:
+        return self.postings.place_words(pid)
