@@ -99,32 +99,37 @@ class PostingLists:
         return pid
 
     def remove(self, pid: int) -> None:
-        """Forget a place: its postings are compacted out of its words' buffers (order kept)."""
+        """Forget a place: in each of its words' buffers its posting takes the last one's slot.
+
+        Order within a buffer carries no meaning (a place holds one posting per word, so every
+        place's sum runs over the query's words in the same order whatever the order inside a
+        buffer), so removal is a search and one move per word, not a compaction.
+        """
         if not (0 <= pid < self.n_places) or not self._alive[pid]:
             raise InputError(f"place {pid} is not in the index")
-        size = self._posting_bytes()
-        for q in self._words[pid].tolist():
-            n, b = int(self._len[q]), self._ids[q]
-            keep = b[:n] != pid
-            k = int(keep.sum())
-            b[:k] = b[:n][keep]
+        size, ids_of, wts_of, lens = self._posting_bytes(), self._ids, self._wts, self._len
+        words = self._words[pid]
+        last = lens[words].astype(np.int64) - 1  # each word holds exactly one posting of pid
+        lens[words] = last
+        for q, k in zip(words.tolist(), last.tolist()):
+            b = ids_of[q]
+            i = int((b[: k + 1] == pid).argmax())
+            b[i] = b[k]
             if self.weighted:
-                w = self._wts[q]
-                w[:k] = w[:n][keep]
-            self._len[q] = k
+                wts_of[q][i] = wts_of[q][k]
             if k == 0:
                 self._buffer_bytes -= b.size * size
-                self._ids[q] = None
+                ids_of[q] = None
                 if self.weighted:
-                    self._wts[q] = None
+                    wts_of[q] = None
             elif k * 4 <= b.size and b.size > 8:
                 # Shrink a buffer that lost most of its postings, keeping room to grow.
                 m = max(4, 2 * k)
                 self._buffer_bytes -= (b.size - m) * size
-                self._ids[q] = b[:m].copy()
+                ids_of[q] = b[:m].copy()
                 if self.weighted:
-                    self._wts[q] = self._wts[q][:m].copy()
-        self._buffer_bytes -= self._words[pid].nbytes
+                    wts_of[q] = wts_of[q][:m].copy()
+        self._buffer_bytes -= words.nbytes
         self._words[pid] = None
         self._alive[pid] = False
         self._free.append(pid)
