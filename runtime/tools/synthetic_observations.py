@@ -68,6 +68,7 @@ class InferenceBenchResult:
     cpu_p95_ms: float
     load_average: float  # 1-minute load average when the queries started
     add_ms_median: float
+    remove_ms_median: float  # evicting one place (CPU), what a capped map pays per frame once full
     bytes_per_place: float
     index_bytes: int
     scatter: str  # "compiled" (numba kernel) or "numpy"
@@ -97,6 +98,11 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
     t = np.array(times) * 1e3
     c = np.array(cpu_times) * 1e3
     nbytes = engine.nbytes()
+    remove_times = []
+    for pid in range(0, places, max(1, places // 200)):  # after the queries: they saw the full map
+        c0 = time.thread_time()
+        engine.remove(pid)
+        remove_times.append(time.thread_time() - c0)
     return InferenceBenchResult(
         places=places,
         words=words,
@@ -110,6 +116,7 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
         cpu_p95_ms=float(np.percentile(c, 95)),
         load_average=round(load, 2),
         add_ms_median=float(np.median(add_times) * 1e3),
+        remove_ms_median=float(np.median(remove_times) * 1e3) if remove_times else 0.0,
         bytes_per_place=nbytes / max(1, places),
         index_bytes=nbytes,
         scatter=scatter.active(),

@@ -94,7 +94,8 @@ def test_bench_inference_json(tmp_path):
                  "--json", str(tmp_path / "n.json")]) == 0
     assert json.loads((tmp_path / "n.json").read_text())["scatter"] == "numpy"
     doc = json.loads(out.read_text())
-    assert {"median_ms", "p95_ms", "bytes_per_place"} <= set(doc)
+    assert {"median_ms", "p95_ms", "bytes_per_place", "add_ms_median", "remove_ms_median"} <= set(doc)
+    assert doc["remove_ms_median"] > 0
     assert doc["places"] == 200 and doc["bytes_per_place"] > 0
 
 
