@@ -36,13 +36,15 @@ class QuantizerGraph(nn.Module):
         if codebook.ndim != 2 or codebook.shape[1] != encoder.latent_dim or codebook.shape[0] < 1:
             raise InputError(f"codebook must have shape (K, {encoder.latent_dim}), got {codebook.shape}")
         self.encoder = copy.deepcopy(encoder).eval()
-        # argmin |z - c|^2 == argmax (z.c - |c|^2 / 2): one MatMul, no (B, K, latent) tensor.
+        # argmin |z - c|^2 == argmax (z.c - |c|^2 / 2): one product, no (B, K, latent) tensor,
+        # with -|c|^2 / 2 as the product's bias (one Gemm: no second pass over the B x K scores).
         self.register_buffer("codebook_t", torch.from_numpy(codebook.T.copy()))
-        self.register_buffer("half_sq_norms", torch.from_numpy(0.5 * np.einsum("kd,kd->k", codebook, codebook)))
+        self.register_buffer("neg_half_sq_norms",
+                             torch.from_numpy(-0.5 * np.einsum("kd,kd->k", codebook, codebook)))
 
     def forward(self, descriptors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         codes = self.encoder(descriptors)
-        scores = torch.matmul(codes, self.codebook_t) - self.half_sq_norms
+        scores = torch.addmm(self.neg_half_sq_norms, codes, self.codebook_t)
         words = torch.argmax(scores, dim=1).to(torch.int32)
         return words, codes
 

@@ -52,7 +52,7 @@ class Exported:
         g = QuantizerGraph(self.encoder, self.codebook).eval()
         with torch.no_grad():
             words, codes = g(torch.from_numpy(x))
-            scores = codes @ g.codebook_t - g.half_sq_norms
+            scores = codes @ g.codebook_t + g.neg_half_sq_norms
         return words.numpy(), codes.numpy(), scores.numpy()
 
 
