@@ -3,10 +3,13 @@
 
 Positives: CamVid frames of one drive 1, 2, 3, 5 and 10 frames apart (about 1-10 s); negatives:
 frames of two different drives, Scene-15 pairs and CamVid-vs-Scene-15 pairs. Each pair is
-verified as a loop candidate is (all descriptors matched, the a-contrario test), and the
-acceptance rate is printed per gap for each setting of `VerificationConfig.independence`.
+verified as the brute-force retry verifies a loop candidate (all descriptors matched with the
+ratio test, the a-contrario test), and the acceptance rate is printed per gap for each setting
+of `VerificationConfig.independence` and `ratio_bruteforce`, with the lowest log10 NFA of the
+negatives (how close the nearest unrelated pair came to the -4 bar).
 
-    python scripts/calibrate_verification.py --data DATA --features orb --independence 0 0.5
+    python scripts/calibrate_verification.py --data DATA --features orb --keypoints 1000 \
+        --independence 0.5 --ratio-bruteforce 0.7 0.75 0.8 0.85 0.9 1.0 --per-drive 36
 """
 
 from __future__ import annotations
@@ -29,8 +32,9 @@ from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 GAPS = (1, 2, 3, 5, 10)
 
 
-def training_pairs(train: Path, seed: int = 0):
-    """(positives by gap, negatives) as lists of image path pairs."""
+def training_pairs(train: Path, seed: int = 0, per_drive: int = 12):
+    """(positives by gap, negatives) as lists of image path pairs; per_drive: start frames
+    taken per CamVid drive (evenly spaced), each giving one pair per gap."""
     by_drive = collections.defaultdict(list)
     for p in sorted((train / "camvid").glob("*.jpg")):
         by_drive[p.stem.rsplit("_", 1)[0]].append(p)
@@ -38,7 +42,7 @@ def training_pairs(train: Path, seed: int = 0):
     pos = {gap: [] for gap in GAPS}
     for d in drives:
         frames = by_drive[d]
-        for i in range(0, len(frames) - max(GAPS), max(1, len(frames) // 12)):
+        for i in range(0, len(frames) - max(GAPS), max(1, len(frames) // per_drive)):
             for gap in GAPS:
                 pos[gap].append((frames[i], frames[i + gap]))
     neg = []
@@ -61,7 +65,9 @@ def main() -> None:
                     help="data root with train/ (default: $AEFABMAP_DATA, else shared/data beside the checkout)")
     ap.add_argument("--features", default="orb")
     ap.add_argument("--keypoints", type=int, default=500)
-    ap.add_argument("--independence", type=float, nargs="+", default=[0.0, 0.5])
+    ap.add_argument("--independence", type=float, nargs="+", default=[0.5])
+    ap.add_argument("--ratio-bruteforce", type=float, nargs="+", default=[V.VerificationConfig().ratio_bruteforce])
+    ap.add_argument("--per-drive", type=int, default=12, help="pairs per gap and CamVid drive (default 12)")
     args = ap.parse_args()
     kind = get_kind(args.features)
     extractor = FeatureExtractor(FeatureConfig(kind=args.features, max_features=args.keypoints))
@@ -72,23 +78,28 @@ def main() -> None:
             cache[p] = extractor.extract(load_image(p))
         return cache[p]
 
-    def accepted(a: Path, b: Path, config: V.VerificationConfig) -> bool:
+    def verify(a: Path, b: Path, config: V.VerificationConfig) -> V.GeometryResult:
         fa, fb = features(a), features(b)
-        none_a, none_b = np.zeros(len(fa), np.int64), np.zeros(len(fb), np.int64)
+        # No words: only the brute-force matcher runs, as in the retry.
+        none_a, none_b = np.full(len(fa), V.NO_WORD, np.int64), np.full(len(fb), V.NO_WORD, np.int64)
         cv2.setRNGSeed(0)  # USAC's sampling: the same pairs give the same verdicts
         radius = V.independence_radius(kind.window_radius(fa.sizes), config)
         return V.verify_pair(fa.keypoints, none_a, fa.descriptors, fa.image_shape, fb.keypoints, none_b,
                              fb.descriptors, fb.image_shape, config, bruteforce=True, distance=kind.distance,
-                             radius=radius).verified
+                             radius=radius)
 
-    pos, neg = training_pairs(args.data / "train")
-    for value in args.independence:
-        config = replace(V.VerificationConfig(), independence=value)
-        rates = {gap: np.mean([accepted(a, b, config) for a, b in pairs]) for gap, pairs in pos.items()}
-        wrong = sum(accepted(a, b, config) for a, b in neg)
-        print(f"{args.features} {args.keypoints} keypoints, independence {value}: positives accepted "
-              + " / ".join(f"{g} frames apart {100 * r:.0f}%" for g, r in rates.items())
-              + f" (n={len(pos[GAPS[0]])} per gap); negatives accepted {wrong} of {len(neg)}", flush=True)
+    pos, neg = training_pairs(args.data / "train", per_drive=args.per_drive)
+    for independence in args.independence:
+        for ratio in args.ratio_bruteforce:
+            config = replace(V.VerificationConfig(), independence=independence, ratio_bruteforce=ratio)
+            rates = {gap: np.mean([verify(a, b, config).verified for a, b in pairs]) for gap, pairs in pos.items()}
+            negatives = [verify(a, b, config) for a, b in neg]
+            wrong = sum(g.verified for g in negatives)
+            closest = min((g.nfa for g in negatives if g.nfa is not None), default=float("inf"))
+            print(f"{args.features} {args.keypoints} keypoints, independence {independence}, ratio {ratio}: "
+                  "positives accepted " + " / ".join(f"{g} frames apart {100 * r:.0f}%" for g, r in rates.items())
+                  + f" (n={len(pos[GAPS[0]])} per gap); negatives accepted {wrong} of {len(neg)}, "
+                  f"lowest log10 NFA {closest:.1f}", flush=True)
 
 
 if __name__ == "__main__":
