@@ -49,7 +49,7 @@ class BowIndex(PostingsView):
         return self.postings.add(uniq, wts)
 
     def remove(self, pid: int) -> None:
-        """Forget a place: its postings leave each of its words' lists (order kept)."""
+        """Forget a place (PostingLists.remove)."""
         self.postings.remove(pid)
 
     def similarity(self, words: np.ndarray) -> np.ndarray:

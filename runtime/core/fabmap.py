@@ -161,7 +161,7 @@ class InvertedIndex(PostingsView):
         return pid
 
     def remove(self, pid: int) -> None:
-        """Forget a place: its postings are compacted out of each of its words' buffers."""
+        """Forget a place (PostingLists.remove) and its default score."""
         self.postings.remove(pid)
         self._default[pid] = 0.0
 
