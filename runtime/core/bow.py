@@ -14,7 +14,7 @@ class BowIndex(PostingsView):
 
     idf_q = log(M / df_q) from M training observations (df_q: observations holding word q;
     words never seen in training get log(M / 1)... i.e. the largest idf).
-    Places can be removed (bounded-memory maps): their postings are compacted out and their
+    Places can be removed (bounded-memory maps): their postings leave the word lists and their
     id is reused by a later add(), so the id range stays bounded under evict-and-add.
     """
 
