@@ -90,10 +90,10 @@ class VerificationConfig:
         rarer and farther). Brute-force matching returns more matches, chance ones included;
         the a-contrario test accounts for that through n, so it needs no bars of its own.
         0.8 (Lowe's value) was the best of 0.7-1.0 on training pairs (CamVid pairs of one drive
-        1/2/3/5/10 frames apart, brute-force matching of 1000 keypoints, 162 pairs per gap for
-        ORB): ORB acceptance 98/72/52/32/20 % against 94/65/44/28/20 % at 0.9, SIFT (48 per gap)
-        98/90/73/50/31 % against 98/88/71/44/23 %; none of 244 unrelated pairs accepted with
-        either (their best log10 NFA -0.1 for ORB and 1.2 for SIFT, against the -4 bar).
+        1/2/3/5/10 frames apart, brute-force matching of 1000 keypoints, 162 pairs per gap):
+        ORB acceptance 98/72/52/32/20 % against 94/65/44/28/20 % at 0.9, SIFT 100/90/80/52/25 %
+        against 99/87/67/44/22 %; none of 244 unrelated pairs accepted with either (their best
+        log10 NFA -0.1 for ORB and 1.2 for SIFT, against the -4 bar).
     max_hamming: binary kinds: largest Hamming distance of a match, in bits per 256 (ORB's
         length; a binary kind of B bits gets max_hamming * B / 256).
     max_l2: float kinds (SIFT): largest L2 distance of (unit-norm) descriptors of a match.
