@@ -27,7 +27,7 @@ case "$profile" in
         if ! "$venv/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '${torch_pin#torch==}')" 2>/dev/null; then
             "${pip[@]}" --index-url "$torch_index" "$torch_pin"
         fi
-        "${pip[@]}" -c constraints.txt -e ".[train,plot,dev,ros,foxglove,slam]" ;;
+        "${pip[@]}" -c constraints.txt -e ".[train,plot,dev,ros,foxglove,slam,fast]" ;;
     *) echo "usage: $0 runtime|full" >&2; exit 2 ;;
 esac
 echo "$venv"

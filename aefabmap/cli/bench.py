@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
+
+log = logging.getLogger("aefabmap.bench")
 
 
 def register(sub) -> None:
@@ -16,7 +19,7 @@ def register(sub) -> None:
     inf.add_argument("--queries", type=int, default=200)
     inf.add_argument("--words-per-place", type=int, default=300)
     inf.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
-                     help="scoring scatter: the compiled kernel when numba is installed (auto, default) or numpy")
+                     help="scoring scatter: the compiled kernel when numba is installed and can run (auto, default) or numpy")
     inf.add_argument("--json", type=Path, metavar="OUT")
     inf.set_defaults(func=run_inference)
     cl = bsub.add_parser("chowliu", help="Chow-Liu learning time and peak memory on synthetic observations")
@@ -141,6 +144,8 @@ def run_inference(args) -> int:
     from aefabmap.runtime.tools.synthetic_observations import bench_inference
 
     previous = scatter.use_compiled(args.scatter == "auto")
+    if args.scatter == "auto" and scatter.active() == "numpy":
+        log.info("scoring on numpy: %s", scatter.unavailable_reason())
     try:
         results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place))
                    for n in args.places]

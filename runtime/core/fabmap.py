@@ -167,11 +167,7 @@ class InvertedIndex(PostingsView):
 
     def scores(self, touched: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """default + sum of weights over each place's touched postings, shape (n_places,)."""
-        lens = self.postings.lengths(touched)
-        has = lens > 0
-        touched, weights, lens = touched[has], weights[has], lens[has]
-        rows = self.postings.rows(touched, lens)
-        return scatter_scores(self._default[: self.n_places], rows, weights, lens)
+        return self.postings.scatter(self._default[: self.n_places], touched, weights)
 
     def state(self) -> MapState:
         """The postings' state (defaults are recomputed from the words on load)."""
@@ -342,14 +338,22 @@ class FabMap2:
 
     def _normalise(self, l_new: float, l_places: np.ndarray) -> np.ndarray:
         logs = np.concatenate([[l_new], l_places])
+        # One exp pass (it is most of this function's cost at 100k places): softmax as
+        # exp(x - max) / sum; a finite sum means no removed (-inf) place.
+        if np.isfinite(logs.sum()):
+            return self._smoothed(logs, logs.size)
         alive = np.isfinite(logs)
-        if alive.all():
-            # Every place alive (the usual case): the same arithmetic without two masked copies.
-            return self.smoothing * np.exp(logs - _logsumexp(logs)) + (1.0 - self.smoothing) / logs.size
-        n_alive = int(alive.sum())
         probs = np.zeros_like(logs)
-        probs[alive] = self.smoothing * np.exp(logs[alive] - _logsumexp(logs[alive])) + (1.0 - self.smoothing) / n_alive
+        probs[alive] = self._smoothed(logs[alive], int(alive.sum()))
         return probs
+
+    def _smoothed(self, logs: np.ndarray, n_alive: int) -> np.ndarray:
+        """s * softmax(logs) + (1 - s) / n_alive, for finite logs (a new array)."""
+        p = logs - logs.max()
+        np.exp(p, out=p)
+        p *= self.smoothing / p.sum()
+        p += (1.0 - self.smoothing) / n_alive
+        return p
 
     def _apply_motion_prior(self, l_new: float, l_places: np.ndarray) -> tuple[float, np.ndarray]:
         prior = self._prior

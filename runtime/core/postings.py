@@ -5,6 +5,9 @@ A posting is a place id (int32), optionally with a float64 weight (BoW's tf-idf)
 has its own growable buffer, so adding a place costs its words, not the map. Each place keeps
 its sorted word ids (uint16 when V <= 65536) so that removing it costs its words too; removed
 ids are reused first, so the id range stays bounded when a capped map keeps evicting and adding.
+The data address of every word's buffer is kept beside it, so the compiled scatter
+(runtime/core/scatter.py) reads a query's postings where they lie instead of copying them end
+to end first.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from aefabmap.errors import InputError, StateError
+from aefabmap.runtime.core import scatter
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 
 
@@ -33,6 +37,7 @@ class PostingLists:
         self.vocabulary_size = vocabulary_size
         self.weighted = weighted
         self._ids: list[np.ndarray | None] = [None] * vocabulary_size
+        self._addr = np.zeros(vocabulary_size, np.intp)  # data address of _ids[q] (0: none); see _set_ids
         self._wts: list[np.ndarray | None] = [None] * vocabulary_size if weighted else []
         self._len = np.zeros(vocabulary_size, np.int32)  # postings per word (< 2^31: one per place)
         self._alive = np.zeros(0, bool)
@@ -55,6 +60,13 @@ class PostingLists:
     def _posting_bytes(self) -> int:
         return 4 + (8 if self.weighted else 0)
 
+    def _set_ids(self, q: int, buffer: np.ndarray | None) -> np.ndarray | None:
+        """Make `buffer` (C-contiguous int32, or None) word q's posting buffer. Every change of
+        a buffer goes through here, so `_addr[q]` is always the address of `_ids[q]`'s data."""
+        self._ids[q] = buffer
+        self._addr[q] = 0 if buffer is None else buffer.ctypes.data
+        return buffer
+
     def add(self, words: np.ndarray, weights: np.ndarray | None = None) -> int:
         """Store a place from its sorted unique word ids (and one weight per word when
         weighted); returns its id."""
@@ -70,7 +82,7 @@ class PostingLists:
         for i, q in enumerate(words.tolist()):
             b, n = ids_of[q], lens[q]
             if b is None:
-                b = ids_of[q] = np.empty(4, np.int32)
+                b = self._set_ids(q, np.empty(4, np.int32))
                 if self.weighted:
                     self._wts[q] = np.empty(4, np.float64)
                 self._buffer_bytes += 4 * size
@@ -78,7 +90,7 @@ class PostingLists:
                 m = grown(n)
                 nb = np.empty(m, np.int32)
                 nb[:n] = b
-                b = ids_of[q] = nb
+                b = self._set_ids(q, nb)
                 if self.weighted:
                     nw = np.empty(m, np.float64)
                     nw[:n] = self._wts[q][:n]
@@ -119,14 +131,14 @@ class PostingLists:
                 wts_of[q][i] = wts_of[q][k]
             if k == 0:
                 self._buffer_bytes -= b.size * size
-                ids_of[q] = None
+                self._set_ids(q, None)
                 if self.weighted:
                     wts_of[q] = None
             elif k * 4 <= b.size and b.size > 8:
                 # Shrink a buffer that lost most of its postings, keeping room to grow.
                 m = max(4, 2 * k)
                 self._buffer_bytes -= (b.size - m) * size
-                ids_of[q] = b[:m].copy()
+                self._set_ids(q, b[:m].copy())
                 if self.weighted:
                     wts_of[q] = wts_of[q][:m].copy()
         self._buffer_bytes -= words.nbytes
@@ -156,6 +168,16 @@ class PostingLists:
         `lengths`: the scorers' hot path, so one list comprehension and no per-word calls."""
         ids = self._ids
         return [ids[q][:k] for q, k in zip(words.tolist(), lens.tolist())]
+
+    def scatter(self, defaults: np.ndarray, words: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """defaults (n_places,) float64 plus weights[i] (float64) for every posting of words[i]
+        (int, each at most once), per place: the scorers' hot path (runtime/core/scatter.py)."""
+        lens = self._len[words]
+        has = lens > 0
+        words, weights, lens = words[has], weights[has], lens[has]
+        if scatter.active() == "compiled":
+            return scatter.scatter_buffers(defaults, self._addr[words], weights, lens)
+        return scatter.scatter_scores(defaults, self.rows(words, lens), weights, lens.astype(np.int64))
 
     def weights(self, q: int) -> np.ndarray:
         """Weights of word q's postings, in the order of `ids(q)` (weighted lists only)."""
@@ -223,6 +245,7 @@ class PostingLists:
             self._words[pid] = words[wptr[pid]:wptr[pid + 1]].astype(self._word_dtype)
             self._buffer_bytes += self._words[pid].nbytes
         self._ids = [None] * v
+        self._addr = np.zeros(v, np.intp)
         self._wts = [None] * v if self.weighted else []
         self._len = lens.astype(np.int32)
         size = self._posting_bytes()
@@ -230,7 +253,7 @@ class PostingLists:
             c, lo, hi = int(post_cap[q]), int(pptr[q]), int(pptr[q + 1])
             b = np.empty(c, np.int32)
             b[: hi - lo] = postings[lo:hi]
-            self._ids[q] = b
+            self._set_ids(q, b)
             if self.weighted:
                 w = np.empty(c, np.float64)
                 w[: hi - lo] = weights[lo:hi]
@@ -240,8 +263,9 @@ class PostingLists:
 
     def nbytes(self) -> int:
         """Bytes of posting buffers, word lists, the alive flags and list slots (O(1))."""
-        # 8 bytes per list slot of self._words, plus the fixed per-word length array.
-        return int(self._buffer_bytes + self._alive.nbytes + 8 * len(self._words) + self._len.nbytes)
+        # 8 bytes per list slot of self._words, plus the fixed per-word length and address arrays.
+        return int(self._buffer_bytes + self._alive.nbytes + 8 * len(self._words) + self._len.nbytes
+                   + self._addr.nbytes)
 
 
 class PostingsView:

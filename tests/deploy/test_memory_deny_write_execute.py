@@ -88,3 +88,26 @@ def test_demo_runs_in_the_sandbox(tmp_path):
     assert out.returncode == 0, (out.stdout + out.stderr)[-3000:]
     assert "replay --check: check OK" in out.stdout
     assert (tmp_path / "demo" / "demo.mcap").stat().st_size > 0
+
+
+def test_fabmap_scores_on_numpy_when_the_jit_is_denied():
+    """numba (extra `fast`) cannot map write+execute memory under the unit: importing the runtime
+    must not fail, and FAB-MAP must score on the numpy path and say why."""
+    code = textwrap.dedent(
+        """
+        import numpy as np
+        from aefabmap.runtime.core import scatter
+        from aefabmap.runtime.core.fabmap import FabMap2
+        from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
+        engine = FabMap2(random_tree(200, 0), synthetic_observations(20, 200, 30, 1))
+        for o in synthetic_observations(30, 200, 30, 2):
+            engine.add(o)
+        loc = engine.localize(synthetic_observations(1, 200, 30, 3)[0], add=False)
+        assert np.isfinite(loc.loglik).all()
+        print(scatter.active(), "|", scatter.unavailable_reason())
+        """
+    )
+    out = _sandboxed([sys.executable, "-c", code], timeout_s=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    active, reason = out.stdout.strip().split(" | ", 1)
+    assert active == "numpy" and "numba" in reason

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from aefabmap.errors import InputError, StateError
+from aefabmap.runtime.core import scatter
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists
 
@@ -86,3 +87,54 @@ def test_hostile_states_are_refused_in_one_line(name, value, message):
     arrays[name] = value(arrays[name])
     with pytest.raises(StateError, match=message):
         PostingLists(V, weighted=True).load_state(MapState(arrays, dict(st.scalars)), weight_range=(0.0, 1.0))
+
+
+def _reference_scatter(defaults: np.ndarray, lists: PostingLists, words: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    acc = defaults.copy()
+    for q, w in zip(words.tolist(), weights.tolist()):
+        acc[lists.ids(q).astype(np.intp)] += w
+    return acc
+
+
+def _churned(seed: int) -> PostingLists:
+    """Adds and removals that grow, shrink and free word buffers, then a state round trip."""
+    rng = np.random.default_rng(seed)
+    lists = PostingLists(V)
+    for step in range(400):
+        alive = np.flatnonzero(lists.alive)
+        if alive.size > 20 and rng.random() < 0.45:
+            lists.remove(int(rng.choice(alive)))
+        else:
+            lists.add(np.unique(rng.integers(0, V, rng.integers(1, 25))))
+        if step == 250:
+            st = lists.state()
+            lists = PostingLists(V)
+            lists.load_state(MapState(dict(st.arrays), dict(st.scalars)))
+    for pid in np.flatnonzero(lists.alive)[3:].tolist():  # most words' buffers shrink or go
+        lists.remove(pid)
+    return lists
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_scatter_reads_every_buffer_where_it_lies_after_growth_shrinking_and_reload(compiled):
+    """The compiled scatter reads postings through the buffers' data addresses: after any
+    history of adds, removals (buffers shrunk or freed) and a state reload, it must read exactly
+    the live buffers, as the numpy path and a per-word loop do."""
+    if compiled and not scatter.compiled_available():
+        pytest.skip("numba is not installed (extra `fast`)")
+    previous = scatter.use_compiled(compiled)
+    try:
+        for seed in range(3):
+            lists = _churned(seed)
+            for q in range(V):
+                b = lists._ids[q]
+                assert lists._addr[q] == (0 if b is None else b.ctypes.data)
+            rng = np.random.default_rng(seed + 10)
+            defaults = rng.standard_normal(lists.n_places)
+            words = np.unique(rng.integers(0, V, 30))  # some hold no postings at all
+            weights = rng.standard_normal(words.size)
+            got = lists.scatter(defaults, words, weights)
+            np.testing.assert_array_equal(got, _reference_scatter(defaults, lists, words, weights))
+            assert got is not defaults
+    finally:
+        scatter.use_compiled(previous)
