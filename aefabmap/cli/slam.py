@@ -23,6 +23,9 @@ def register(sub) -> None:
     p.add_argument("--min-inliers-h", type=int, default=None, metavar="N",
                    help="detector's floor on homography inliers of a loop (runtime default 8; here 5: every edge is "
                         "re-checked in 3-D by PnP, see docs/slam.md)")
+    p.add_argument("--proposals", type=int, default=None, metavar="N",
+                   help="when the two-view test gives a frame no edge, check up to N of the detector's candidates "
+                        "in 3-D (default 5, the detector's top_k; 0: verified loops only; see docs/slam.md)")
     p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     p.set_defaults(func=run)
 
@@ -46,8 +49,10 @@ def run(args) -> int:
     from aefabmap.slam.tum_io import read_rgbd_folder
 
     camera = parse_camera(args.camera) if args.camera else None
-    floor = {} if args.min_inliers_h is None else {"min_inliers_h": args.min_inliers_h}
-    config = SlamConfig(min_gap_s=args.min_gap_s, graph=PoseGraphConfig(kernel=args.kernel), **floor)
+    extra = {} if args.min_inliers_h is None else {"min_inliers_h": args.min_inliers_h}
+    if args.proposals is not None:
+        extra["proposals"] = args.proposals
+    config = SlamConfig(min_gap_s=args.min_gap_s, graph=PoseGraphConfig(kernel=args.kernel), **extra)
     seq = read_rgbd_folder(args.rgbd, camera)
     run_ = run_slam(seq, args.model, config)
     summary = write_outputs(seq, run_, args.out, config, args.model, plot=not args.no_plot)

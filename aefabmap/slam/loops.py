@@ -8,6 +8,15 @@ which a two-view model alone cannot give. On texture-poor frames a verified loop
 6-10 inliers: that PnP then only seeds guided matching between the two frames' odometry
 features (odometry.guided_pose, same settings as the odometry), and the edge is the PnP on those
 matches, kept when it has the odometry's min_inliers.
+
+A frame the two-view test verified nothing for may still hold a revisit: on texture-poor frames
+the detector's ~100 keypoints leave too few independent matches for it. `proposal_edge` checks
+such a frame against the detector's FAB-MAP candidates in 3-D instead, as ORB-SLAM checks its
+bag-of-words candidates: the two frames' odometry features (4000 per frame) are matched, the
+place's depth gives 3-D points, and a PnP pose is kept only when its inliers are very unlikely by
+chance (the same a-contrario test and bar as the two-view models, `acontrario.py` model "P":
+reprojection errors in the query image). It then goes through the same guided matching and
+inlier floor as a verified loop.
 """
 
 from __future__ import annotations
@@ -18,12 +27,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aefabmap.runtime.core.acontrario import significance
 from aefabmap.runtime.core.messages import FrameResult
+from aefabmap.runtime.core.verification import distinct_matches
 from aefabmap.slam.odometry import (
     FrameFeatures,
     OdometryConfig,
     backproject,
     guided_pose,
+    match_orb,
     pnp_pose,
 )
 from aefabmap.slam.poses import invert
@@ -34,8 +46,9 @@ class LoopEdge:
     """A verified loop query -> place with its metric relative pose.
 
     T_place_query: 4x4, the query camera in the place camera's frame (None: PnP failed);
-    verified_inliers / model / nfa: the detector's verification; seed_inliers: PnP inliers among
-    the verified matches; pnp_inliers: inliers of the final (guided) PnP.
+    verified_inliers / model / nfa: the detector's verification (source "verified") or the 3-D
+    check of a proposal (source "proposal": model "P", its PnP inliers and log10 NFA);
+    seed_inliers: PnP inliers among those matches; pnp_inliers: inliers of the final (guided) PnP.
     """
 
     query: int
@@ -46,6 +59,7 @@ class LoopEdge:
     nfa: float | None
     seed_inliers: int = 0
     pnp_inliers: int = 0
+    source: str = "verified"
 
 
 def exclusion_frames(stamps: np.ndarray, min_gap_s: float) -> int:
@@ -88,6 +102,47 @@ def loop_edge(result: FrameResult, query: FrameFeatures, place: FrameFeatures, K
     seed = pnp_pose(pts, xq[ok], K, dataclasses.replace(config, min_inliers=MIN_SEED_INLIERS))  # T_query_place
     edge.seed_inliers = seed.inliers
     if seed.T is None:
+        return edge
+    rel = guided_pose(query, place, seed.T, K, config)
+    edge.pnp_inliers = rel.inliers
+    if rel.T is not None:
+        edge.T_place_query = invert(rel.T)
+    return edge
+
+
+def proposal_edge(query_index: int, place_index: int, query: FrameFeatures, place: FrameFeatures, K: np.ndarray,
+                  config: OdometryConfig, max_log10_nfa: float, duplicate_radius: float) -> LoopEdge:
+    """A FAB-MAP proposal query -> place checked in 3-D (see the module docstring).
+
+    Matches the two frames' odometry features (`match_orb`), keeps one match per location
+    (`distinct_matches`, duplicate_radius pixels: copies of a corner are not independent
+    evidence), seeds a pose by PnP on the place's 3-D points, and accepts it when the log10 NFA of
+    its reprojection errors (region: the box of the query's matched points, floored at 1/8 of
+    the image's long side, as the two-view test does) is below max_log10_nfa. The edge is then
+    the guided PnP of `loop_edge`. Returns the edge; T_place_query is None when it failed.
+    """
+    edge = LoopEdge(query_index, place_index, None, 0, "P", None, source="proposal")
+    pairs = match_orb(query.desc, place.desc, config.ratio, config.max_hamming)
+    if pairs.shape[0] == 0:
+        return edge
+    pts, ok = backproject(place.xy[pairs[:, 1]], place.depth, K, config.min_depth, config.max_depth)
+    xq = query.xy[pairs[ok, 0]].astype(np.float64)
+    xp = place.xy[pairs[ok, 1]].astype(np.float64)
+    keep = distinct_matches(xq, xp, duplicate_radius, duplicate_radius)
+    pts, xq = pts[keep], xq[keep]
+    seed = pnp_pose(pts, xq, K, dataclasses.replace(config, min_inliers=MIN_SEED_INLIERS))  # T_query_place
+    edge.seed_inliers = seed.inliers
+    if seed.T is None:
+        return edge
+    cam = pts @ seed.T[:3, :3].T + seed.T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    err = np.where(cam[:, 2] > config.min_depth, np.linalg.norm(uv - xq, axis=1), np.inf)
+    long_side = float(max(query.depth.shape))
+    w, h = np.ptp(xq, axis=0)
+    sig = significance(err, "P", max(float(w), long_side / 8), max(float(h), long_side / 8), config.reprojection_px)
+    edge.verified_inliers, edge.nfa = sig.inliers, sig.log10_nfa
+    if not sig.log10_nfa < max_log10_nfa:
         return edge
     rel = guided_pose(query, place, seed.T, K, config)
     edge.pnp_inliers = rel.inliers

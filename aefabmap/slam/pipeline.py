@@ -20,7 +20,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
-from aefabmap.slam.loops import LoopEdge, exclusion_frames, loop_edge
+from aefabmap.slam.loops import LoopEdge, exclusion_frames, loop_edge, proposal_edge
 from aefabmap.slam.odometry import OdometryConfig, OrbExtractor, run_odometry
 from aefabmap.slam.pose_graph import Edge, PoseGraphConfig, optimize
 from aefabmap.slam.poses import invert, pose_difference
@@ -54,6 +54,11 @@ class SlamConfig:
         copies at one location still count once): the 2-D test only proposes loops, and a
         proposal becomes an edge only if the place's metric 3-D points confirm it. Not fitted to
         any sequence.
+    proposals: when the two-view test gave a frame no edge, up to this many of the detector's
+        candidates for it (best FAB-MAP rank first) are checked in 3-D (`loops.proposal_edge`,
+        the detector's significance bar); the first confirmed one becomes the frame's edge.
+        0: edges from two-view verified loops only. The detector's own top_k (5) by default: the
+        places it would verify itself.
     """
 
     min_gap_s: float = 10.0
@@ -68,10 +73,13 @@ class SlamConfig:
     wrong_rot_deg: float = 10.0
     camera_verification: bool = True
     min_inliers_h: int = SAMPLE_SIZE["H"] + 1
+    proposals: int = 5
 
     def __post_init__(self) -> None:
         if self.min_gap_s <= 0 or self.sigma_rot <= 0 or self.sigma_trans <= 0 or self.reference_inliers < 1:
             raise ConfigError("slam needs min_gap_s, sigma_rot, sigma_trans > 0 and reference_inliers >= 1")
+        if not isinstance(self.proposals, int) or self.proposals < 0:
+            raise ConfigError(f"slam proposals must be an integer >= 0, got {self.proposals!r}")
 
 
 @dataclass
@@ -88,6 +96,7 @@ class SlamRun:
     loop_weights: list[float]
     metrics: dict = field(default_factory=dict)
     edge_checks: list[dict] = field(default_factory=list)
+    proposals_tested: int = 0
 
 
 def _sigma(config: SlamConfig, inliers: int) -> tuple[float, float]:
@@ -122,15 +131,38 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     wall = (time.perf_counter() - t0) * 1e3
     t1 = time.perf_counter()
     edges: list[LoopEdge] = []
-    verified = 0
-    extract = OrbExtractor(c.odometry)
+    verified = tested = 0
+    extractor, cache = OrbExtractor(c.odometry), {}
+
+    def features(i: int):
+        if i not in cache:
+            cache[i] = extractor(seq.gray(i), seq.depth_m(i))
+        return cache[i]
+
     for res in results:
+        q, tried = res.sequence, set()
         if res.verified:
             verified += 1
-            q, p = res.sequence, res.verified_frame
-            e = loop_edge(res, extract(seq.gray(q), seq.depth_m(q)), extract(seq.gray(p), seq.depth_m(p)), K, c.odometry)
+            tried.add(res.verified_frame)
+            e = loop_edge(res, features(q), features(res.verified_frame), K, c.odometry)
             if e is not None:
                 edges.append(e)
+                if e.T_place_query is not None:
+                    continue
+        n_tested = 0
+        for cand in sorted(res.candidates, key=lambda cd: cd.rank):
+            if n_tested >= c.proposals:
+                break
+            if cand.frame in tried:
+                continue
+            tried.add(cand.frame)
+            n_tested += 1
+            e = proposal_edge(q, cand.frame, features(q), features(cand.frame), K, c.odometry,
+                              verification.max_log10_nfa, verification.duplicate_radius)
+            tested += 1
+            if e.T_place_query is not None:
+                edges.append(e)
+                break
     loop_ms = (time.perf_counter() - t1) * 1e3
     graph_edges = []
     for k in range(1, len(seq)):
@@ -154,7 +186,8 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
         "pose_graph_total": graph_ms,
         "total_per_frame": (wall + loop_ms + graph_ms) / n,
     }
-    return SlamRun(odo.poses, graph.poses, edges, verified, exclude, odo.failed, timings, graph.loop_weights)
+    return SlamRun(odo.poses, graph.poses, edges, verified, exclude, odo.failed, timings, graph.loop_weights,
+                   proposals_tested=tested)
 
 
 def check_edges(run: SlamRun, gt: np.ndarray, config: SlamConfig) -> list[dict]:
@@ -162,7 +195,8 @@ def check_edges(run: SlamRun, gt: np.ndarray, config: SlamConfig) -> list[dict]:
     out = []
     weights = iter(run.loop_weights)
     for e in run.loop_edges:
-        row = {"query": e.query, "place": e.place, "model": e.model, "verified_inliers": e.verified_inliers,
+        row = {"query": e.query, "place": e.place, "source": e.source, "model": e.model,
+               "verified_inliers": e.verified_inliers,
                "nfa": e.nfa, "seed_inliers": e.seed_inliers,
                "pnp_inliers": e.pnp_inliers, "edge": e.T_place_query is not None}
         G = invert(gt[e.place]) @ gt[e.query]
@@ -189,7 +223,9 @@ def write_outputs(seq: RgbdSequence, run: SlamRun, out: str | Path, config: Slam
         "sequence": str(seq.root), "bundle": str(bundle), "frames": len(seq), "exclude_frames": run.exclude,
         "min_gap_s": config.min_gap_s, "kernel": config.graph.kernel, "odometry_failed": run.odometry_failed,
         "verified_loops": run.verified_loops,
+        "proposals_tested": run.proposals_tested,
         "loop_edges": sum(e.T_place_query is not None for e in run.loop_edges),
+        "loop_edges_from_proposals": sum(e.T_place_query is not None and e.source == "proposal" for e in run.loop_edges),
         "timings_ms": run.timings_ms, "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "config": dataclasses.asdict(config),
     }

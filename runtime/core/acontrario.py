@@ -5,10 +5,12 @@ independent points spread uniformly over the image. Under it, the chance that on
 within eps of what a model predicts is
 
     alpha(eps) = (2 eps D) / A      for a point-to-line error (F, E: a band around the line),
-    alpha(eps) = (pi eps^2) / A     for a point-to-point error (H: a disc around the point),
+    alpha(eps) = (pi eps^2) / A     for a point-to-point error (H: a disc around the point;
+                                    P: a 3-D point's reprojection under a camera pose),
 
 with D the diagonal and A the area of the region the points fall in. A model computed from a
-minimal sample of s matches (F: 7, up to 3 solutions; E: 5, up to 10; H: 4, one) that has k of
+minimal sample of s matches (F: 7, up to 3 solutions; E: 5, up to 10; H: 4, one; P, a pose
+from 3-D points seen in an image: 5, one, as OpenCV's EPnP RANSAC draws them) that has k of
 the n matches within eps_k (the k-th smallest error) is expected to happen by chance
 
     NFA(k) = n_out * (n - s) * C(n, k) * C(k, s) * alpha(eps_k) ** (k - s)
@@ -27,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 
 # Minimal sample size and the number of models one sample can give.
-SAMPLE_SIZE = {"F": 7, "E": 5, "H": 4}
-MODELS_PER_SAMPLE = {"F": 3, "E": 10, "H": 1}
+SAMPLE_SIZE = {"F": 7, "E": 5, "H": 4, "P": 5}
+MODELS_PER_SAMPLE = {"F": 3, "E": 10, "H": 1, "P": 1}
 # Exponent of eps in alpha: 1 for a band around a line, 2 for a disc around a point.
-ERROR_DIMENSION = {"F": 1, "E": 1, "H": 2}
+ERROR_DIMENSION = {"F": 1, "E": 1, "H": 2, "P": 2}
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,8 @@ def alpha_coefficient(model: str, width: float, height: float) -> float:
 def significance(errors: np.ndarray, model: str, width: float, height: float, max_eps: float | None = None) -> Significance:
     """Minimum log10 NFA over k of a model whose match errors are `errors` (n,).
 
-    errors: per-match error (point-line distance for F/E, transfer distance for H) in the
+    errors: per-match error (point-line distance for F/E, transfer distance for H, reprojection
+    distance for P) in the
     units of width/height; non-finite errors count as outliers. max_eps: errors above it are
     never counted as inliers (the model's noise scale), None: no cap.
     """

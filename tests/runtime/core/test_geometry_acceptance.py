@@ -87,6 +87,21 @@ def test_significance_grows_with_support_and_counts_the_matches():
     assert abs(float(log10_binomial(60, 15)) - math.log10(math.comb(60, 15))) < 1e-9
 
 
+def test_a_pose_from_3d_points_is_judged_by_its_reprojection_errors():
+    """Model "P" (a PnP pose, 5-point sample, point-to-point reprojection error), as the SLAM
+    tool's proposals use it: errors spread over the image are chance, a tight cluster is not,
+    and it needs more support than a homography (one more point in its sample)."""
+    rng = np.random.default_rng(0)
+    # A pose that explains nothing: each match lands anywhere in the image.
+    chance = np.linalg.norm(rng.uniform((0, 0), (640, 480), (3000, 2)) - rng.uniform((0, 0), (640, 480), (3000, 2)), axis=1)
+    assert significance(chance, "P", 640, 480, 40.0).log10_nfa > 0
+    spread = rng.uniform(5, 400, 300)
+    tight = np.r_[np.full(20, 1.0), spread[:280]]
+    pose, homography = significance(tight, "P", 640, 480, 3.0), significance(tight, "H", 640, 480, 3.0)
+    assert pose.inliers == 20 and pose.log10_nfa < -4
+    assert homography.log10_nfa < pose.log10_nfa
+
+
 def test_a_folding_homography_is_implausible():
     pts = np.random.default_rng(0).uniform(0, 600, (50, 2))
     assert homography_is_plausible(np.eye(3), pts, 4.0, 6.0)
