@@ -216,6 +216,17 @@ class LoopClosureDetector:
             words[:n] = quantize_raw(self.quantizer, self.kind, features.descriptors[:n])
         return words
 
+    def attach_keypoints(self, place: int, features: Features, words: np.ndarray) -> None:
+        """Give a stored place the keypoints of `features` (words: their `words_of`), replacing
+        any it held. For tools that build a map from words alone (`process_words` without
+        features stores no keypoints, and a place without keypoints is never verified), such as
+        the pipeline benchmark, whose stored places must be verified as a live map's are."""
+        if self.store is None:
+            raise ConfigError("verification is off: this detector stores no keypoints")
+        if not (0 <= place < self._id_range()) or not self.scorer.alive[place]:
+            raise InputError(f"place {place} is not in the map")
+        self.store.put(place, self.store.pack(features.keypoints, words, features.descriptors, features.image_shape))
+
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""
         t0 = time.perf_counter()

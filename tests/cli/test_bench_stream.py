@@ -36,6 +36,8 @@ def test_bench_pipeline_writes_json(tmp_path, capsys):
     _sane_stats(doc["stages_ms"]["features"])
     assert doc["frames_timed"] == 4
     assert doc["keypoints_median"] > 100  # ORB on a textured 640x480 frame
+    # Pre-filled places carry keypoints, so frames verify candidates as in a live map.
+    assert doc["place_keypoints"] is True and doc["places_verified_per_frame"]["median"] >= 1
     assert set(doc["target"]) == {"median_total_ms_le", "met_wall", "met_cpu"}
     assert "target median <= 10 ms" in capsys.readouterr().out
 

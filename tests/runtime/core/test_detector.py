@@ -80,3 +80,31 @@ def test_bad_config():
         DetectorConfig(memory_mb=0)
     with pytest.raises(ConfigError):
         DetectorConfig(fabmap_score="odds")
+
+
+def test_attached_keypoints_make_a_words_only_place_verifiable():
+    """A place stored from words alone is never verified; `attach_keypoints` gives it the
+    keypoints a live frame would have stored, and the same view then verifies against it."""
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap.errors import InputError
+    from aefabmap.runtime.core.verification import VerificationConfig
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(6, seed=0, size=(640, 480))
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    feats = [det.extractor.extract(im) for im in images]
+    words = [det.words_of(f) for f in feats]
+    for w in words[:3]:
+        det.process_words(w[w >= 0])  # frames 0-2 as words only (the quantised keypoints); 0 and 1 are in the map now
+    place = int(np.flatnonzero(det.place_frames() == 0)[0])
+    assert not det.process_words(words[0], features=feats[0]).verified
+    det.attach_keypoints(place, feats[0], words[0])
+    r = det.process_words(words[0], features=feats[0])
+    assert r.verified and r.verified_frame == 0
+    with pytest.raises(InputError):
+        det.attach_keypoints(10_000, feats[0], words[0])
+    off = load_detector(default_bundle(), DetectorConfig(exclude=1, verification=VerificationConfig(enabled=False)))
+    off.process_words(words[1][words[1] >= 0])
+    off.process_words(words[2][words[2] >= 0])
+    with pytest.raises(ConfigError):
+        off.attach_keypoints(0, feats[0], words[0])
