@@ -101,9 +101,15 @@ def loop_edge(result: FrameResult, query: FrameFeatures, place: FrameFeatures, K
     pts, ok = backproject(xp, place.depth, K, config.min_depth, config.max_depth)
     seed = pnp_pose(pts, xq[ok], K, dataclasses.replace(config, min_inliers=MIN_SEED_INLIERS))  # T_query_place
     edge.seed_inliers = seed.inliers
-    if seed.T is None:
+    return _refined(edge, seed.T, query, place, K, config)
+
+
+def _refined(edge: LoopEdge, seed_T: np.ndarray | None, query: FrameFeatures, place: FrameFeatures, K: np.ndarray,
+             config: OdometryConfig) -> LoopEdge:
+    """The edge's pose by guided matching from a seed T_query_place (none without a seed)."""
+    if seed_T is None:
         return edge
-    rel = guided_pose(query, place, seed.T, K, config)
+    rel = guided_pose(query, place, seed_T, K, config)
     edge.pnp_inliers = rel.inliers
     if rel.T is not None:
         edge.T_place_query = invert(rel.T)
@@ -142,10 +148,4 @@ def proposal_edge(query_index: int, place_index: int, query: FrameFeatures, plac
     w, h = np.ptp(xq, axis=0)
     sig = significance(err, "P", max(float(w), long_side / 8), max(float(h), long_side / 8), config.reprojection_px)
     edge.verified_inliers, edge.nfa = sig.inliers, sig.log10_nfa
-    if not sig.log10_nfa < max_log10_nfa:
-        return edge
-    rel = guided_pose(query, place, seed.T, K, config)
-    edge.pnp_inliers = rel.inliers
-    if rel.T is not None:
-        edge.T_place_query = invert(rel.T)
-    return edge
+    return _refined(edge, seed.T if sig.log10_nfa < max_log10_nfa else None, query, place, K, config)
