@@ -42,6 +42,9 @@ def register(sub) -> None:
     pl.add_argument("--words-only-places", action="store_true",
                     help="pre-filled places without keypoints (never verified, so verification is understated; "
                          "the mode of figures measured before this option existed)")
+    pl.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
+                    help="FAB-MAP scatter: compiled when numba is installed and can run (auto, default) or numpy "
+                         "(what a board under the hardened unit runs)")
     pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     pl.add_argument("--json", type=Path, metavar="OUT")
     pl.set_defaults(func=run_pipeline)
@@ -177,7 +180,7 @@ def run_pipeline(args) -> int:
     cfg = PipelineBenchConfig(
         bundle=str(_model(args)), places=args.places, frames=args.frames, warmup=args.warmup,
         prefill=args.prefill, verification=not args.no_verification, single_core=not args.all_cores,
-        verify_keypoints=args.verify_keypoints, place_keypoints=not args.words_only_places,
+        verify_keypoints=args.verify_keypoints, place_keypoints=not args.words_only_places, scatter=args.scatter,
     )
     doc = bench_pipeline(cfg)
     _emit(doc, args.json)

@@ -118,6 +118,8 @@ class PipelineBenchConfig:
     verified as in a live map, and frames pay what a frame that is not a loop pays. False:
     words only; such places are never verified, which understates verification's cost.
     single_core: spawn a process pinned to one CPU with one thread everywhere.
+    scatter: FAB-MAP's scatter, "auto" (compiled when numba can run) or "numpy" (what a board
+    under the hardened unit runs, deploy/README.md).
     """
 
     bundle: str
@@ -128,6 +130,7 @@ class PipelineBenchConfig:
     verification: bool = True
     verify_keypoints: int | None = None
     place_keypoints: bool = True
+    scatter: str = "auto"
     seed: int = 0
     single_core: bool = True
 
@@ -138,6 +141,8 @@ class PipelineBenchConfig:
             raise ConfigError("frames must be >= 1 and warmup >= 0")
         if self.prefill not in ("train", "synthetic"):
             raise ConfigError(f"prefill must be 'train' or 'synthetic', got {self.prefill!r}")
+        if self.scatter not in ("auto", "numpy"):
+            raise ConfigError(f"scatter must be 'auto' or 'numpy', got {self.scatter!r}")
 
 
 def bench_pipeline(config: PipelineBenchConfig) -> dict:
@@ -145,7 +150,13 @@ def bench_pipeline(config: PipelineBenchConfig) -> dict:
     if not Path(config.bundle).is_dir():
         raise BundleError(f"model bundle {config.bundle} does not exist")
     if not config.single_core:
-        return _bench_pipeline_here(config)
+        from aefabmap.runtime.core import scatter
+
+        previous = scatter.use_compiled(True)  # _bench_pipeline_here chooses; restored for this process
+        try:
+            return _bench_pipeline_here(config)
+        finally:
+            scatter.use_compiled(previous)
     return run_spawned_single_thread(_bench_pipeline_here, config)
 
 
@@ -188,6 +199,9 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     from aefabmap.runtime.core.verification import VerificationConfig
     from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
 
+    from aefabmap.runtime.core import scatter
+
+    scatter.use_compiled(config.scatter == "auto")
     pinned = None
     if config.single_core:
         cv2.setNumThreads(1)
@@ -260,6 +274,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "prefill": config.prefill,
         "prefill_words_per_place": round(mean_words, 1),
         "place_keypoints": bool(config.place_keypoints and config.verification),
+        "scatter": scatter.active(),
         "prefill_seconds": round(prefill_s, 2),
         "places_in_map": {"min": int(min(n_places)), "max": int(max(n_places))},
         "map_bytes": int(det.map_bytes()),
