@@ -219,16 +219,17 @@ class FeatureExtractor:
                 self.kind.empty(),
                 (int(shape[0]), int(shape[1])),
             )
-        # Strongest first, ties broken by position: a fixed order for fixed input.
-        resp = np.array([k.response for k in kps], np.float32)
-        pts = np.array([k.pt for k in kps], np.float32)
+        # Strongest first, ties broken by position: a fixed order for fixed input. (KeyPoint_convert
+        # and fromiter read the attributes at C speed where a list per attribute costs ~0.6 ms.)
+        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
+        resp = np.fromiter((k.response for k in kps), np.float32, n)
         order = np.lexsort((pts[:, 0], pts[:, 1], -resp))
         if c.bucket_grid:
             order = order[_bucket_turns(pts[order], work_shape, c.bucket_grid)]
         order = order[: c.max_features]
         pts = pts[order] / scale
-        sizes = np.array([kps[i].size for i in order], np.float32) / scale
-        angles = np.array([kps[i].angle for i in order], np.float32)
+        sizes = np.fromiter((k.size for k in kps), np.float32, n)[order] / scale
+        angles = np.fromiter((k.angle for k in kps), np.float32, n)[order]
         desc = self.kind.finish(desc[order], c.rootsift)
         return Features(pts, sizes, angles, desc, (int(shape[0]), int(shape[1])))
 

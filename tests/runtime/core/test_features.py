@@ -39,6 +39,23 @@ def test_deterministic_and_shaped(cfg):
         assert set(np.unique(v)) <= {0.0, 1.0}
 
 
+@pytest.mark.parametrize("kind", ["orb", "sift"])
+def test_keypoints_are_the_detectors_strongest_first_in_original_pixels(kind):
+    """The extractor's arrays are the OpenCV keypoints' own attributes: strongest response first
+    (ties by position), positions and sizes scaled back from the 640-px detection image."""
+    img = textured(seed=3)
+    ex = FeatureExtractor(FeatureConfig(kind, 150))
+    work = cv2.resize(img, (640, 480), interpolation=cv2.INTER_LINEAR)
+    kps, desc = ex._detector.detectAndCompute(work, None)
+    order = sorted(range(len(kps)), key=lambda i: (-np.float32(kps[i].response), np.float32(kps[i].pt[1]),
+                                                   np.float32(kps[i].pt[0])))[:150]
+    f = ex.extract(img)
+    scale = 640 / 320
+    np.testing.assert_array_equal(f.keypoints, np.array([kps[i].pt for i in order], np.float32) / np.float32(scale))
+    np.testing.assert_array_equal(f.sizes, np.array([kps[i].size for i in order], np.float32) / np.float32(scale))
+    np.testing.assert_array_equal(f.angles, np.array([kps[i].angle for i in order], np.float32))
+
+
 def test_blank_image_gives_no_features():
     f = FeatureExtractor().extract(np.full((120, 160), 128, np.uint8))
     assert len(f) == 0 and f.descriptors.shape == (0, 32)
