@@ -272,6 +272,7 @@ class LoopClosureDetector:
                 self.store.remove(inserted_place)
                 if pending_kps is not None:
                     self.store.put(inserted_place, pending_kps)
+            evicted = self._trim(inserted_place) or evicted
         uniq = np.unique(words)
         ranked = self.scorer.rank(words)
         top = _top_places(ranked.order, self.config.verification.top_k)  # verification and evidence share it
@@ -534,12 +535,29 @@ class LoopClosureDetector:
         """Evict least-recently-used places until one more fits; returns the last evicted id."""
         evicted = None
         while self.n_places > 0 and self._over_budget():
-            alive = self.scorer.alive
-            used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
-            evicted = int(np.argmin(used))
-            self.scorer.remove(evicted)
-            if self.store is not None:
-                self.store.remove(evicted)
+            evicted = self._evict_lru()
+        return evicted
+
+    def _trim(self, keep: int) -> int | None:
+        """Evict least-recently-used places other than `keep` while the map exceeds memory_mb;
+        returns the last evicted id. `_make_room` leaves room for a place of the average size,
+        but an insertion can take more at once (a full posting buffer grows by a quarter), and
+        the cap is a bound, not an average."""
+        c = self.config
+        evicted = None
+        while c.memory_mb is not None and self.n_places > 1 and self.map_bytes() > c.memory_mb * 2**20:
+            evicted = self._evict_lru(keep)
+        return evicted
+
+    def _evict_lru(self, keep: int | None = None) -> int:
+        alive = self.scorer.alive
+        used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
+        if keep is not None:
+            used[keep] = np.iinfo(np.int64).max
+        evicted = int(np.argmin(used))
+        self.scorer.remove(evicted)
+        if self.store is not None:
+            self.store.remove(evicted)
         return evicted
 
 

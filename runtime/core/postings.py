@@ -37,7 +37,11 @@ class PostingLists:
         self.vocabulary_size = vocabulary_size
         self.weighted = weighted
         self._ids: list[np.ndarray | None] = [None] * vocabulary_size
-        self._addr = np.zeros(vocabulary_size, np.intp)  # data address of _ids[q] (0: none); see _set_ids
+        # Data address of each _ids[q] (0: none), for the compiled scatter; refreshed on demand
+        # (`addresses`) for the words whose buffer changed since (`_stale`), so the numpy path,
+        # which never asks, pays nothing for it.
+        self._addr = np.zeros(vocabulary_size, np.intp)
+        self._stale = np.zeros(vocabulary_size, bool)
         self._wts: list[np.ndarray | None] = [None] * vocabulary_size if weighted else []
         self._len = np.zeros(vocabulary_size, np.int32)  # postings per word (< 2^31: one per place)
         self._alive = np.zeros(0, bool)
@@ -62,10 +66,21 @@ class PostingLists:
 
     def _set_ids(self, q: int, buffer: np.ndarray | None) -> np.ndarray | None:
         """Make `buffer` (C-contiguous int32, or None) word q's posting buffer. Every change of
-        a buffer goes through here, so `_addr[q]` is always the address of `_ids[q]`'s data."""
+        a buffer goes through here, so `addresses` never returns a stale address."""
         self._ids[q] = buffer
-        self._addr[q] = 0 if buffer is None else buffer.ctypes.data
+        self._stale[q] = True
         return buffer
+
+    def addresses(self, words: np.ndarray) -> np.ndarray:
+        """Data address (intp) of each given word's posting buffer, 0 for none."""
+        stale = words[self._stale[words]]
+        if stale.size:
+            ids, addr = self._ids, self._addr
+            for q in stale.tolist():
+                b = ids[q]
+                addr[q] = 0 if b is None else b.ctypes.data
+            self._stale[stale] = False
+        return self._addr[words]
 
     def add(self, words: np.ndarray, weights: np.ndarray | None = None) -> int:
         """Store a place from its sorted unique word ids (and one weight per word when
@@ -176,7 +191,7 @@ class PostingLists:
         has = lens > 0
         words, weights, lens = words[has], weights[has], lens[has]
         if scatter.active() == "compiled":
-            return scatter.scatter_buffers(defaults, self._addr[words], weights, lens)
+            return scatter.scatter_buffers(defaults, self.addresses(words), weights, lens)
         return scatter.scatter_scores(defaults, self.rows(words, lens), weights, lens.astype(np.int64))
 
     def weights(self, q: int) -> np.ndarray:
@@ -246,6 +261,7 @@ class PostingLists:
             self._buffer_bytes += self._words[pid].nbytes
         self._ids = [None] * v
         self._addr = np.zeros(v, np.intp)
+        self._stale = np.zeros(v, bool)
         self._wts = [None] * v if self.weighted else []
         self._len = lens.astype(np.int32)
         size = self._posting_bytes()
@@ -265,7 +281,7 @@ class PostingLists:
         """Bytes of posting buffers, word lists, the alive flags and list slots (O(1))."""
         # 8 bytes per list slot of self._words, plus the fixed per-word length and address arrays.
         return int(self._buffer_bytes + self._alive.nbytes + 8 * len(self._words) + self._len.nbytes
-                   + self._addr.nbytes)
+                   + self._addr.nbytes + self._stale.nbytes)
 
 
 class PostingsView:
