@@ -81,9 +81,8 @@ def significance(errors: np.ndarray, model: str, width: float, height: float, ma
     """Minimum log10 NFA over k of a model whose match errors are `errors` (n,).
 
     errors: per-match error (point-line distance for F/E, transfer distance for H, reprojection
-    distance for P) in the
-    units of width/height; non-finite errors count as outliers. max_eps: errors above it are
-    never counted as inliers (the model's noise scale), None: no cap.
+    distance for P) in the units of width/height; non-finite errors count as outliers. max_eps:
+    errors above it are never counted as inliers (the model's noise scale), None: no cap.
     """
     n = int(errors.size)
     s = SAMPLE_SIZE[model]

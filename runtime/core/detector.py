@@ -272,7 +272,9 @@ class LoopClosureDetector:
                 self.store.remove(inserted_place)
                 if pending_kps is not None:
                     self.store.put(inserted_place, pending_kps)
-            evicted = self._trim(inserted_place) or evicted
+            trimmed = self._trim(inserted_place)
+            if trimmed is not None:
+                evicted = trimmed
         uniq = np.unique(words)
         ranked = self.scorer.rank(words)
         top = _top_places(ranked.order, self.config.verification.top_k)  # verification and evidence share it

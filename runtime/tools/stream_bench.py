@@ -195,11 +195,10 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.frame_loop import FrameLoop
     from aefabmap.runtime.adapters.frames import decode_frame
+    from aefabmap.runtime.core import scatter
     from aefabmap.runtime.core.detector import DetectorConfig
     from aefabmap.runtime.core.verification import VerificationConfig
     from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
-
-    from aefabmap.runtime.core import scatter
 
     scatter.use_compiled(config.scatter == "auto")
     pinned = None
