@@ -128,8 +128,11 @@ def test_bow_memory_cap_holds_over_a_long_run(tmp_path):
     rng = np.random.default_rng(3)
     sizes = []
     for _ in range(1200):
-        det.process_words(rng.integers(0, 500, 40))
+        before = det.n_places
+        r = det.process_words(rng.integers(0, 500, 40))
         sizes.append(det.map_bytes())
+        if r.inserted_place is not None and det.n_places <= before:
+            assert r.evicted_place is not None  # every eviction is reported, place 0 included
     assert max(sizes) <= cap_mb * 2**20
     assert det.n_places < 1200 - 3  # places were evicted
     # Flat once at the cap: the last 400 frames do not grow the map.
