@@ -169,10 +169,6 @@ class PostingLists:
             raise InputError(f"place {pid} was removed")
         return w
 
-    def lengths(self, words: np.ndarray) -> np.ndarray:
-        """Postings held by each of the given words (int32)."""
-        return self._len[words]
-
     def ids(self, q: int) -> np.ndarray:
         """Place ids of word q's postings (a view; empty when none)."""
         b = self._ids[q]
@@ -180,7 +176,8 @@ class PostingLists:
 
     def rows(self, words: np.ndarray, lens: np.ndarray) -> list[np.ndarray]:
         """Place ids of each word's postings (views), given words that hold some and their
-        `lengths`: the scorers' hot path, so one list comprehension and no per-word calls."""
+        posting counts: the numpy scatter's hot path, so one list comprehension and no per-word
+        calls."""
         ids = self._ids
         return [ids[q][:k] for q, k in zip(words.tolist(), lens.tolist())]
 

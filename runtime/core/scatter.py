@@ -8,9 +8,10 @@ order, defaults first, then row after row, no reassociation):
 - compiled: a plain loop compiled by numba when numba is installed (optional; about twice as
   fast per posting, and it needs no int64 copy of the ids nor a repeated-weights array).
 
-`scatter_buffers` is the compiled loop reading each row where it lies, from its buffer's data
-address (PostingLists keeps them): at 100k places a query's ~1.9 million postings are then not
-copied end to end first, which was half of the scoring time.
+The compiled loop (`scatter_buffers`) reads each row where it lies, from its data address:
+PostingLists hands it the addresses of its word buffers, so at 100k places a query's ~1.9
+million postings are not copied end to end first (that copy was half of the scoring time);
+`scatter_scores` hands it offsets into the one array its rows are laid in.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ except ImportError:  # pragma: no cover - depends on the environment
 except Exception as exc:  # pragma: no cover - depends on the environment
     _numba, _unavailable = None, f"numba cannot run here: {type(exc).__name__}: {exc}"
 
-_kernel = None
 _buffers_kernel = None
 _use_compiled = _numba is not None
 
@@ -73,34 +73,16 @@ def active() -> str:
 
 
 def prepare() -> None:
-    """Compile the kernels now if they are in use (once per process, about a second), so that
-    the first query does not pay for it."""
+    """Compile the kernel now if it is in use (once per process, about a second), so that the
+    first query does not pay for it."""
     global _numba, _use_compiled, _unavailable
     if not _use_compiled:
         return
     try:
-        _get_kernel()
         _get_buffers_kernel()
     except Exception as exc:  # pragma: no cover - a JIT that imports but cannot compile here
         _numba, _use_compiled = None, False
         _unavailable = f"numba cannot compile here: {type(exc).__name__}: {exc}"
-
-
-def _get_kernel():
-    """Compile the kernel on first use (once per process)."""
-    global _kernel
-    if _kernel is None:
-        def scatter(acc, ids, weights, lens):
-            pos = 0
-            for i in range(lens.size):
-                w = weights[i]
-                for j in range(pos, pos + lens[i]):
-                    acc[ids[j]] += w
-                pos += lens[i]
-
-        _kernel = _numba.njit("void(float64[::1], int32[::1], float64[::1], int64[::1])",
-                              nogil=True, cache=False, boundscheck=False)(scatter)
-    return _kernel
 
 
 def _get_buffers_kernel():
@@ -124,7 +106,8 @@ def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.nda
     address addresses[i] (intp); compiled kernel only (`active()` is "compiled").
 
     Reads raw memory: the caller guarantees every address is the data of a live C-contiguous
-    int32 buffer of at least lens[i] entries for the duration of the call (PostingLists does).
+    int32 buffer of at least lens[i] entries for the duration of the call (PostingLists and
+    `scatter_scores` do).
     """
     if not _use_compiled:
         raise ConfigError("scatter_buffers needs the compiled kernel (numba installed and in use)")
@@ -146,11 +129,9 @@ def scatter_scores(defaults: np.ndarray, rows: list[np.ndarray], weights: np.nda
     if total == 0:
         return defaults.copy()
     if _use_compiled:
-        acc = defaults.copy()
-        ids = rows[0] if len(rows) == 1 else np.concatenate(rows)
-        _get_kernel()(acc, np.ascontiguousarray(ids, np.int32), np.ascontiguousarray(weights, np.float64),
-                      np.ascontiguousarray(lens, np.int64))
-        return acc
+        ids = np.ascontiguousarray(rows[0] if len(rows) == 1 else np.concatenate(rows), np.int32)
+        starts = np.cumsum(lens, dtype=np.intp) - lens  # row i starts starts[i] postings into ids
+        return scatter_buffers(defaults, ids.ctypes.data + ids.itemsize * starts, weights, lens)
     ids = np.empty(n + total, np.intp)
     ids[:n] = np.arange(n, dtype=np.intp)
     # Concatenating straight into the intp buffer widens int32 postings in the same pass.

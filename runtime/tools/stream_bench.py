@@ -152,7 +152,7 @@ def bench_pipeline(config: PipelineBenchConfig) -> dict:
     if not config.single_core:
         from aefabmap.runtime.core import scatter
 
-        previous = scatter.use_compiled(True)  # _bench_pipeline_here chooses; restored for this process
+        previous = scatter.active() == "compiled"  # _bench_pipeline_here chooses; restored after
         try:
             return _bench_pipeline_here(config)
         finally:
