@@ -19,10 +19,8 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
+from aefabmap.runtime.core.bits import hamming
 from aefabmap.slam.poses import invert, make_pose
-
-# popcount of every byte value: Hamming distances of ORB descriptors by table look-up.
-_POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.uint8)
 
 
 @dataclass(frozen=True)
@@ -182,7 +180,7 @@ def guided_pose(feat_a: FrameFeatures, feat_b: FrameFeatures, T_ab_guess: np.nda
     d1 = np.full(len(pts), np.inf, np.float32)
     for s in range(0, len(pts), chunk):  # chunks bound the (chunk, N_a, 32) Hamming table to ~32 MB
         e = min(s + chunk, len(pts))
-        D = _POPCOUNT[np.bitwise_xor(desc_b[s:e, None, :], feat_a.desc[None, :, :])].sum(axis=2, dtype=np.float32)
+        D = hamming(desc_b[s:e, None, :], feat_a.desc[None, :, :]).astype(np.float32)
         far = np.linalg.norm(uv[s:e, None, :] - feat_a.xy[None, :, :], axis=2) > config.guided_radius_px
         D[far] = np.inf
         two = np.argpartition(D, 1, axis=1)[:, :2]

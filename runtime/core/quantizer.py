@@ -144,7 +144,7 @@ class IndexedCentroidQuantizer:
 def route_packed(route_centers: np.ndarray, packed: np.ndarray, chunk: int = 4096) -> np.ndarray:
     """Nearest packed-bit routing centre (S, W) uint8 of each packed row (N, W) uint8 -> (N,) int
     (popcount Hamming; first of equal distances)."""
-    from aefabmap.runtime.core.vocab_tree import popcount_rows
+    from aefabmap.runtime.core.bits import popcount_rows
 
     out = np.empty(packed.shape[0], np.intp)
     for s in range(0, packed.shape[0], chunk):

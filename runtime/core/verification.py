@@ -39,15 +39,16 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.feature_kinds import DISTANCES
-from aefabmap.runtime.core.features import MAX_FEATURES
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, significance
+from aefabmap.runtime.core.bits import hamming
 from aefabmap.runtime.core.conditioning import (
     enforce_rank2,
     homography_is_plausible,
     minor_axis_extent,
     rank2_fundamental,
 )
+from aefabmap.runtime.core.feature_kinds import DISTANCES
+from aefabmap.runtime.core.features import MAX_FEATURES
 
 #: Word id of a keypoint kept for geometry only (beyond the bundle's keypoint budget, so never
 #: quantised): same-word matching skips it, the brute-force retry matches it like any other.
@@ -57,8 +58,6 @@ GEOMETRY_METHODS = ("magsac", "ransac")
 MODELS = ("F", "E", "H")
 REJECT_REASONS = ("no_evidence", "chance", "degenerate", "collinear", "clustered", "cheirality")
 
-# popcount of every byte value: Hamming distance of binary descriptors via a table look-up.
-_POPCOUNT = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.uint16)
 
 
 @dataclass(frozen=True)
@@ -327,11 +326,6 @@ def parse_camera(value) -> tuple[float, float, float, float]:
     return cam
 
 
-def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distance between rows a[k] and b[k] of two (P, B) uint8 arrays -> (P,) int32."""
-    return _POPCOUNT[np.bitwise_xor(a, b)].sum(axis=1, dtype=np.int32)
-
-
 def _same_word_pairs(q_words: np.ndarray, p_words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All (query index, place index) pairs whose word ids are equal, as two int64 arrays."""
     order = np.argsort(p_words, kind="stable")
@@ -386,7 +380,7 @@ def match_keypoints(
     if qi.size == 0:
         return np.zeros((0, 2), np.int64)
     if distance == "hamming":
-        dist = hamming_rows(q_desc[qi], p_desc[pi]).astype(np.float32)
+        dist = hamming(q_desc[qi], p_desc[pi]).astype(np.float32)
     else:
         dq = _as_unit_float(q_desc[qi])
         dp = _as_unit_float(p_desc[pi])

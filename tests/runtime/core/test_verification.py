@@ -19,7 +19,6 @@ from aefabmap.runtime.core.verification import (
     NO_WORD,
     VerificationConfig,
     estimate_geometry,
-    hamming_rows,
     match_keypoints,
     symmetric_epipolar_distance,
     verify_pair,
@@ -115,7 +114,6 @@ def test_matching_is_restricted_to_words_mutual_and_ratio_tested():
     q = desc[:1]
     p = np.vstack([desc[:1], desc[:1]])
     assert len(match_keypoints(np.zeros(1), q, np.zeros(2), p, VerificationConfig(), distance="hamming")) == 0
-    assert np.array_equal(hamming_rows(desc[:3], desc[:3]), [0, 0, 0])
 
 
 def test_too_few_matches_and_empty_inputs_do_not_verify():

@@ -1,4 +1,4 @@
-"""Vocabulary tree quantiser: popcount, Hamming, descent = brute force where it must be, validation."""
+"""Vocabulary tree quantiser: descent = brute force where it must be, validation."""
 
 from __future__ import annotations
 
@@ -6,36 +6,10 @@ import numpy as np
 import pytest
 
 from aefabmap.errors import InputError
+from aefabmap.runtime.core.bits import hamming
 from aefabmap.runtime.core.feature_kinds import get_kind
 from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, quantize_raw
-from aefabmap.runtime.core.vocab_tree import (
-    POPCOUNT_TABLE,
-    VocabularyTree,
-    hamming,
-    popcount_rows,
-    tree_depth,
-    validate_tree,
-)
-
-
-@pytest.mark.parametrize("width", [1, 7, 8, 32, 61])
-@pytest.mark.parametrize("use_table", [False, True])
-def test_popcount_counts_the_set_bits(width, use_table):
-    rng = np.random.default_rng(width)
-    x = rng.integers(0, 256, (50, 3, width), dtype=np.uint8)
-    x[0, 0] = 255  # every bit set: 8 * width, no overflow of a narrow accumulator
-    expect = np.unpackbits(x, axis=-1).sum(axis=-1)
-    got = popcount_rows(x, use_table=use_table)
-    assert got.dtype == np.int32 and np.array_equal(got, expect)
-    assert got[0, 0] == 8 * width
-
-
-def test_popcount_table_and_hamming_against_unpacked_bits():
-    assert [int(POPCOUNT_TABLE[v]) for v in (0, 1, 3, 128, 255)] == [0, 1, 2, 1, 8]
-    rng = np.random.default_rng(1)
-    a, b = rng.integers(0, 256, (2, 200, 32), dtype=np.uint8)
-    expect = (np.unpackbits(a, axis=1) != np.unpackbits(b, axis=1)).sum(axis=1)
-    assert np.array_equal(hamming(a, b), expect)
+from aefabmap.runtime.core.vocab_tree import VocabularyTree, tree_depth, validate_tree
 
 
 def _one_level(centers: np.ndarray) -> VocabularyTree:
