@@ -34,9 +34,11 @@ from aefabmap.slam.odometry import (
     FrameFeatures,
     OdometryConfig,
     backproject,
+    camera_points,
     guided_pose,
     match_orb,
     pnp_pose,
+    to_pixels,
 )
 from aefabmap.slam.poses import invert
 
@@ -140,9 +142,9 @@ def proposal_edge(query_index: int, place_index: int, query: FrameFeatures, plac
     edge.seed_inliers = seed.inliers
     if seed.T is None:
         return edge
-    cam = pts @ seed.T[:3, :3].T + seed.T[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    cam = camera_points(pts, seed.T)
+    with np.errstate(divide="ignore", invalid="ignore"):  # points behind the camera: error inf below
+        uv = to_pixels(cam, K)
     err = np.where(cam[:, 2] > config.min_depth, np.linalg.norm(uv - xq, axis=1), np.inf)
     long_side = float(max(query.depth.shape))
     w, h = np.ptp(xq, axis=0)

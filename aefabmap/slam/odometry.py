@@ -128,6 +128,16 @@ def backproject(xy: np.ndarray, depth: np.ndarray, K: np.ndarray, min_depth: flo
     return np.stack([x, y, z[ok]], axis=1), ok
 
 
+def camera_points(points: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """3-D points (N, 3) moved by the 4x4 pose T: (N, 3) in T's target camera frame."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def to_pixels(cam: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3), z > 0, -> (N, 2) pixels through the pinhole K."""
+    return cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+
+
 def pnp_pose(points_b: np.ndarray, xy_a: np.ndarray, K: np.ndarray, config: OdometryConfig) -> RelativePose:
     """T_a_b from 3-D points (M, 3) in frame b seen at pixels xy_a (M, 2) of frame a: RANSAC, then LM on the inliers."""
     m = int(points_b.shape[0])
@@ -170,12 +180,12 @@ def guided_pose(feat_a: FrameFeatures, feat_b: FrameFeatures, T_ab_guess: np.nda
     nearest-descriptor keypoint of a within guided_radius_px (ratio test within that window), then PnP."""
     pts, ok = backproject(feat_b.xy, feat_b.depth, K, config.min_depth, config.max_depth)
     desc_b = feat_b.desc[ok]
-    cam = pts @ T_ab_guess[:3, :3].T + T_ab_guess[:3, 3]
+    cam = camera_points(pts, T_ab_guess)
     front = cam[:, 2] > config.min_depth
     pts, cam, desc_b = pts[front], cam[front], desc_b[front]
     if len(pts) < config.min_inliers or len(feat_a.xy) < 2:
         return RelativePose(None)
-    uv = cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    uv = to_pixels(cam, K)
     best = np.full(len(pts), -1, np.int64)
     d1 = np.full(len(pts), np.inf, np.float32)
     for s in range(0, len(pts), chunk):  # chunks bound the (chunk, N_a, 32) Hamming table to ~32 MB

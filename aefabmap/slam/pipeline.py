@@ -10,6 +10,7 @@ truth metrics.json (evo ATE/RPE, loop edges checked against the ground truth) an
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -132,12 +133,13 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     t1 = time.perf_counter()
     edges: list[LoopEdge] = []
     verified = tested = 0
-    extractor, cache = OrbExtractor(c.odometry), {}
+    extractor = OrbExtractor(c.odometry)
 
+    # A frame and its candidates recur over a few consecutive frames (a revisit proposes
+    # neighbouring places); each entry holds a full depth map, so the cache is bounded, not per run.
+    @functools.lru_cache(maxsize=2 * (c.proposals + 2))
     def features(i: int):
-        if i not in cache:
-            cache[i] = extractor(seq.gray(i), seq.depth_m(i))
-        return cache[i]
+        return extractor(seq.gray(i), seq.depth_m(i))
 
     for res in results:
         q, tried = res.sequence, set()

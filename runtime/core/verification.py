@@ -59,7 +59,6 @@ MODELS = ("F", "E", "H")
 REJECT_REASONS = ("no_evidence", "chance", "degenerate", "collinear", "clustered", "cheirality")
 
 
-
 @dataclass(frozen=True)
 class VerificationConfig:
     """Settings of geometric verification (all distances in reference units, see below).
