@@ -43,8 +43,9 @@ def register(sub) -> None:
                     help="pre-filled places without keypoints (never verified, so verification is understated; "
                          "the mode of figures measured before this option existed)")
     pl.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
-                    help="FAB-MAP scatter: compiled when numba is installed and can run (auto, default) or numpy "
-                         "(what a board under the hardened unit runs)")
+                    help="compiled kernels (FAB-MAP scatter, all-pairs Hamming matching of verification): used when "
+                         "numba is installed and can run (auto, default), or numpy / OpenCV (what a board under the "
+                         "hardened unit runs)")
     pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     pl.add_argument("--json", type=Path, metavar="OUT")
     pl.set_defaults(func=run_pipeline)
@@ -146,17 +147,17 @@ def _emit(doc, path: Path | None) -> None:
 
 
 def run_inference(args) -> int:
-    from aefabmap.runtime.core import scatter
+    from aefabmap.runtime.core import compiled
     from aefabmap.runtime.tools.synthetic_observations import bench_inference
 
-    previous = scatter.use_compiled(args.scatter == "auto")
-    if args.scatter == "auto" and scatter.active() == "numpy":
-        log.info("scoring on numpy: %s", scatter.unavailable_reason())
+    previous = compiled.use(args.scatter == "auto")
+    if args.scatter == "auto" and compiled.active() == "numpy":
+        log.info("scoring on numpy: %s", compiled.unavailable_reason())
     try:
         results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place))
                    for n in args.places]
     finally:
-        scatter.use_compiled(previous)
+        compiled.use(previous)
     _emit(results[0] if len(results) == 1 else results, args.json)
     return 0
 

@@ -159,10 +159,10 @@ def main(args: argparse.Namespace) -> int:
         detector = load_detector(args.model, DetectorConfig(
             max_places=args.max_places, memory_mb=settings["memory_mb"], verification=verification,
             threads=settings["threads"], quantizer_variant=settings["quantizer_variant"]))
-        from aefabmap.runtime.core import scatter
+        from aefabmap.runtime.core import compiled
 
-        if scatter.active() == "numpy" and scatter.unavailable_reason():
-            log.info("FAB-MAP scores on numpy: %s", scatter.unavailable_reason())
+        if compiled.active() == "numpy" and compiled.unavailable_reason():
+            log.info("FAB-MAP scores on numpy: %s", compiled.unavailable_reason())
         # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
         run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": settings["memory_mb"],
                       "camera": list(verification.camera) if verification.camera else None}

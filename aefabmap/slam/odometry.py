@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.bits import hamming
+from aefabmap.runtime.core.bits import hamming, nearest_two
 from aefabmap.slam.poses import invert, make_pose
 
 
@@ -106,8 +106,8 @@ def match_orb(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float, max_hamming:
     """Mutual nearest-neighbour Hamming matches passing the ratio test: (M, 2) int rows (index in a, index in b)."""
     if len(desc_a) < 2 or len(desc_b) < 2:
         return np.zeros((0, 2), np.int64)
-    d_ab, i_ab = cv2.batchDistance(desc_a, desc_b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=2)
-    _, i_ba = cv2.batchDistance(desc_b, desc_a, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=1)
+    d_ab, i_ab = nearest_two(desc_a, desc_b)
+    _, i_ba = nearest_two(desc_b, desc_a)
     a = np.arange(len(desc_a))
     b = i_ab[:, 0]
     keep = (d_ab[:, 0] <= max_hamming) & (d_ab[:, 0] < ratio * d_ab[:, 1]) & (b >= 0)

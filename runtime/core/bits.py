@@ -1,14 +1,17 @@
 """Packed binary descriptors: popcount and Hamming distance (the one place both live).
 
-Used by the vocabulary tree's descent, the inverted index's routing, same-word matching in
-verification and the SLAM odometry's guided matching.
+Used by the vocabulary tree's descent, the inverted index's routing, matching in verification
+(same-word pairs and the all-pairs nearest neighbours of the brute-force retry) and the SLAM
+odometry's matching.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from aefabmap.errors import InputError
+from aefabmap.runtime.core import compiled
 
 #: Bits set in each byte value: the popcount table when numpy has no bitwise_count (< 2.0).
 POPCOUNT_TABLE = np.array([i.bit_count() for i in range(256)], np.uint8)
@@ -40,3 +43,87 @@ def popcount_rows(x: np.ndarray, use_table: bool = False) -> np.ndarray:
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamming distance of packed bit rows, broadcast: a (..., W) uint8, b (..., W) uint8 -> int32."""
     return popcount_rows(np.bitwise_xor(a, b))
+
+
+if compiled.numba is not None:
+    from numba import types as _types
+    from numba.extending import intrinsic as _intrinsic
+
+    @_intrinsic
+    def _popcount64(typingctx, x):
+        """Bits set in a uint64 (the CPU's popcount instruction where it has one)."""
+        def codegen(context, builder, signature, args):
+            return builder.ctpop(args[0])
+
+        return _types.uint64(_types.uint64), codegen
+
+
+@compiled.kernel
+def _nearest_two_kernel():
+    """Two nearest rows by Hamming distance over uint64 words, compiled (runtime/core/compiled.py).
+
+    Distances of one query row to all rows first (a branch-free loop), then one pass for the two
+    smallest; the first row wins a tie, as in OpenCV's batchDistance.
+    """
+    def nearest_two(a, b, dist, index):
+        n, w = a.shape
+        m = b.shape[0]
+        row = np.empty(m, np.int32)
+        for i in range(n):
+            if w == 4:  # ORB's 256 bits: unrolled, about 3x the generic loop
+                a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
+                for j in range(m):
+                    row[j] = np.int32(_popcount64(a0 ^ b[j, 0]) + _popcount64(a1 ^ b[j, 1])
+                                      + _popcount64(a2 ^ b[j, 2]) + _popcount64(a3 ^ b[j, 3]))
+            else:
+                for j in range(m):
+                    s = np.uint64(0)
+                    for k in range(w):
+                        s += _popcount64(a[i, k] ^ b[j, k])
+                    row[j] = np.int32(s)
+            d1, d2, i1, i2 = _FAR, _FAR, -1, -1
+            for j in range(m):
+                d = row[j]
+                if d < d2:
+                    if d < d1:
+                        d2, i2, d1, i1 = d1, i1, d, j
+                    else:
+                        d2, i2 = d, j
+            dist[i, 0], dist[i, 1], index[i, 0], index[i, 1] = d1, d2, i1, i2
+
+    return compiled.numba.njit("void(uint64[:, ::1], uint64[:, ::1], int32[:, ::1], int32[:, ::1])",
+                               nogil=True, cache=False, boundscheck=False)(nearest_two)
+
+
+#: Distance reported for a missing neighbour (fewer than two rows to search): larger than any
+#: Hamming distance of a descriptor under 2^28 bytes.
+_FAR = np.int32(2**31 - 1)
+
+
+def nearest_two(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each packed bit row of a (N, W) uint8, its two nearest rows of b (M, W) uint8 by Hamming
+    distance -> (distance (N, 2) int32, index (N, 2) int32), nearest first; a tie goes to the
+    lower index. Where b has fewer than two rows the missing neighbour has index -1 and
+    distance 2^31 - 1.
+
+    Compiled kernel when in use (runtime/core/compiled.py), else OpenCV's batchDistance: the same
+    distances and indices (1000 x 1000 ORB rows, one core here: ~2 ms against ~8 ms).
+    """
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    if a.dtype != np.uint8 or b.dtype != np.uint8 or a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
+        raise InputError(f"nearest_two needs uint8 rows of one width, got {a.dtype}{a.shape} and {b.dtype}{b.shape}")
+    n, m = a.shape[0], b.shape[0]
+    dist = np.full((n, 2), _FAR, np.int32)
+    index = np.full((n, 2), -1, np.int32)
+    if n == 0 or m == 0:
+        return dist, index
+    if compiled.active() == "compiled":
+        pad = -a.shape[1] % 8  # zero bytes xor to zero: whole 64-bit words change no distance
+        words_a = np.pad(a, ((0, 0), (0, pad))).view(np.uint64) if pad else a.view(np.uint64)
+        words_b = np.pad(b, ((0, 0), (0, pad))).view(np.uint64) if pad else b.view(np.uint64)
+        _nearest_two_kernel()(words_a, words_b, dist, index)
+        return dist, index
+    k = min(2, m)
+    d, i = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=k)
+    dist[:, :k], index[:, :k] = d, i
+    return dist, index

@@ -12,7 +12,7 @@ import numpy as np
 from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists, PostingsView
-from aefabmap.runtime.core.scatter import prepare as prepare_scatter
+from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.scatter import scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -283,7 +283,7 @@ class FabMap2:
         self._training = StaticPostings(training, defaults, tree.size)
         if self._training.n_places == 0:
             raise InputError("FAB-MAP needs at least one training observation for the new-place model")
-        prepare_scatter()
+        compiled.prepare()
         self._prior: np.ndarray | None = None
 
     @property

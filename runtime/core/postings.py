@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from aefabmap.errors import InputError, StateError
-from aefabmap.runtime.core import scatter
+from aefabmap.runtime.core import compiled, scatter
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 
 
@@ -187,7 +187,7 @@ class PostingLists:
         lens = self._len[words]
         has = lens > 0
         words, weights, lens = words[has], weights[has], lens[has]
-        if scatter.active() == "compiled":
+        if compiled.active() == "compiled":
             return scatter.scatter_buffers(defaults, self.addresses(words), weights, lens)
         return scatter.scatter_scores(defaults, self.rows(words, lens), weights, lens.astype(np.int64))
 

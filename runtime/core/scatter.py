@@ -20,21 +20,9 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 
-# Optional: the numpy path gives the same numbers. numba also fails to import where its JIT
-# cannot map executable memory (a systemd unit with MemoryDenyWriteExecute=yes, such as
-# deploy/aefabmap.service): the runtime must then run on numpy, not crash.
-_unavailable = ""  # why the compiled kernel cannot run here ("" when it can)
-try:
-    import numba as _numba
-except ImportError:  # pragma: no cover - depends on the environment
-    _numba, _unavailable = None, "numba is not installed (extra `fast`)"
-except Exception as exc:  # pragma: no cover - depends on the environment
-    _numba, _unavailable = None, f"numba cannot run here: {type(exc).__name__}: {exc}"
+from aefabmap.runtime.core import compiled
 
-_buffers_kernel = None
-_use_compiled = _numba is not None
-
-if _numba is not None:
+if compiled.numba is not None:
     from numba import types as _types
     from numba.extending import intrinsic as _intrinsic
 
@@ -49,71 +37,33 @@ if _numba is not None:
         return pointer(_types.intp), codegen
 
 
-def compiled_available() -> bool:
-    """True when numba is installed and can compile here (the compiled kernel can be used)."""
-    return _numba is not None
+@compiled.kernel
+def _buffers_kernel():
+    """The address-reading loop, compiled (runtime/core/compiled.py)."""
+    def scatter(acc, addresses, weights, lens):
+        for i in range(addresses.size):
+            row = _int32_buffer(addresses[i])
+            w = weights[i]
+            for j in range(lens[i]):
+                acc[row[j]] += w
 
-
-def unavailable_reason() -> str:
-    """Why the compiled kernel cannot be used here ("" when it can)."""
-    return _unavailable
-
-
-def use_compiled(flag: bool) -> bool:
-    """Choose the compiled kernel (when available) or numpy; returns the previous choice."""
-    global _use_compiled
-    previous = _use_compiled
-    _use_compiled = bool(flag) and _numba is not None
-    return previous
-
-
-def active() -> str:
-    """The implementation in use: "compiled" or "numpy"."""
-    return "compiled" if _use_compiled else "numpy"
-
-
-def prepare() -> None:
-    """Compile the kernel now if it is in use (once per process, about a second), so that the
-    first query does not pay for it."""
-    global _numba, _use_compiled, _unavailable
-    if not _use_compiled:
-        return
-    try:
-        _get_buffers_kernel()
-    except Exception as exc:  # pragma: no cover - a JIT that imports but cannot compile here
-        _numba, _use_compiled = None, False
-        _unavailable = f"numba cannot compile here: {type(exc).__name__}: {exc}"
-
-
-def _get_buffers_kernel():
-    """Compile the address-reading kernel on first use (once per process)."""
-    global _buffers_kernel
-    if _buffers_kernel is None:
-        def scatter(acc, addresses, weights, lens):
-            for i in range(addresses.size):
-                row = _int32_buffer(addresses[i])
-                w = weights[i]
-                for j in range(lens[i]):
-                    acc[row[j]] += w
-
-        _buffers_kernel = _numba.njit("void(float64[::1], intp[::1], float64[::1], int32[::1])",
-                                      nogil=True, cache=False, boundscheck=False)(scatter)
-    return _buffers_kernel
+    return compiled.numba.njit("void(float64[::1], intp[::1], float64[::1], int32[::1])",
+                               nogil=True, cache=False, boundscheck=False)(scatter)
 
 
 def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.ndarray, lens: np.ndarray) -> np.ndarray:
     """As `scatter_scores`, row i being lens[i] int32 place ids (each < defaults.size) at data
-    address addresses[i] (intp); compiled kernel only (`active()` is "compiled").
+    address addresses[i] (intp); compiled kernel only (`compiled.active()` is "compiled").
 
     Reads raw memory: the caller guarantees every address is the data of a live C-contiguous
     int32 buffer of at least lens[i] entries for the duration of the call (PostingLists and
     `scatter_scores` do).
     """
-    if not _use_compiled:
+    if compiled.active() != "compiled":
         raise ConfigError("scatter_buffers needs the compiled kernel (numba installed and in use)")
     acc = np.array(defaults, dtype=np.float64, copy=True)
     if lens.size:
-        _get_buffers_kernel()(acc, np.ascontiguousarray(addresses, np.intp), np.ascontiguousarray(weights, np.float64),
+        _buffers_kernel()(acc, np.ascontiguousarray(addresses, np.intp), np.ascontiguousarray(weights, np.float64),
                               np.ascontiguousarray(lens, np.int32))
     return acc
 
@@ -128,7 +78,7 @@ def scatter_scores(defaults: np.ndarray, rows: list[np.ndarray], weights: np.nda
     total = int(lens.sum()) if lens.size else 0
     if total == 0:
         return defaults.copy()
-    if _use_compiled:
+    if compiled.active() == "compiled":
         ids = np.ascontiguousarray(rows[0] if len(rows) == 1 else np.concatenate(rows), np.int32)
         starts = np.cumsum(lens, dtype=np.intp) - lens  # row i starts starts[i] postings into ids
         return scatter_buffers(defaults, ids.ctypes.data + ids.itemsize * starts, weights, lens)

@@ -49,6 +49,7 @@ from aefabmap.runtime.core.conditioning import (
 )
 from aefabmap.runtime.core.feature_kinds import DISTANCES
 from aefabmap.runtime.core.features import MAX_FEATURES
+from aefabmap.runtime.core.nearest import nearest_two, unit_rows
 
 #: Word id of a keypoint kept for geometry only (beyond the bundle's keypoint budget, so never
 #: quantised): same-word matching skips it, the brute-force retry matches it like any other.
@@ -381,8 +382,8 @@ def match_keypoints(
     if distance == "hamming":
         dist = hamming(q_desc[qi], p_desc[pi]).astype(np.float32)
     else:
-        dq = _as_unit_float(q_desc[qi])
-        dp = _as_unit_float(p_desc[pi])
+        dq = unit_rows(q_desc[qi])
+        dp = unit_rows(p_desc[pi])
         dist = np.sqrt(np.maximum(((dq - dp) ** 2).sum(axis=1), 0.0)).astype(np.float32)
     # Sort pairs by (query, distance): the first pair of each query is its nearest neighbour.
     order = np.lexsort((dist, qi))
@@ -410,7 +411,7 @@ def match_all(
 ) -> np.ndarray:
     """Putative matches over all keypoint pairs (no word restriction); distance as `match_keypoints`.
 
-    Each query keypoint's two nearest place keypoints (one OpenCV batchDistance pass), the
+    Each query keypoint's two nearest place keypoints (`nearest.nearest_two`), the
     distance cap and the ratio test, then each place keypoint keeps only its closest query
     keypoint (one-sided, as `match_keypoints`: the reverse nearest-neighbour pass of a full
     mutual check would double the cost). Returns (K, 2) int64 rows (query index, place index).
@@ -419,15 +420,9 @@ def match_all(
     cap = _distance_cap(distance, q_desc, c)
     if q_desc.shape[0] == 0 or p_desc.shape[0] < 2:
         return np.zeros((0, 2), np.int64)
-    if distance == "hamming":
-        a, b, norm, dtype = np.ascontiguousarray(q_desc), np.ascontiguousarray(p_desc), cv2.NORM_HAMMING, cv2.CV_32S
-    else:
-        a, b, norm, dtype = _as_unit_float(q_desc), _as_unit_float(p_desc), cv2.NORM_L2, cv2.CV_32F
-    # OpenCV's batchDistance: vectorised popcount / L2, the two nearest per query row.
-    d2, i2 = cv2.batchDistance(a, b, dtype, normType=norm, K=2)
-    d2 = d2.astype(np.float32)
-    q = np.arange(a.shape[0])
-    p = i2[:, 0].astype(np.int64)
+    d2, i2 = nearest_two(q_desc, p_desc, distance)
+    q = np.arange(q_desc.shape[0])
+    p = i2[:, 0]
     keep = (d2[:, 0] <= cap) & (d2[:, 0] < c.ratio_bruteforce * d2[:, 1]) & (p >= 0)
     q, p, d1 = q[keep], p[keep], d2[keep, 0]
     if q.size == 0:
@@ -436,12 +431,6 @@ def match_all(
     q, p = q[order], p[order]
     first = np.r_[True, p[1:] != p[:-1]]
     return np.stack([q[first], p[first]], axis=1).astype(np.int64)
-
-
-def _as_unit_float(desc: np.ndarray) -> np.ndarray:
-    """Descriptors (float or stored uint8) -> float32 rows of unit L2 norm."""
-    d = desc.astype(np.float32)
-    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 def grid_spread(points: np.ndarray, shape_hw: tuple[float, float], grid: int) -> float:

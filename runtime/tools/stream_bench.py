@@ -118,8 +118,9 @@ class PipelineBenchConfig:
     verified as in a live map, and frames pay what a frame that is not a loop pays. False:
     words only; such places are never verified, which understates verification's cost.
     single_core: spawn a process pinned to one CPU with one thread everywhere.
-    scatter: FAB-MAP's scatter, "auto" (compiled when numba can run) or "numpy" (what a board
-    under the hardened unit runs, deploy/README.md).
+    scatter: the compiled kernels (runtime/core/compiled.py: FAB-MAP's scatter, verification's
+    all-pairs Hamming matching), "auto" (compiled when numba can run) or "numpy" (numpy / OpenCV
+    fallbacks: what a board under the hardened unit runs, deploy/README.md).
     """
 
     bundle: str
@@ -150,13 +151,13 @@ def bench_pipeline(config: PipelineBenchConfig) -> dict:
     if not Path(config.bundle).is_dir():
         raise BundleError(f"model bundle {config.bundle} does not exist")
     if not config.single_core:
-        from aefabmap.runtime.core import scatter
+        from aefabmap.runtime.core import compiled
 
-        previous = scatter.active() == "compiled"  # _bench_pipeline_here chooses; restored after
+        previous = compiled.active() == "compiled"  # _bench_pipeline_here chooses; restored after
         try:
             return _bench_pipeline_here(config)
         finally:
-            scatter.use_compiled(previous)
+            compiled.use(previous)
     return run_spawned_single_thread(_bench_pipeline_here, config)
 
 
@@ -195,12 +196,12 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.frame_loop import FrameLoop
     from aefabmap.runtime.adapters.frames import decode_frame
-    from aefabmap.runtime.core import scatter
+    from aefabmap.runtime.core import compiled
     from aefabmap.runtime.core.detector import DetectorConfig
     from aefabmap.runtime.core.verification import VerificationConfig
     from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
 
-    scatter.use_compiled(config.scatter == "auto")
+    compiled.use(config.scatter == "auto")
     pinned = None
     if config.single_core:
         cv2.setNumThreads(1)
@@ -273,7 +274,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "prefill": config.prefill,
         "prefill_words_per_place": round(mean_words, 1),
         "place_keypoints": bool(config.place_keypoints and config.verification),
-        "scatter": scatter.active(),
+        "scatter": compiled.active(),
         "prefill_seconds": round(prefill_s, 2),
         "places_in_map": {"min": int(min(n_places)), "max": int(max(n_places))},
         "map_bytes": int(det.map_bytes()),

@@ -10,7 +10,7 @@ from itertools import islice
 
 import numpy as np
 
-from aefabmap.runtime.core import scatter
+from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.tree import ChowLiuTree
 
@@ -119,5 +119,5 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
         remove_ms_median=float(np.median(remove_times) * 1e3) if remove_times else 0.0,
         bytes_per_place=nbytes / max(1, places),
         index_bytes=nbytes,
-        scatter=scatter.active(),
+        scatter=compiled.active(),
     )

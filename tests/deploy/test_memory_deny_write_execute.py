@@ -96,7 +96,7 @@ def test_fabmap_scores_on_numpy_when_the_jit_is_denied():
     code = textwrap.dedent(
         """
         import numpy as np
-        from aefabmap.runtime.core import scatter
+        from aefabmap.runtime.core import compiled
         from aefabmap.runtime.core.fabmap import FabMap2
         from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
         engine = FabMap2(random_tree(200, 0), synthetic_observations(20, 200, 30, 1))
@@ -104,7 +104,7 @@ def test_fabmap_scores_on_numpy_when_the_jit_is_denied():
             engine.add(o)
         loc = engine.localize(synthetic_observations(1, 200, 30, 3)[0], add=False)
         assert np.isfinite(loc.loglik).all()
-        print(scatter.active(), "|", scatter.unavailable_reason())
+        print(compiled.active(), "|", compiled.unavailable_reason())
         """
     )
     out = _sandboxed([sys.executable, "-c", code], timeout_s=120)

@@ -1,4 +1,4 @@
-"""Popcount and Hamming distance of packed bits: every path against unpacked bits."""
+"""Popcount, Hamming distance and nearest neighbours of packed bits: every path against unpacked bits."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core.bits import POPCOUNT_TABLE, hamming, popcount_rows
+from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core.bits import POPCOUNT_TABLE, hamming, nearest_two, popcount_rows
 
 
 @pytest.mark.parametrize("width", [1, 7, 8, 32, 61])
@@ -37,3 +38,43 @@ def test_hamming_broadcasts_and_refuses_other_dtypes():
     assert table[3, 4] == (np.unpackbits(a[3]) != np.unpackbits(b[4])).sum()
     with pytest.raises(InputError):
         popcount_rows(a.astype(np.int16))
+
+
+def _nearest_two_by_unpacked_bits(a, b):
+    """Reference: full distance matrix from unpacked bits, two smallest per row (stable: lower index on a tie)."""
+    d = (np.unpackbits(a, axis=1)[:, None, :] != np.unpackbits(b, axis=1)[None, :, :]).sum(axis=2)
+    order = np.argsort(d, axis=1, kind="stable")[:, :2]
+    return np.take_along_axis(d, order, axis=1), order
+
+
+@pytest.mark.parametrize("use_compiled", [False, True])
+@pytest.mark.parametrize("width", [32, 61, 64, 8])
+def test_nearest_two_equals_the_full_distance_matrix_ties_included(use_compiled, width):
+    """Both paths (compiled kernel, OpenCV) give the same neighbours, the lower index winning a
+    tie: bytes drawn from {0..3} make most distances tie."""
+    if use_compiled and not compiled.available():
+        pytest.skip("numba is not installed (extra `fast`)")
+    rng = np.random.default_rng(width)
+    a = rng.integers(0, 4, (120, width), dtype=np.uint8)
+    b = rng.integers(0, 4, (90, width), dtype=np.uint8)
+    previous = compiled.use(use_compiled)
+    try:
+        dist, index = nearest_two(a, b)
+        # Fewer than two rows to search: the missing neighbour is (-1, 2^31 - 1).
+        d1, i1 = nearest_two(a[:3], b[:1])
+        d0, i0 = nearest_two(a[:0], b)
+    finally:
+        compiled.use(previous)
+    expect_d, expect_i = _nearest_two_by_unpacked_bits(a, b)
+    assert dist.dtype == np.int32 and index.dtype == np.int32
+    assert np.array_equal(dist, expect_d) and np.array_equal(index, expect_i)
+    assert np.array_equal(i1[:, 0], [0, 0, 0]) and np.all(i1[:, 1] == -1) and np.all(d1[:, 1] == 2**31 - 1)
+    assert np.array_equal(d1[:, 0], _nearest_two_by_unpacked_bits(a[:3], b[:1])[0][:, 0])
+    assert d0.shape == (0, 2) and i0.shape == (0, 2)
+
+
+def test_nearest_two_rejects_rows_it_cannot_compare():
+    a = np.zeros((3, 32), np.uint8)
+    for bad in (np.zeros((3, 31), np.uint8), np.zeros((3, 32), np.float32), np.zeros(32, np.uint8)):
+        with pytest.raises(InputError):
+            nearest_two(a, bad)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from aefabmap.errors import InputError, StateError
-from aefabmap.runtime.core import scatter
+from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists
 
@@ -115,14 +115,14 @@ def _churned(seed: int) -> PostingLists:
     return lists
 
 
-@pytest.mark.parametrize("compiled", [False, True])
-def test_scatter_reads_every_buffer_where_it_lies_after_growth_shrinking_and_reload(compiled):
+@pytest.mark.parametrize("use_compiled", [False, True])
+def test_scatter_reads_every_buffer_where_it_lies_after_growth_shrinking_and_reload(use_compiled):
     """The compiled scatter reads postings through the buffers' data addresses: after any
     history of adds, removals (buffers shrunk or freed) and a state reload, it must read exactly
     the live buffers, as the numpy path and a per-word loop do."""
-    if compiled and not scatter.compiled_available():
+    if use_compiled and not compiled.available():
         pytest.skip("numba is not installed (extra `fast`)")
-    previous = scatter.use_compiled(compiled)
+    previous = compiled.use(use_compiled)
     try:
         for seed in range(3):
             lists = _churned(seed)
@@ -138,4 +138,4 @@ def test_scatter_reads_every_buffer_where_it_lies_after_growth_shrinking_and_rel
             np.testing.assert_array_equal(got, _reference_scatter(defaults, lists, words, weights))
             assert got is not defaults
     finally:
-        scatter.use_compiled(previous)
+        compiled.use(previous)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from aefabmap.runtime.core import scatter
+from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.scatter import scatter_scores
 
 
@@ -23,11 +23,11 @@ def _reference(defaults, rows, weights):
     return acc
 
 
-@pytest.mark.parametrize("compiled", [False, True])
-def test_scatter_matches_per_word_adds_exactly(compiled):
-    if compiled and not scatter.compiled_available():
+@pytest.mark.parametrize("use_compiled", [False, True])
+def test_scatter_matches_per_word_adds_exactly(use_compiled):
+    if use_compiled and not compiled.available():
         pytest.skip("numba is not installed")
-    previous = scatter.use_compiled(compiled)
+    previous = compiled.use(use_compiled)
     try:
         for seed in range(5):
             defaults, rows, weights, lens = _case(seed)
@@ -39,4 +39,4 @@ def test_scatter_matches_per_word_adds_exactly(compiled):
         np.testing.assert_array_equal(out, d)
         assert out is not d
     finally:
-        scatter.use_compiled(previous)
+        compiled.use(previous)
