@@ -5,17 +5,18 @@ Positives: CamVid frames of one drive 1, 2, 3, 5 and 10 frames apart (about 1-10
 frames of two different drives, Scene-15 pairs and CamVid-vs-Scene-15 pairs. Each pair is
 verified as the brute-force retry verifies a loop candidate (all descriptors matched with the
 ratio test, the a-contrario test), and the acceptance rate is printed per gap for each setting
-of `VerificationConfig.independence` and `ratio_bruteforce`, with the lowest log10 NFA of the
+of `VerificationConfig.method`, `independence` and `ratio_bruteforce`, with the lowest log10 NFA of the
 negatives (how close the nearest unrelated pair came to the -4 bar).
 
     python scripts/calibrate_verification.py --data DATA --features orb --keypoints 1000 \
-        --independence 0.5 --ratio-bruteforce 0.7 0.75 0.8 0.85 0.9 1.0 --per-drive 36
+        --method lo-ransac magsac --ratio-bruteforce 0.7 0.8 0.9 --per-drive 36
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import itertools
 import os
 import random
 from dataclasses import replace
@@ -67,6 +68,8 @@ def main() -> None:
     ap.add_argument("--keypoints", type=int, default=500)
     ap.add_argument("--independence", type=float, nargs="+", default=[0.5])
     ap.add_argument("--ratio-bruteforce", type=float, nargs="+", default=[V.VerificationConfig().ratio_bruteforce])
+    ap.add_argument("--method", nargs="+", default=[V.VerificationConfig().method], choices=V.GEOMETRY_METHODS,
+                    help="model estimators to compare (default: the runtime's)")
     ap.add_argument("--per-drive", type=int, default=12, help="pairs per gap and CamVid drive (default 12)")
     args = ap.parse_args()
     kind = get_kind(args.features)
@@ -89,17 +92,16 @@ def main() -> None:
                              radius=radius)
 
     pos, neg = training_pairs(args.data / "train", per_drive=args.per_drive)
-    for independence in args.independence:
-        for ratio in args.ratio_bruteforce:
-            config = replace(V.VerificationConfig(), independence=independence, ratio_bruteforce=ratio)
-            rates = {gap: np.mean([verify(a, b, config).verified for a, b in pairs]) for gap, pairs in pos.items()}
-            negatives = [verify(a, b, config) for a, b in neg]
-            wrong = sum(g.verified for g in negatives)
-            closest = min((g.nfa for g in negatives if g.nfa is not None), default=float("inf"))
-            print(f"{args.features} {args.keypoints} keypoints, independence {independence}, ratio {ratio}: "
-                  "positives accepted " + " / ".join(f"{g} frames apart {100 * r:.0f}%" for g, r in rates.items())
-                  + f" (n={len(pos[GAPS[0]])} per gap); negatives accepted {wrong} of {len(neg)}, "
-                  f"lowest log10 NFA {closest:.1f}", flush=True)
+    for method, independence, ratio in itertools.product(args.method, args.independence, args.ratio_bruteforce):
+        config = replace(V.VerificationConfig(), method=method, independence=independence, ratio_bruteforce=ratio)
+        rates = {gap: np.mean([verify(a, b, config).verified for a, b in pairs]) for gap, pairs in pos.items()}
+        negatives = [verify(a, b, config) for a, b in neg]
+        wrong = sum(g.verified for g in negatives)
+        closest = min((g.nfa for g in negatives if g.nfa is not None), default=float("inf"))
+        print(f"{args.features} {args.keypoints} keypoints, {method}, independence {independence}, ratio {ratio}: "
+              "positives accepted " + " / ".join(f"{g} frames apart {100 * r:.0f}%" for g, r in rates.items())
+              + f" (n={len(pos[GAPS[0]])} per gap); negatives accepted {wrong} of {len(neg)}, "
+              f"lowest log10 NFA {closest:.1f}", flush=True)
 
 
 if __name__ == "__main__":
