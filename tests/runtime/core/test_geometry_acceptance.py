@@ -15,6 +15,7 @@ from aefabmap.runtime.core.conditioning import (
 )
 from aefabmap.runtime.core.feature_kinds import get_kind
 from aefabmap.runtime.core.verification import (
+    GEOMETRY_METHODS,
     VerificationConfig,
     distinct_matches,
     independence_radius,
@@ -74,6 +75,24 @@ def test_random_matches_are_chance():
         xp = rng.uniform(0, [640, 480], (150, 2))
         g = estimate_geometry(xq, xp, (480, 640), (480, 640), VerificationConfig(), full=True)
         assert not g.verified and g.f_nfa >= 0 and g.h_nfa >= 0, (seed, g.f_nfa, g.h_nfa)
+
+
+@pytest.mark.parametrize("method", GEOMETRY_METHODS)
+def test_every_estimator_is_judged_by_the_same_test(method):
+    """Whichever estimator proposes the models, a true 3-D scene verifies as F and chance or
+    degenerate matches do not."""
+    cfg = VerificationConfig(method=method, min_inliers_h=1000)
+    xq, xp = two_views(seed=2)
+    g = estimate_geometry(xq, xp, (480, 640), (480, 640), cfg)
+    assert g.verified and g.model == "F" and g.nfa < -50, (method, g.reason, g.nfa)
+    rng = np.random.default_rng(7)
+    xq, xp = rng.uniform(0, [640, 480], (150, 2)), rng.uniform(0, [640, 480], (150, 2))
+    assert not estimate_geometry(xq, xp, (480, 640), (480, 640), VerificationConfig(method=method), full=True).verified
+    xs_p, xs_q = rng.uniform(20, 620, 80), rng.uniform(20, 620, 80)
+    line_p = np.c_[xs_p, 300 + 0.1 * xs_p + rng.normal(0, 0.4, 80)]
+    line_q = np.c_[xs_q, 200 - 0.05 * xs_q + rng.normal(0, 0.4, 80)]
+    assert not estimate_geometry(line_q, line_p, (480, 640), (480, 640), VerificationConfig(method=method),
+                                 full=True).verified
 
 
 def test_significance_grows_with_support_and_counts_the_matches():
