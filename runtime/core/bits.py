@@ -59,7 +59,7 @@ if compiled.numba is not None:
 
 
 @compiled.kernel
-def _nearest_two_kernel():
+def nearest_two_kernel():
     """Two nearest rows by Hamming distance over uint64 words, compiled (runtime/core/compiled.py).
 
     Distances of one query row to all rows first (a branch-free loop), then one pass for the two
@@ -121,7 +121,7 @@ def nearest_two(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pad = -a.shape[1] % 8  # zero bytes xor to zero: whole 64-bit words change no distance
         words_a = np.pad(a, ((0, 0), (0, pad))).view(np.uint64) if pad else a.view(np.uint64)
         words_b = np.pad(b, ((0, 0), (0, pad))).view(np.uint64) if pad else b.view(np.uint64)
-        _nearest_two_kernel()(words_a, words_b, dist, index)
+        nearest_two_kernel()(words_a, words_b, dist, index)
         return dist, index
     k = min(2, m)
     d, i = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=k)

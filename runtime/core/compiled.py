@@ -2,8 +2,8 @@
 and their numpy / OpenCV fallbacks (the one place that imports numba).
 
 Kernels (the FAB-MAP scatter in runtime/core/scatter.py, the Hamming nearest-neighbour search in
-runtime/core/bits.py) register a builder with `kernel`; each is compiled on first use, or by
-`prepare` ahead of the first frame. Every kernel has a fallback that gives the same results, so
+runtime/core/bits.py) wrap their builder with `kernel`; each is compiled on first use, or by
+`prepare` when its user is built (FAB-MAP its scatter, a verifying detector its matcher). Every kernel has a fallback that gives the same results, so
 the choice changes speed only.
 
 numba is the extra `fast`. It also fails to import where its JIT cannot map executable memory
@@ -24,8 +24,6 @@ except Exception as exc:  # pragma: no cover - depends on the environment
     numba, _unavailable = None, f"numba cannot run here: {type(exc).__name__}: {exc}"
 
 _use = numba is not None
-_builders: list[Callable[[], Callable]] = []
-_built: dict[int, Callable] = {}
 
 
 def available() -> bool:
@@ -52,31 +50,28 @@ def active() -> str:
 
 
 def kernel(build: Callable[[], Callable]) -> Callable[[], Callable]:
-    """Register `build` (returns a numba-compiled function; called only when numba imported) and
-    return a getter that compiles it on first call and then returns it."""
-    index = len(_builders)
-    _builders.append(build)
+    """A getter of the function `build` returns (numba-compiled; built only when numba imported):
+    it compiles on the first call and then returns the same function."""
+    built: list[Callable] = []
 
     def get() -> Callable:
-        fn = _built.get(index)
-        if fn is None:
-            fn = _built[index] = build()
-        return fn
+        if not built:
+            built.append(build())
+        return built[0]
 
     return get
 
 
-def prepare() -> None:
-    """Compile every registered kernel now if compiled kernels are in use (about a second each,
-    once per process), so that the first frame does not pay for it. A JIT that imports but
-    cannot compile here switches the process to the fallbacks."""
+def prepare(*kernels: Callable[[], Callable]) -> None:
+    """Compile the given kernels (`kernel` getters) now if compiled kernels are in use (0.5-1 s
+    each, once per process), so that the first frame does not pay for it. A JIT that imports
+    but cannot compile here switches the process to the fallbacks."""
     global numba, _use, _unavailable
     if not _use:
         return
     try:
-        for index, build in enumerate(_builders):
-            if index not in _built:
-                _built[index] = build()
+        for get in kernels:
+            get()
     except Exception as exc:  # pragma: no cover - a JIT that imports but cannot compile here
         numba, _use = None, False
         _unavailable = f"numba cannot compile here: {type(exc).__name__}: {exc}"

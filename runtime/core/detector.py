@@ -15,7 +15,9 @@ from typing import Protocol
 import numpy as np
 
 from aefabmap.errors import ConfigError, InputError, StateError
+from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
+from aefabmap.runtime.core.bits import nearest_two_kernel
 from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features
@@ -169,6 +171,8 @@ class LoopClosureDetector:
         self.store: KeypointStore | None = None
         if v.enabled:
             self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
+            if self.kind.distance == "hamming":
+                compiled.prepare(nearest_two_kernel)  # the brute-force retry's matcher
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)

@@ -13,7 +13,7 @@ from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists, PostingsView
 from aefabmap.runtime.core import compiled
-from aefabmap.runtime.core.scatter import scatter_scores
+from aefabmap.runtime.core.scatter import buffers_kernel, scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
 
 
@@ -283,7 +283,7 @@ class FabMap2:
         self._training = StaticPostings(training, defaults, tree.size)
         if self._training.n_places == 0:
             raise InputError("FAB-MAP needs at least one training observation for the new-place model")
-        compiled.prepare()
+        compiled.prepare(buffers_kernel)
         self._prior: np.ndarray | None = None
 
     @property

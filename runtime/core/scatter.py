@@ -38,7 +38,7 @@ if compiled.numba is not None:
 
 
 @compiled.kernel
-def _buffers_kernel():
+def buffers_kernel():
     """The address-reading loop, compiled (runtime/core/compiled.py)."""
     def scatter(acc, addresses, weights, lens):
         for i in range(addresses.size):
@@ -63,7 +63,7 @@ def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.nda
         raise ConfigError("scatter_buffers needs the compiled kernel (numba installed and in use)")
     acc = np.array(defaults, dtype=np.float64, copy=True)
     if lens.size:
-        _buffers_kernel()(acc, np.ascontiguousarray(addresses, np.intp), np.ascontiguousarray(weights, np.float64),
+        buffers_kernel()(acc, np.ascontiguousarray(addresses, np.intp), np.ascontiguousarray(weights, np.float64),
                               np.ascontiguousarray(lens, np.int32))
     return acc
 
