@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aefabmap.runtime.core.acontrario import significance
+from aefabmap.runtime.core.acontrario import match_region, significance
 from aefabmap.runtime.core.messages import FrameResult
 from aefabmap.runtime.core.verification import distinct_matches
 from aefabmap.slam.odometry import (
@@ -146,8 +146,7 @@ def proposal_edge(query_index: int, place_index: int, query: FrameFeatures, plac
     with np.errstate(divide="ignore", invalid="ignore"):  # points behind the camera: error inf below
         uv = to_pixels(cam, K)
     err = np.where(cam[:, 2] > config.min_depth, np.linalg.norm(uv - xq, axis=1), np.inf)
-    long_side = float(max(query.depth.shape))
-    w, h = np.ptp(xq, axis=0)
-    sig = significance(err, "P", max(float(w), long_side / 8), max(float(h), long_side / 8), config.reprojection_px)
+    w, h = match_region(xq, long_side=float(max(query.depth.shape)))
+    sig = significance(err, "P", w, h, config.reprojection_px)
     edge.verified_inliers, edge.nfa = sig.inliers, sig.log10_nfa
     return _refined(edge, seed.T if sig.log10_nfa < max_log10_nfa else None, query, place, K, config)

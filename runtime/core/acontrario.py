@@ -77,6 +77,21 @@ def alpha_coefficient(model: str, width: float, height: float) -> float:
     return float(np.pi) / area
 
 
+def match_region(*points: np.ndarray, long_side: float) -> tuple[float, float]:
+    """(width, height) of the smallest bounding box of the given matched point sets (K, 2), each
+    side floored at long_side / 8 (same units as the points).
+
+    The background spreads chance matches over the region matches actually fall in: a box
+    smaller than the image makes chance agreement likelier (larger alpha), so with the points of
+    both images the smaller box is the conservative choice; the floor keeps a few clustered
+    points from making alpha explode.
+    """
+    boxes = [np.ptp(x, axis=0) for x in points]
+    w, h = min(boxes, key=lambda b: b[0] * b[1])
+    floor = long_side / 8
+    return max(float(w), floor), max(float(h), floor)
+
+
 def significance(errors: np.ndarray, model: str, width: float, height: float, max_eps: float | None = None) -> Significance:
     """Minimum log10 NFA over k of a model whose match errors are `errors` (n,).
 

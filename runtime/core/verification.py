@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, significance
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, match_region, significance
 from aefabmap.runtime.core.bits import hamming
 from aefabmap.runtime.core.conditioning import (
     enforce_rank2,
@@ -518,7 +518,7 @@ def estimate_geometry(
     if k <= SAMPLE_SIZE["H"]:
         res.reason = "no_evidence"
         return res
-    region = _match_region(nq, np_, c.reference_long_side)
+    region = match_region(nq, np_, long_side=c.reference_long_side)
     best_key = (-1, -np.inf)
 
     def consider(name: str, M: np.ndarray, err: np.ndarray, conditioning=None) -> None:
@@ -705,19 +705,6 @@ def relative_pose_from_recover(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray
     c = -R_pq @ np.asarray(t, np.float64).reshape(3)
     n = float(np.linalg.norm(c))
     return R_pq, (c / n if n > 0 else c)
-
-
-def _match_region(nq: np.ndarray, np_: np.ndarray, long_side: float) -> tuple[float, float]:
-    """(width, height) of the smaller bounding box of the matched points of either image.
-
-    The a-contrario background spreads chance matches over the region matches actually fall
-    in: a box smaller than the image makes chance agreement likelier (larger alpha), so the
-    smaller of the two boxes is the conservative choice. Floored at 1/8 of the reference side.
-    """
-    boxes = [np.ptp(x, axis=0) for x in (nq, np_)]
-    w, h = min(boxes, key=lambda b: b[0] * b[1])
-    floor = long_side / 8
-    return max(float(w), floor), max(float(h), floor)
 
 
 def _transfer_error(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
