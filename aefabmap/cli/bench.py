@@ -52,9 +52,12 @@ def register(sub) -> None:
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
     qz.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
     qz.add_argument("--variant", default=None,
-                    choices=("kmeans-flat", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8", "fp32", "int8"),
+                    choices=("kmeans-flat", "kmeans-flat-fp32", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8",
+                             "fp32", "int8"),
                     help="quantiser to time: the bundle's own (default; k-means with an index: kmeans-indexed; "
-                    "AE: ae-fp32), kmeans-flat on an indexed bundle (exhaustive search), ae-int8 / int8 on an AE bundle")
+                    "AE: ae-fp32), kmeans-flat on an indexed bundle (exhaustive search; binary kinds: int8 product "
+                    "with exact re-rank), kmeans-flat-fp32 (the same search as one float32 product), ae-int8 / int8 "
+                    "on an AE bundle")
     qz.add_argument("--data", type=Path, default=None, metavar="DIR",
                     help="data root whose train/scene15 images give the descriptors (default: $AEFABMAP_DATA; "
                     "without it, synthetic frames)")

@@ -19,9 +19,10 @@ def register(sub) -> None:
     p.add_argument("--exclude", type=int, default=50, help="exclusion window / insertion delay in frames (default 50)")
     p.add_argument("--tolerance", type=int, default=10, help="frames of tolerance for the tolerant metrics (default 10)")
     p.add_argument("--scorer", choices=SCORERS + ("both",), default="fabmap", help="fabmap, bow (tf-idf cosine) or both")
-    p.add_argument("--variant", choices=("fp32", "int8", "flat"), default="fp32",
+    p.add_argument("--variant", choices=("fp32", "int8", "flat", "flat-fp32"), default="fp32",
                    help="quantiser variant: fp32 / int8 (autoencoder bundles); flat: exhaustive search of a k-means "
-                   "bundle that has an inverted index")
+                   "bundle that has an inverted index; flat-fp32: that search as one float32 product (binary kinds "
+                   "otherwise use an int8 product with an exact re-rank: the same words)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
     p.add_argument("--motion-model", action="store_true", help="FAB-MAP motion prior")
     p.add_argument("--naive-bayes", action="store_true", help="FAB-MAP without the Chow-Liu tree")

@@ -98,7 +98,9 @@ class ModelBundle:
         """Build the bundle's quantiser (Quantizer protocol).
 
         variant: "fp32" | "int8" (ae); a k-means bundle with an inverted index uses it unless
-        variant is "flat" (the exhaustive arg-min over the same words).
+        variant is "flat" (the exhaustive arg-min over the same words). The flat search of a
+        binary kind runs as an int8 product with an exact re-rank (BitCentroidQuantizer: the same
+        words); "flat-fp32" forces the float32 product (NearestCentroidQuantizer).
         """
         q = self.manifest["quantizer"]
         files = q["files"]
@@ -111,8 +113,14 @@ class ModelBundle:
             )
             if not np.isfinite(centroids).all():
                 raise BundleError(f"{self.path}: {name} holds NaN or infinite centroids")
-            if "index" in q and variant != "flat":
+            if "index" in q and variant not in ("flat", "flat-fp32"):
                 return self._indexed(centroids)
+            # Mean-of-bits centroids lie in [0, 1]; others would only widen the int8 band.
+            if variant != "flat-fp32" and self.features.spec.distance == "hamming" and centroids.min() >= 0 \
+                    and centroids.max() <= 1:
+                from aefabmap.runtime.core.bit_centroids import BitCentroidQuantizer
+
+                return BitCentroidQuantizer(centroids, threads=threads)
             return NearestCentroidQuantizer(centroids)
         if self.quantizer_type == "kmeans-tree":
             return self._vocabulary_tree()

@@ -49,14 +49,15 @@ class RunProfile:
     @property
     def quantizer_variant(self) -> str:
         """The DetectorConfig.quantizer_variant of `variant`."""
-        return {"ae-int8": "int8", "kmeans-flat": "flat"}.get(self.variant, "fp32")
+        return {"ae-int8": "int8", "kmeans-flat": "flat", "kmeans-flat-fp32": "flat-fp32"}.get(self.variant, "fp32")
 
 
 def bundle_variants(quantizer: dict) -> tuple[str, ...]:
     """Quantiser variants a bundle can run, from its manifest quantizer entry (its default first)."""
     qtype = quantizer.get("type")
     if qtype == "kmeans":
-        return ("kmeans-indexed", "kmeans-flat") if "index" in quantizer else ("kmeans-flat",)
+        flat = ("kmeans-flat", "kmeans-flat-fp32")
+        return ("kmeans-indexed",) + flat if "index" in quantizer else flat
     if qtype == "kmeans-tree":
         return ("kmeans-tree",)
     return ("ae-fp32", "ae-int8")

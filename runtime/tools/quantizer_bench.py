@@ -24,7 +24,7 @@ from aefabmap.runtime.tools.node_process import SINGLE_THREAD_ENV
 from aefabmap.runtime.tools.stream_bench import _stats, machine_info, pin_one_cpu, run_spawned_single_thread
 
 #: Quantiser variants: the bundle's quantizer type and, for the autoencoder, the precision.
-VARIANTS = ("kmeans-flat", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8")
+VARIANTS = ("kmeans-flat", "kmeans-flat-fp32", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8")
 SAMPLE_SUBDIR = Path("train") / "scene15"
 
 
@@ -63,7 +63,7 @@ def resolve_variant(manifest_quantizer: dict, variant: str | None) -> str:
 
 
 #: Bundle.quantizer() variant argument of each VARIANTS name.
-LOADER_VARIANT = {"kmeans-flat": "flat", "kmeans-indexed": "fp32", "kmeans-tree": "fp32", "ae-fp32": "fp32",
+LOADER_VARIANT = {"kmeans-flat": "flat", "kmeans-flat-fp32": "flat-fp32", "kmeans-indexed": "fp32", "kmeans-tree": "fp32", "ae-fp32": "fp32",
                   "ae-int8": "int8"}
 
 

@@ -98,3 +98,20 @@ def test_writer_replaces_an_existing_bundle(tmp_path):
     make_synthetic_bundle(tmp_path / "b", seed=1)
     assert load_bundle(tmp_path / "b").training_observations
     assert sorted(p.name for p in tmp_path.iterdir()) == ["b"]
+
+
+def test_flat_search_of_a_binary_kind_runs_in_int8_with_the_float_words(tmp_path):
+    """An ORB k-means bundle searches its flat vocabulary with the int8 product (exact re-rank),
+    "flat-fp32" with the float32 product, and the two give the same words; a SIFT bundle keeps
+    the float product (its descriptors are not bits)."""
+    from aefabmap.runtime.core.bit_centroids import BitCentroidQuantizer
+    from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, quantize_raw
+
+    b = load_bundle(make_synthetic_bundle(tmp_path / "orb", vocabulary_size=200))
+    int8, fp32 = b.quantizer(), b.quantizer("flat-fp32")
+    assert isinstance(int8, BitCentroidQuantizer) and isinstance(fp32, NearestCentroidQuantizer)
+    raw = np.random.default_rng(5).integers(0, 256, (400, 32), dtype=np.uint8)
+    kind = b.features.spec
+    assert np.array_equal(quantize_raw(int8, kind, raw), quantize_raw(fp32, kind, raw))
+    sift = load_bundle(make_synthetic_bundle(tmp_path / "sift", kind="sift"))
+    assert isinstance(sift.quantizer(), NearestCentroidQuantizer)
