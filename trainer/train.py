@@ -223,9 +223,10 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                 centroids = fit_kmeans(sample, config.words, KMeansConfig(config.kmeans_iterations, seed=config.seed), tick)
                 clustered = int(sample.shape[0])
             bar.close()
-            from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
+            from aefabmap.runtime.core.bit_centroids import flat_quantizer
 
-            quantizer = NearestCentroidQuantizer(centroids)
+            # The runtime's own flat search, so that training words are the words it will give.
+            quantizer = flat_quantizer(centroids, kind.distance)
             q_manifest = {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}, "descriptors_clustered": clustered}
             q_files: dict = {"vocabulary.npy": centroids}
             if config.index_buckets:
@@ -372,7 +373,7 @@ def _centroids_from(config: TrainConfig) -> tuple[np.ndarray, int]:
         raise ConfigError(f"--vocabulary-from {config.vocabulary_from}: not a k-means bundle")
     if source.features != config.features or source.vocabulary_size != config.words:
         raise ConfigError(f"--vocabulary-from {config.vocabulary_from}: its features or word count differ from this training")
-    return source.quantizer("flat").centroids, int(source.manifest["quantizer"].get("descriptors_clustered", 0))
+    return source.quantizer("flat-fp32").centroids, int(source.manifest["quantizer"].get("descriptors_clustered", 0))
 
 
 def _train_index(sample: np.ndarray, per_image: list[np.ndarray], kind: FeatureKind, flat, config: TrainConfig):

@@ -105,7 +105,7 @@ class ModelBundle:
         q = self.manifest["quantizer"]
         files = q["files"]
         if self.quantizer_type == "kmeans":
-            from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
+            from aefabmap.runtime.core.bit_centroids import flat_quantizer
 
             name = files["centroids"]
             centroids = _load_array(
@@ -115,13 +115,8 @@ class ModelBundle:
                 raise BundleError(f"{self.path}: {name} holds NaN or infinite centroids")
             if "index" in q and variant not in ("flat", "flat-fp32"):
                 return self._indexed(centroids)
-            # Mean-of-bits centroids lie in [0, 1]; others would only widen the int8 band.
-            if variant != "flat-fp32" and self.features.spec.distance == "hamming" and centroids.min() >= 0 \
-                    and centroids.max() <= 1:
-                from aefabmap.runtime.core.bit_centroids import BitCentroidQuantizer
-
-                return BitCentroidQuantizer(centroids, threads=threads)
-            return NearestCentroidQuantizer(centroids)
+            return flat_quantizer(centroids, self.features.spec.distance, float32=variant == "flat-fp32",
+                                  threads=threads)
         if self.quantizer_type == "kmeans-tree":
             return self._vocabulary_tree()
         if variant not in files:

@@ -33,6 +33,19 @@ _LEVELS = 127  # int8 steps on each side of 1/2
 _SAFETY = 1.0  # z units (1/254 of a score unit) on top of beta: float64 rounding of beta itself
 
 
+def flat_quantizer(centroids: np.ndarray, distance: str, float32: bool = False, threads: int = 1):
+    """The flat search of a vocabulary (Quantizer protocol), trainer and runtime alike.
+
+    centroids (K, D) float32; distance: the feature kind's ("hamming" for binary kinds). A binary
+    kind whose centroids lie in [0, 1] (means of bits, as k-means leaves them) gets the int8
+    search; any other, or float32=True, the float32 product. Both give the arg-min of squared L2.
+    """
+    c = np.asarray(centroids, dtype=np.float32)
+    if not float32 and distance == "hamming" and c.size and c.min() >= 0 and c.max() <= 1:
+        return BitCentroidQuantizer(c, threads=threads)
+    return NearestCentroidQuantizer(c)
+
+
 class BitCentroidQuantizer:
     """Nearest mean centroid of bit vectors (Quantizer protocol), via an int8 product.
 

@@ -97,7 +97,8 @@ def test_index_over_an_existing_vocabulary_keeps_its_words(image_dir, tmp_path):
     q = b.manifest["quantizer"]
     assert q["type"] == "kmeans" and q["index"]["buckets"] == 4 and q["index"]["distance"] == "hamming"
     assert type(b.quantizer()).__name__ == "IndexedCentroidQuantizer"
-    assert type(b.quantizer("flat")).__name__ == "NearestCentroidQuantizer"
+    assert type(b.quantizer("flat")).__name__ == "BitCentroidQuantizer"
+    assert type(b.quantizer("flat-fp32")).__name__ == "NearestCentroidQuantizer"
     again = train_bundle(config(image_dir, tmp_path / "idx2", vocabulary_from=flat.path, index_buckets=4))
     assert all((indexed.path / f.name).read_bytes() == f.read_bytes() for f in again.path.iterdir())
 
