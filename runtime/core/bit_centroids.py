@@ -13,7 +13,7 @@ and onnxruntime's int8 product gives the integers Y_k = x.q_k. Since c_k = (q_k 
 so the best word lies among the k with z_k = Y_k - round(127 |c_k|^2) >= max_j z_j - 2 beta.
 Rows with one such candidate take it; the others are re-ranked with exact float64 products.
 The result is the exact arg-min (ties to the lowest id), whatever the centroids; centroids far
-from [0, 1] only widen the band and cost time (the bundle reader then keeps the float search).
+from [0, 1] only widen the band and cost time (`flat_quantizer` then keeps the float search).
 
 The int8 product cannot saturate on x86 without VNNI (pairs of products are summed in int16):
 one operand is 0 or 1, so a pair sums to at most 2 * 127.
@@ -24,9 +24,10 @@ from __future__ import annotations
 import numpy as np
 import onnxruntime as ort
 
-from aefabmap.errors import ConfigError, InputError
+from aefabmap.errors import InputError
 from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.onnx_matmul import INPUT_NAME, OUTPUT_NAME, matmul_integer_model
+from aefabmap.runtime.core.onnx_quantizer import session_options
 from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, check_vectors
 
 _LEVELS = 127  # int8 steps on each side of 1/2
@@ -62,8 +63,7 @@ class BitCentroidQuantizer:
             raise InputError(f"bit centroids must be a non-empty (K, D) array with D a multiple of 8, got {c.shape}")
         if not np.isfinite(c).all():
             raise InputError("bit centroids hold NaN or infinite values")
-        if not isinstance(threads, int) or threads < 1:
-            raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+        opts = session_options(threads)
         self.centroids = np.ascontiguousarray(c)
         self._float = NearestCentroidQuantizer(self.centroids)
         self.vocabulary_size, self.descriptor_length = (int(n) for n in c.shape)
@@ -71,17 +71,12 @@ class BitCentroidQuantizer:
         c64 = c.astype(np.float64)
         q = np.clip(np.rint(_LEVELS * (2.0 * c64 - 1.0)), -_LEVELS, _LEVELS)
         residual = c64 - (q / _LEVELS + 1.0) / 2.0
-        norm_term = _LEVELS * np.einsum("kd,kd->k", c64, c64)
-        self._norm_term = np.rint(norm_term).astype(np.int32)
+        sq_norms = np.einsum("kd,kd->k", c64, c64)
+        self._norm_term = np.rint(_LEVELS * sq_norms).astype(np.int32)
+        self._half_sq_norms = 0.5 * sq_norms
         #: Half-width of the candidate band, in z units (module doc).
         self.beta = float(0.5 + 2 * _LEVELS * np.abs(residual).sum(axis=1).max() + _SAFETY)
         self._band = np.int32(np.ceil(2.0 * self.beta))
-        self._half_sq_norms = 0.5 * np.einsum("kd,kd->k", c64, c64)
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.log_severity_level = 3
         self._session = ort.InferenceSession(
             matmul_integer_model(q.astype(np.int8).T), sess_options=opts, providers=["CPUExecutionProvider"]
         )

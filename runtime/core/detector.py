@@ -71,7 +71,8 @@ class DetectorConfig:
     loop_threshold: a loop is declared when the best place's score reaches this.
     quantizer_variant: "fp32" or "int8" (autoencoder bundles); "flat" searches a k-means bundle
         with an inverted index exhaustively instead; "flat-fp32" does so with a float32 product
-        (binary kinds otherwise use an int8 product with an exact re-rank, the same words). threads: onnxruntime threads.
+        (binary kinds otherwise use an int8 product with an exact re-rank, the same words).
+        threads: onnxruntime threads.
     motion_model, naive_bayes, smoothing: FAB-MAP options (docs/fabmap2.md).
     fabmap_score: what `score` holds with the fabmap scorer: "probability" (the normalised
         posterior P of the best place, docs/evaluation.md's FAB-MAP score) or "llr" (log-likelihood

@@ -26,6 +26,20 @@ _FLOAT = "tensor(float)"
 _INTS = ("tensor(int32)", "tensor(int64)")
 
 
+def session_options(threads: int) -> ort.SessionOptions:
+    """onnxruntime options of the runtime's graphs: `threads` intra-op threads, one inter-op
+    thread (each graph is a single chain), sequential, all graph optimisations, no warnings."""
+    if not isinstance(threads, int) or threads < 1:
+        raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3  # no warnings on stderr from library code
+    return opts
+
+
 class OnnxQuantizer:
     """Quantizer backed by an ONNX graph (Quantizer protocol of runtime/core/quantizer.py).
 
@@ -38,8 +52,7 @@ class OnnxQuantizer:
     """
 
     def __init__(self, model_path: str | Path, *, vocabulary_size: int, descriptor_length: int, threads: int = 1) -> None:
-        if not isinstance(threads, int) or threads < 1:
-            raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+        opts = session_options(threads)
         if not isinstance(vocabulary_size, int) or vocabulary_size < 1:
             raise ConfigError(f"vocabulary_size must be a positive integer, got {vocabulary_size!r}")
         if not isinstance(descriptor_length, int) or descriptor_length < 1:
@@ -49,12 +62,6 @@ class OnnxQuantizer:
         self.descriptor_length = descriptor_length
         if not self.model_path.is_file():
             raise BundleError(f"quantiser model {self.model_path} does not exist")
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.log_severity_level = 3  # no warnings on stderr from library code
         # On x86 without VNNI, u8 x s8 int8 kernels sum products pairwise in int16 and
         # saturate for 8-bit weights; this makes onnxruntime use exact u8 x u8 kernels there.
         # Graphs from export/quantize_int8.py have 7-bit weights, which cannot saturate and
