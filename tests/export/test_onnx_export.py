@@ -98,10 +98,11 @@ def test_fp32_onnx_matches_torch_eager(exported):
 
 def test_int8_agrees_with_fp32(exported):
     # Integer kernels differ by CPU (AVX2 pair sums, AVX-512 VNNI dot products), and with them
-    # which near-tie int8 rounding tips: on this barely trained encoder agreement was >= 99 % on the
-    # project's AVX2 machines and 98.95-99.45 % on an AVX-512 VNNI one. What must hold on every CPU: int8 picks another
-    # word only where fp32's two words are within one int8 step (1/127) of the score scale, and
-    # such ties are rare. (Trained bundles are measured against the 99 % target in docs/results.md.)
+    # which near-tie int8 rounding tips: on this barely trained encoder agreement was >= 99 % on
+    # the project's AVX2 machines and 98.95-99.45 % on an AVX-512 VNNI one. What must hold on
+    # every CPU: int8 picks another word only where fp32's two words are within one int8 step
+    # (1/127) of the score scale, and such ties are rare. (Trained bundles are measured against
+    # the 99 % target in docs/results.md.)
     w32 = exported.runtime("fp32").quantize(exported.test)
     w8 = exported.runtime("int8").quantize(exported.test)
     agreement = float(np.mean(w32 == w8))
