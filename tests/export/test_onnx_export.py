@@ -56,6 +56,14 @@ class Exported:
         return words.numpy(), codes.numpy(), scores.numpy()
 
 
+def tie_gap(scores: np.ndarray, words_a: np.ndarray, words_b: np.ndarray) -> np.ndarray:
+    """Where two quantisers' words differ: |score of a's word - score of b's word| over the row's
+    score scale (largest |score| + 1), from latent scores (N, K); a (0,) array when they agree."""
+    rows = np.flatnonzero(words_a != words_b)
+    gap = np.abs(scores[rows, words_a[rows]] - scores[rows, words_b[rows]])
+    return gap / (np.abs(scores[rows]).max(axis=1) + 1.0)
+
+
 @pytest.fixture(scope="module", params=["orb", "sift", "orb-light", "sift-light"])
 def exported(request, tmp_path_factory) -> Exported:
     kind, _, arch = request.param.partition("-")
@@ -89,10 +97,7 @@ def test_fp32_onnx_matches_torch_eager(exported):
     differ = np.flatnonzero(words_o != words_t)
     # Two float32 GEMM implementations can only disagree on a genuine tie: the two words'
     # latent scores must then be equal to float precision.
-    rows = np.arange(differ.size)
-    gap = np.abs(scores[differ][rows, words_o[differ]] - scores[differ][rows, words_t[differ]])
-    scale = np.abs(scores[differ]).max(axis=1) + 1.0
-    assert np.all(gap <= 1e-4 * scale), f"{differ.size} non-tie disagreements"
+    assert np.all(tie_gap(scores, words_o, words_t) <= 1e-4), f"{differ.size} non-tie disagreements"
     assert differ.size <= max(1, x.shape[0] // 1000)
 
 
@@ -108,8 +113,7 @@ def test_int8_agrees_with_fp32(exported):
     agreement = float(np.mean(w32 == w8))
     assert agreement >= 0.98, f"int8 agrees on {agreement:.4f} of descriptors"
     _, _, scores = exported.eager(exported.test)
-    rows = np.flatnonzero(w32 != w8)
-    gap = (scores[rows, w32[rows]] - scores[rows, w8[rows]]) / (np.abs(scores[rows]).max(axis=1) + 1.0)
+    gap = tie_gap(scores, w32, w8)
     assert np.all(gap <= 1.0 / 127), f"int8 changed words with an fp32 margin of up to {gap.max():.4f} of the scale"
 
 
