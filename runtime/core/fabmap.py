@@ -13,7 +13,7 @@ from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists, PostingsView
 from aefabmap.runtime.core import compiled
-from aefabmap.runtime.core.scatter import buffers_kernel, scatter_scores
+from aefabmap.runtime.core.scatter import buffers_kernel, scatter_buffers, scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
 
 
@@ -189,7 +189,9 @@ class StaticPostings:
     """Word -> observation postings of a fixed set of observations, packed once (CSR, int32).
 
     Holds the new-place model's training observations: scored like the places, by the same
-    scatter, but gathering a query's postings is one vectorised index with no per-word loop.
+    scatter. The compiled scatter reads each word's postings in place (their offsets into the
+    packed array: 0.47 -> 0.20 ms per query with ORB 3k's 3 454 observations, one core); the
+    numpy one gathers them with one vectorised index, no per-word loop.
     """
 
     def __init__(self, observations: list[np.ndarray], defaults: np.ndarray, vocabulary_size: int) -> None:
@@ -208,6 +210,10 @@ class StaticPostings:
         """default + sum of weights over each observation's touched postings, shape (M,)."""
         starts = self.ptr[touched]
         lens = self.ptr[touched + 1] - starts
+        if compiled.active() == "compiled":
+            # Each word's postings read where they lie in the packed array: no gathered copy.
+            return scatter_buffers(self.defaults, self.postings.ctypes.data + self.postings.itemsize * starts,
+                                   weights, lens)
         rows = [self.postings[_ranges(starts, lens)]] if lens.size else []
         return scatter_scores(self.defaults, rows, weights, lens)
 

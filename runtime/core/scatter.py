@@ -51,6 +51,18 @@ def buffers_kernel():
                                nogil=True, cache=False, boundscheck=False)(scatter)
 
 
+@compiled.kernel
+def append_kernel():
+    """One posting appended to each of several word buffers, compiled: buffer i (the int32 data
+    at addresses[i]) gets `pid` at position positions[i] (the caller checked it has room)."""
+    def append(addresses, positions, pid):
+        for i in range(addresses.size):
+            _int32_buffer(addresses[i])[positions[i]] = pid
+
+    return compiled.numba.njit("void(intp[::1], int32[::1], int32)", nogil=True, cache=False,
+                               boundscheck=False)(append)
+
+
 def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.ndarray, lens: np.ndarray) -> np.ndarray:
     """As `scatter_scores`, row i being lens[i] int32 place ids (each < defaults.size) at data
     address addresses[i] (intp); compiled kernel only (`compiled.active()` is "compiled").

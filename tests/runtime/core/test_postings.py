@@ -33,8 +33,18 @@ def _postings_by_word(lists: PostingLists) -> dict[int, list]:
     return {q: lists.ids(q).tolist() for q in range(V)}
 
 
+@pytest.fixture(params=[False, True], ids=["numpy", "compiled"])
+def kernels(request):
+    """Run a test with the compiled kernels (append, scatter) and without (skipped without numba)."""
+    if request.param and not compiled.available():
+        pytest.skip("numba is not installed (extra `fast`)")
+    previous = compiled.use(request.param)
+    yield request.param
+    compiled.use(previous)
+
+
 @pytest.mark.parametrize("weighted", [False, True])
-def test_postings_are_exactly_the_places_words_after_adds_and_removals(weighted):
+def test_postings_are_exactly_the_places_words_after_adds_and_removals(weighted, kernels):
     lists, held = _filled(weighted)
     for q in range(V):
         expected = sorted(pid for pid, words in held.items() if q in words)
@@ -50,8 +60,28 @@ def test_postings_are_exactly_the_places_words_after_adds_and_removals(weighted)
         lists.place_words(7)
 
 
+def test_compiled_append_builds_the_state_the_loop_builds():
+    """Adds take the compiled append where a buffer has room: postings, their order, buffer
+    capacities and byte counts must be those of the per-word loop, through removals and reuse."""
+    if not compiled.available():
+        pytest.skip("numba is not installed (extra `fast`)")
+    states = []
+    for flag in (False, True):
+        previous = compiled.use(flag)
+        try:
+            lists = _churned(0)
+            lists.add(np.arange(0, V, 3))
+            states.append((lists.state(), lists.nbytes()))
+        finally:
+            compiled.use(previous)
+    (a, bytes_a), (b, bytes_b) = states
+    assert bytes_a == bytes_b and a.scalars == b.scalars and a.arrays.keys() == b.arrays.keys()
+    for key in a.arrays:
+        np.testing.assert_array_equal(a.arrays[key], b.arrays[key], err_msg=key)
+
+
 @pytest.mark.parametrize("weighted", [False, True])
-def test_state_round_trip_keeps_postings_order_capacities_and_bytes(weighted):
+def test_state_round_trip_keeps_postings_order_capacities_and_bytes(weighted, kernels):
     lists, _ = _filled(weighted)
     st = lists.state()
     again = PostingLists(V, weighted=weighted)
