@@ -154,22 +154,24 @@ def select_kernel():
                 z[j] -= norm_term[j]
                 top = max(top, z[j])
             floor = top - band
-            count = 0
+            # Words in the band and the sum of their ids, branch-free: with one word in the band
+            # (two rows in three), that sum is the word.
+            count, where = 0, 0
             for j in range(k):
-                count += z[j] >= floor
+                inside = z[j] >= floor
+                count += inside
+                where += j * inside
             if count == 1:
-                for j in range(k):
-                    if z[j] == top:
-                        best[i] = j
-                        break
+                best[i] = where
                 continue
             top_exact, arg = -np.inf, 0
+            x = bits[i]
             for j in range(k):
                 if z[j] >= floor:
-                    s = 0.0  # float64 sum of float32 centroid values
-                    for t in range(d):
-                        if bits[i, t]:
-                            s += np.float64(centroids[j, t])
+                    c = centroids[j]
+                    s = 0.0  # float64 sum of float32 centroid values, in bit order
+                    for t in range(d):  # branch-free: a clear bit adds an exact 0.0
+                        s += np.float64(c[t]) * x[t]
                     s -= half_sq_norms[j]
                     if s > top_exact:
                         top_exact, arg = s, j
