@@ -1,4 +1,4 @@
-"""Shared fixtures: where the real data lives (skipped, not failed, when absent)."""
+"""Shared fixtures: where the real data lives (skipped, not failed, when absent), and the two kernel paths."""
 
 from __future__ import annotations
 
@@ -21,6 +21,19 @@ def train_dir() -> Path:
     if not d.is_dir():
         pytest.skip(f"training images not found under {data_root()} (set AEFABMAP_DATA)")
     return d
+
+
+@pytest.fixture(params=[False, True], ids=["numpy", "compiled"])
+def kernels(request):
+    """Run a test on the numpy / OpenCV fallbacks and on the compiled kernels (runtime/core/compiled.py;
+    skipped without numba): both must give the same results."""
+    from aefabmap.runtime.core import compiled
+
+    if request.param and not compiled.available():
+        pytest.skip("numba is not installed (extra `fast`)")
+    previous = compiled.use(request.param)
+    yield request.param
+    compiled.use(previous)
 
 
 @pytest.fixture(scope="session")

@@ -288,7 +288,8 @@ class PostingLists:
 
     def nbytes(self) -> int:
         """Bytes of posting buffers, word lists, the alive flags and list slots (O(1))."""
-        # 8 bytes per list slot of self._words, plus the fixed per-word length and address arrays.
+        # 8 bytes per list slot of self._words, plus the fixed per-word length, address, stale-flag and
+        # capacity arrays.
         return int(self._buffer_bytes + self._alive.nbytes + 8 * len(self._words) + self._len.nbytes
                    + self._addr.nbytes + self._stale.nbytes + self._cap.nbytes)
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from aefabmap import ChowLiuTree, FabMap2, InputError
-from aefabmap.runtime.core import compiled
 from aefabmap.runtime.tools.synthetic_observations import random_tree
 
 
@@ -69,19 +68,9 @@ def brute_loglik(tree: ChowLiuTree, z: np.ndarray, l: np.ndarray, pzge=0.39, pzg
     return s
 
 
-@pytest.fixture(params=[False, True], ids=["numpy", "compiled"])
-def scatter_path(request):
-    """Run a test on the numpy scatter and on the compiled one (skipped without numba)."""
-    if request.param and not compiled.available():
-        pytest.skip("numba is not installed")
-    previous = compiled.use(request.param)
-    yield
-    compiled.use(previous)
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("pzgne", [0.0, 0.05])
-def test_agrees_with_dense_brute_force(seed, pzgne, scatter_path):
+def test_agrees_with_dense_brute_force(seed, pzgne, kernels):
     rng = np.random.default_rng(seed)
     v = 40
     tree = random_tree(v, seed)

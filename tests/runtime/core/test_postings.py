@@ -33,16 +33,6 @@ def _postings_by_word(lists: PostingLists) -> dict[int, list]:
     return {q: lists.ids(q).tolist() for q in range(V)}
 
 
-@pytest.fixture(params=[False, True], ids=["numpy", "compiled"])
-def kernels(request):
-    """Run a test with the compiled kernels (append, scatter) and without (skipped without numba)."""
-    if request.param and not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
-    previous = compiled.use(request.param)
-    yield request.param
-    compiled.use(previous)
-
-
 @pytest.mark.parametrize("weighted", [False, True])
 def test_postings_are_exactly_the_places_words_after_adds_and_removals(weighted, kernels):
     lists, held = _filled(weighted)
