@@ -13,7 +13,7 @@ from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists, PostingsView
 from aefabmap.runtime.core import compiled
-from aefabmap.runtime.core.scatter import buffers_kernel, scatter_buffers, scatter_scores
+from aefabmap.runtime.core.scatter import buffers_kernel, scatter_packed, scatter_scores
 from aefabmap.runtime.core.tree import ChowLiuTree
 
 
@@ -212,8 +212,7 @@ class StaticPostings:
         lens = self.ptr[touched + 1] - starts
         if compiled.active() == "compiled":
             # Each word's postings read where they lie in the packed array: no gathered copy.
-            return scatter_buffers(self.defaults, self.postings.ctypes.data + self.postings.itemsize * starts,
-                                   weights, lens)
+            return scatter_packed(self.defaults, self.postings, starts, weights, lens)
         rows = [self.postings[_ranges(starts, lens)]] if lens.size else []
         return scatter_scores(self.defaults, rows, weights, lens)
 

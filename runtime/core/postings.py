@@ -52,7 +52,8 @@ class PostingLists:
         self._buffer_bytes = 0  # posting buffers and word lists, kept up to date
         self.n_places = 0  # size of the id range (removed ids included)
         self.n_alive = 0
-        compiled.prepare(scatter.append_kernel)
+        if not weighted:  # weighted lists always take the per-word loop (`add`)
+            compiled.prepare(scatter.append_kernel)
 
     @property
     def alive(self) -> np.ndarray:

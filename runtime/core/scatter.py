@@ -11,7 +11,8 @@ order, defaults first, then row after row, no reassociation):
 The compiled loop (`scatter_buffers`) reads each row where it lies, from its data address:
 PostingLists hands it the addresses of its word buffers, so at 100k places a query's ~1.9
 million postings are not copied end to end first (that copy was half of the scoring time);
-`scatter_scores` hands it offsets into the one array its rows are laid in.
+`scatter_packed` hands it offsets into one array that holds all the rows (the new-place model's
+static postings, `scatter_scores`'s concatenated rows).
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.nda
 
     Reads raw memory: the caller guarantees every address is the data of a live C-contiguous
     int32 buffer of at least lens[i] entries for the duration of the call (PostingLists and
-    `scatter_scores` do).
+    `scatter_packed` do).
     """
     if compiled.active() != "compiled":
         raise ConfigError("scatter_buffers needs the compiled kernel (numba installed and in use)")
@@ -78,6 +79,15 @@ def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.nda
         buffers_kernel()(acc, np.ascontiguousarray(addresses, np.intp), np.ascontiguousarray(weights, np.float64),
                               np.ascontiguousarray(lens, np.int32))
     return acc
+
+
+def scatter_packed(defaults: np.ndarray, packed: np.ndarray, starts: np.ndarray, weights: np.ndarray,
+                   lens: np.ndarray) -> np.ndarray:
+    """As `scatter_buffers`, row i being the lens[i] place ids of `packed` (one int32 array) from
+    offset starts[i]: the rows are read where they lie; compiled kernel only."""
+    if packed.dtype != np.int32 or not packed.flags.c_contiguous:
+        raise ConfigError("scatter_packed reads C-contiguous int32 postings")
+    return scatter_buffers(defaults, packed.ctypes.data + packed.itemsize * np.asarray(starts, np.intp), weights, lens)
 
 
 def scatter_scores(defaults: np.ndarray, rows: list[np.ndarray], weights: np.ndarray, lens: np.ndarray) -> np.ndarray:
@@ -93,7 +103,7 @@ def scatter_scores(defaults: np.ndarray, rows: list[np.ndarray], weights: np.nda
     if compiled.active() == "compiled":
         ids = np.ascontiguousarray(rows[0] if len(rows) == 1 else np.concatenate(rows), np.int32)
         starts = np.cumsum(lens, dtype=np.intp) - lens  # row i starts starts[i] postings into ids
-        return scatter_buffers(defaults, ids.ctypes.data + ids.itemsize * starts, weights, lens)
+        return scatter_packed(defaults, ids, starts, weights, lens)
     ids = np.empty(n + total, np.intp)
     ids[:n] = np.arange(n, dtype=np.intp)
     # Concatenating straight into the intp buffer widens int32 postings in the same pass.

@@ -7,7 +7,6 @@ import onnxruntime as ort
 import pytest
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.bit_centroids import BitCentroidQuantizer
 from aefabmap.runtime.core.onnx_matmul import INPUT_NAME, OUTPUT_NAME, matmul_integer_model
 from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
@@ -50,19 +49,12 @@ def test_the_written_graph_multiplies_exactly_at_the_int8_extremes():
     onnx.checker.check_model(onnx.load_from_string(model), full_check=True)
 
 
-@pytest.mark.parametrize("use_compiled", [False, True])
 @pytest.mark.parametrize("seed", [1, 2])
-def test_words_equal_the_exact_arg_min(use_compiled, seed):
-    if use_compiled and not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
+def test_words_equal_the_exact_arg_min(seed, kernels):
     centroids, bits = _clustered(seed)
-    previous = compiled.use(use_compiled)
-    try:
-        q = BitCentroidQuantizer(centroids, chunk=700)  # several chunks, the last one short
-        packed = q.quantize_raw(np.packbits(bits, axis=1))
-        unpacked = q.quantize(bits.astype(np.float32))
-    finally:
-        compiled.use(previous)
+    q = BitCentroidQuantizer(centroids, chunk=700)  # several chunks, the last one short
+    packed = q.quantize_raw(np.packbits(bits, axis=1))
+    unpacked = q.quantize(bits.astype(np.float32))
     expect = _exact_words(bits, centroids)
     assert packed.dtype == np.int32 and np.array_equal(packed, expect) and np.array_equal(unpacked, expect)
     # The float32 product agrees except where two scores tie within its rounding (these centroids
@@ -70,22 +62,15 @@ def test_words_equal_the_exact_arg_min(use_compiled, seed):
     assert (NearestCentroidQuantizer(centroids).quantize(bits.astype(np.float32)) == expect).mean() > 0.99
 
 
-@pytest.mark.parametrize("use_compiled", [False, True])
-def test_ties_go_to_the_lowest_id_and_far_centroids_stay_exact(use_compiled):
+def test_ties_go_to_the_lowest_id_and_far_centroids_stay_exact(kernels):
     """Duplicate centroids tie exactly (the lowest id wins, as np.argmin); centroids outside
     [0, 1] are clipped in int8 but the band widens with them, so the words stay exact."""
-    if use_compiled and not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
     centroids, bits = _clustered(3, k=60, n=500)
     centroids = np.concatenate([centroids, centroids[::-1]])  # every centroid twice
     wild = centroids.copy()
     wild[::7] = wild[::7] * 3.0 - 1.0
-    previous = compiled.use(use_compiled)
-    try:
-        words = BitCentroidQuantizer(centroids).quantize_raw(np.packbits(bits, axis=1))
-        wild_words = BitCentroidQuantizer(wild).quantize_raw(np.packbits(bits, axis=1))
-    finally:
-        compiled.use(previous)
+    words = BitCentroidQuantizer(centroids).quantize_raw(np.packbits(bits, axis=1))
+    wild_words = BitCentroidQuantizer(wild).quantize_raw(np.packbits(bits, axis=1))
     assert np.array_equal(words, _exact_words(bits, centroids)) and words.max() < 60
     assert np.array_equal(wild_words, _exact_words(bits, wild))
 

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.bits import POPCOUNT_TABLE, hamming, nearest_two, popcount_rows
 
 
@@ -47,24 +46,17 @@ def _nearest_two_by_unpacked_bits(a, b):
     return np.take_along_axis(d, order, axis=1), order
 
 
-@pytest.mark.parametrize("use_compiled", [False, True])
 @pytest.mark.parametrize("width", [32, 61, 64, 8])
-def test_nearest_two_equals_the_full_distance_matrix_ties_included(use_compiled, width):
+def test_nearest_two_equals_the_full_distance_matrix_ties_included(width, kernels):
     """Both paths (compiled kernel, OpenCV) give the same neighbours, the lower index winning a
     tie: bytes drawn from {0..3} make most distances tie."""
-    if use_compiled and not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
     rng = np.random.default_rng(width)
     a = rng.integers(0, 4, (120, width), dtype=np.uint8)
     b = rng.integers(0, 4, (90, width), dtype=np.uint8)
-    previous = compiled.use(use_compiled)
-    try:
-        dist, index = nearest_two(a, b)
-        # Fewer than two rows to search: the missing neighbour is (-1, 2^31 - 1).
-        d1, i1 = nearest_two(a[:3], b[:1])
-        d0, i0 = nearest_two(a[:0], b)
-    finally:
-        compiled.use(previous)
+    dist, index = nearest_two(a, b)
+    # Fewer than two rows to search: the missing neighbour is (-1, 2^31 - 1).
+    d1, i1 = nearest_two(a[:3], b[:1])
+    d0, i0 = nearest_two(a[:0], b)
     expect_d, expect_i = _nearest_two_by_unpacked_bits(a, b)
     assert dist.dtype == np.int32 and index.dtype == np.int32
     assert np.array_equal(dist, expect_d) and np.array_equal(index, expect_i)

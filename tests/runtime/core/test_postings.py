@@ -135,27 +135,20 @@ def _churned(seed: int) -> PostingLists:
     return lists
 
 
-@pytest.mark.parametrize("use_compiled", [False, True])
-def test_scatter_reads_every_buffer_where_it_lies_after_growth_shrinking_and_reload(use_compiled):
+def test_scatter_reads_every_buffer_where_it_lies_after_growth_shrinking_and_reload(kernels):
     """The compiled scatter reads postings through the buffers' data addresses: after any
     history of adds, removals (buffers shrunk or freed) and a state reload, it must read exactly
     the live buffers, as the numpy path and a per-word loop do."""
-    if use_compiled and not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
-    previous = compiled.use(use_compiled)
-    try:
-        for seed in range(3):
-            lists = _churned(seed)
-            every = lists.addresses(np.arange(V))
-            for q in range(V):
-                b = lists._ids[q]
-                assert every[q] == (0 if b is None else b.ctypes.data)
-            rng = np.random.default_rng(seed + 10)
-            defaults = rng.standard_normal(lists.n_places)
-            words = np.unique(rng.integers(0, V, 30))  # some hold no postings at all
-            weights = rng.standard_normal(words.size)
-            got = lists.scatter(defaults, words, weights)
-            np.testing.assert_array_equal(got, _reference_scatter(defaults, lists, words, weights))
-            assert got is not defaults
-    finally:
-        compiled.use(previous)
+    for seed in range(3):
+        lists = _churned(seed)
+        every = lists.addresses(np.arange(V))
+        for q in range(V):
+            b = lists._ids[q]
+            assert every[q] == (0 if b is None else b.ctypes.data)
+        rng = np.random.default_rng(seed + 10)
+        defaults = rng.standard_normal(lists.n_places)
+        words = np.unique(rng.integers(0, V, 30))  # some hold no postings at all
+        weights = rng.standard_normal(words.size)
+        got = lists.scatter(defaults, words, weights)
+        np.testing.assert_array_equal(got, _reference_scatter(defaults, lists, words, weights))
+        assert got is not defaults

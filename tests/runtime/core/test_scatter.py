@@ -1,9 +1,7 @@
 """The scatter behind FAB-MAP scoring: numpy and compiled paths equal the per-word loop bit for bit."""
 
 import numpy as np
-import pytest
 
-from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.scatter import scatter_scores
 
 
@@ -23,20 +21,13 @@ def _reference(defaults, rows, weights):
     return acc
 
 
-@pytest.mark.parametrize("use_compiled", [False, True])
-def test_scatter_matches_per_word_adds_exactly(use_compiled):
-    if use_compiled and not compiled.available():
-        pytest.skip("numba is not installed")
-    previous = compiled.use(use_compiled)
-    try:
-        for seed in range(5):
-            defaults, rows, weights, lens = _case(seed)
-            got = scatter_scores(defaults, rows, weights, lens)
-            np.testing.assert_array_equal(got, _reference(defaults, rows, weights))
-        # No postings at all: the defaults, as a copy.
-        d = np.arange(4.0)
-        out = scatter_scores(d, [], np.zeros(0), np.zeros(0, np.int64))
-        np.testing.assert_array_equal(out, d)
-        assert out is not d
-    finally:
-        compiled.use(previous)
+def test_scatter_matches_per_word_adds_exactly(kernels):
+    for seed in range(5):
+        defaults, rows, weights, lens = _case(seed)
+        got = scatter_scores(defaults, rows, weights, lens)
+        np.testing.assert_array_equal(got, _reference(defaults, rows, weights))
+    # No postings at all: the defaults, as a copy.
+    d = np.arange(4.0)
+    out = scatter_scores(d, [], np.zeros(0), np.zeros(0, np.int64))
+    np.testing.assert_array_equal(out, d)
+    assert out is not d
