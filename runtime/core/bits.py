@@ -50,7 +50,7 @@ if compiled.numba is not None:
     from numba.extending import intrinsic as _intrinsic
 
     @_intrinsic
-    def _popcount64(typingctx, x):
+    def popcount64(typingctx, x):
         """Bits set in a uint64 (the CPU's popcount instruction where it has one)."""
         def codegen(context, builder, signature, args):
             return builder.ctpop(args[0])
@@ -77,14 +77,14 @@ def nearest_two_kernel():
                 a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
                 b0, b1, b2, b3 = bt[0], bt[1], bt[2], bt[3]
                 for j in range(m):
-                    row[j] = np.int32(_popcount64(a0 ^ b0[j]) + _popcount64(a1 ^ b1[j])
-                                      + _popcount64(a2 ^ b2[j]) + _popcount64(a3 ^ b3[j]))
+                    row[j] = np.int32(popcount64(a0 ^ b0[j]) + popcount64(a1 ^ b1[j])
+                                      + popcount64(a2 ^ b2[j]) + popcount64(a3 ^ b3[j]))
             else:
                 row[:] = 0
                 for k in range(w):
                     ak, bk = a[i, k], bt[k]
                     for j in range(m):
-                        row[j] += np.int32(_popcount64(ak ^ bk[j]))
+                        row[j] += np.int32(popcount64(ak ^ bk[j]))
             d1, d2, i1, i2 = _FAR, _FAR, -1, -1
             for j in range(m):
                 d = row[j]
@@ -97,6 +97,14 @@ def nearest_two_kernel():
 
     return compiled.numba.njit("void(uint64[:, ::1], uint64[:, ::1], int32[:, ::1], int32[:, ::1])",
                                nogil=True, cache=False, boundscheck=False)(nearest_two)
+
+
+def packed_words(rows: np.ndarray) -> np.ndarray:
+    """Packed bit rows (N, B) uint8 as C-contiguous (N, ceil(B / 8)) uint64 words, zero-padded
+    (zero bytes xor to zero: whole words change no Hamming distance), for the compiled kernels."""
+    rows = np.ascontiguousarray(rows, np.uint8)
+    pad = -rows.shape[1] % 8
+    return (np.pad(rows, ((0, 0), (0, pad))) if pad else rows).view(np.uint64)
 
 
 #: Distance reported for a missing neighbour (fewer than two rows to search): larger than any
@@ -122,10 +130,7 @@ def nearest_two(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if n == 0 or m == 0:
         return dist, index
     if compiled.active() == "compiled":
-        pad = -a.shape[1] % 8  # zero bytes xor to zero: whole 64-bit words change no distance
-        words_a = np.pad(a, ((0, 0), (0, pad))).view(np.uint64) if pad else a.view(np.uint64)
-        words_b = np.pad(b, ((0, 0), (0, pad))).view(np.uint64) if pad else b.view(np.uint64)
-        nearest_two_kernel()(words_a, np.ascontiguousarray(words_b.T), dist, index)
+        nearest_two_kernel()(packed_words(a), np.ascontiguousarray(packed_words(b).T), dist, index)
         return dist, index
     k = min(2, m)
     d, i = cv2.batchDistance(a, b, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=k)

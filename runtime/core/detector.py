@@ -35,6 +35,7 @@ from aefabmap.runtime.core.verification import (
     independence_radius,
     verify_pair,
 )
+from aefabmap.runtime.core.word_matches import same_word_kernel
 
 
 class DetectorModel(Protocol):
@@ -174,7 +175,7 @@ class LoopClosureDetector:
         if v.enabled:
             self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
             if self.kind.distance == "hamming":
-                compiled.prepare(nearest_two_kernel)  # the brute-force retry's matcher
+                compiled.prepare(nearest_two_kernel, same_word_kernel)  # the two matchers of verification
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)

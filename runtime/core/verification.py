@@ -40,6 +40,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, match_region, significance
+from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.bits import hamming
 from aefabmap.runtime.core.conditioning import (
     enforce_rank2,
@@ -50,6 +51,7 @@ from aefabmap.runtime.core.conditioning import (
 from aefabmap.runtime.core.feature_kinds import DISTANCES
 from aefabmap.runtime.core.features import MAX_FEATURES
 from aefabmap.runtime.core.nearest import nearest_two, unit_rows
+from aefabmap.runtime.core.word_matches import match_same_word
 
 #: Word id of a keypoint kept for geometry only (beyond the bundle's keypoint budget, so never
 #: quantised): same-word matching skips it, the brute-force retry matches it like any other.
@@ -386,6 +388,8 @@ def match_keypoints(
     if q_words.size == 0 or p_words.size == 0:
         return np.zeros((0, 2), np.int64)
     q_words, p_words = np.asarray(q_words, np.int64), np.asarray(p_words, np.int64)
+    if distance == "hamming" and compiled.active() == "compiled":
+        return match_same_word(q_words, q_desc, p_words, p_desc, cap, c.ratio)  # same matches, one pass
     q_keep, p_keep = np.flatnonzero(q_words != NO_WORD), np.flatnonzero(p_words != NO_WORD)
     qi, pi = _same_word_pairs(q_words[q_keep], p_words[p_keep])
     qi, pi = q_keep[qi], p_keep[pi]

@@ -66,7 +66,7 @@ def test_a_calibrated_verified_loop_carries_the_query_pose_relative_to_the_place
     def frame(points, d=desc):
         x = points @ K.T
         xy = (x[:, :2] / x[:, 2:]).astype(np.float32)
-        return Features(xy, np.full(n, 31, np.float32), np.zeros(n, np.float32), d, (480, 640))
+        return Features(xy, np.full(n, 31, np.float32), d, (480, 640))
 
     # min_inliers_h=1000: no homography, the epipolar model decides (exclude 2: the third frame sees the first).
     det = _detector(tmp_path, verification=VerificationConfig(camera=(400.0, 400.0, 320.0, 240.0), min_inliers_h=1000))

@@ -53,7 +53,6 @@ def test_keypoints_are_the_detectors_strongest_first_in_original_pixels(kind):
     scale = 640 / 320
     np.testing.assert_array_equal(f.keypoints, np.array([kps[i].pt for i in order], np.float32) / np.float32(scale))
     np.testing.assert_array_equal(f.sizes, np.array([kps[i].size for i in order], np.float32) / np.float32(scale))
-    np.testing.assert_array_equal(f.angles, np.array([kps[i].angle for i in order], np.float32))
 
 
 def test_blank_image_gives_no_features():

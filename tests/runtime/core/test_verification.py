@@ -102,7 +102,7 @@ def test_fundamental_matrix_of_a_3d_scene_is_in_pixels():
     assert np.median(symmetric_epipolar_distance(g.matrix, xq, xp)) < 1.0
 
 
-def test_matching_is_restricted_to_words_mutual_and_ratio_tested():
+def test_matching_is_restricted_to_words_mutual_and_ratio_tested(kernels):
     rng = np.random.default_rng(0)
     desc = rng.integers(0, 256, (50, 32), dtype=np.uint8)
     words = np.arange(50) % 5
@@ -153,7 +153,7 @@ def test_keypoint_store_round_trip_and_bytes():
     assert store.nbytes() == 0 and store.get(7) is None
 
 
-def test_geometry_only_keypoints_are_stored_and_skipped_by_same_word_matching():
+def test_geometry_only_keypoints_are_stored_and_skipped_by_same_word_matching(kernels):
     rng = np.random.default_rng(2)
     desc = rng.integers(0, 256, (6, 32), dtype=np.uint8)
     words = np.array([3, 3, NO_WORD, 7, NO_WORD, NO_WORD])
