@@ -32,6 +32,7 @@ from aefabmap.runtime.core.verification import (
     NO_WORD,
     GeometryResult,
     VerificationConfig,
+    distinct_kernel,
     independence_radius,
     verify_pair,
 )
@@ -175,7 +176,7 @@ class LoopClosureDetector:
         if v.enabled:
             self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
             if self.kind.distance == "hamming":
-                compiled.prepare(nearest_two_kernel, same_word_kernel)  # the two matchers of verification
+                compiled.prepare(nearest_two_kernel, same_word_kernel, distinct_kernel)  # verification's kernels
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)

@@ -636,6 +636,11 @@ def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: 
     k = xq.shape[0]
     if radius_q <= 0 or radius_p <= 0 or k < 2:
         return np.arange(k, dtype=np.int64)
+    if compiled.active() == "compiled" and xq.dtype == np.float64 and xp.dtype == np.float64:
+        keep = np.ones(k, np.bool_)
+        distinct_kernel()(np.ascontiguousarray(xq), np.ascontiguousarray(xp), float(radius_q), float(radius_p),
+                          _GRID_OFFSETS, keep)
+        return np.flatnonzero(keep).astype(np.int64)
     # One sort for the eight grids: a cell is (x << 15) + y (clipped to 15 bits per axis, ~32k
     # cells a side) with the grid number above bit 30; key * n + position sorts the matches of a
     # cell by position, so the first of each run is the cell's first match (keys < 2^33 and
@@ -652,6 +657,31 @@ def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: 
     firsts = np.zeros(n, bool)
     firsts[position[first]] = True
     return np.flatnonzero(firsts.reshape(8, k).all(axis=0)).astype(np.int64)
+
+
+@compiled.kernel
+def distinct_kernel():
+    """`distinct_matches` compiled (runtime/core/compiled.py): the same cells, computed with the
+    same float64 operations, and the same rule (a match is kept when no lower-indexed match shares
+    its cell in any of the eight grids); one stable sort per grid instead of array passes whose
+    call overhead dominated at the tens of matches a candidate has. keep (K,) must start True."""
+    def distinct(xq, xp, radius_q, radius_p, offsets, keep):
+        k = xq.shape[0]
+        keys = np.empty(k, np.int64)
+        for g in range(8):
+            x, r = (xq, radius_q) if g < 4 else (xp, radius_p)
+            ox, oy = offsets[g % 4, 0], offsets[g % 4, 1]
+            for i in range(k):
+                cx = min(max(np.floor(x[i, 0] / r + ox), 0.0), 32767.0)
+                cy = min(max(np.floor(x[i, 1] / r + oy), 0.0), 32767.0)
+                keys[i] = (np.int64(cx) << 15) + np.int64(cy)
+            order = np.argsort(keys, kind="mergesort")  # stable: a cell's matches by index
+            for t in range(1, k):
+                if keys[order[t]] == keys[order[t - 1]]:
+                    keep[order[t]] = False
+
+    return compiled.numba.njit("void(float64[:, ::1], float64[:, ::1], float64, float64, float64[:, ::1], boolean[::1])",
+                               nogil=True, cache=False, boundscheck=False)(distinct)
 
 
 def _consider_essential(nq, np_, xq, xp, sq, sp, c: VerificationConfig, consider, res: GeometryResult) -> float:
