@@ -175,8 +175,9 @@ class LoopClosureDetector:
         self.store: KeypointStore | None = None
         if v.enabled:
             self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
-            if self.kind.distance == "hamming":
-                compiled.prepare(nearest_two_kernel, same_word_kernel, distinct_kernel)  # verification's kernels
+            # Verification's kernels: match counting for every kind, the two matchers for binary ones.
+            binary = (nearest_two_kernel, same_word_kernel) if self.kind.distance == "hamming" else ()
+            compiled.prepare(distinct_kernel, *binary)
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)

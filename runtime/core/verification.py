@@ -1,4 +1,5 @@
-"""Geometric verification of loop-closure candidates (pure: numpy + OpenCV, no I/O).
+"""Geometric verification of loop-closure candidates (pure: numpy + OpenCV, no I/O; the matching
+and match-counting loops also have compiled forms, runtime/core/compiled.py, with the same results).
 
 A candidate place is accepted when the query frame's keypoints and the place's stored
 keypoints admit a well-conditioned two-view geometry whose support is very unlikely to be
@@ -39,8 +40,8 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, match_region, significance
 from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, match_region, significance
 from aefabmap.runtime.core.bits import hamming
 from aefabmap.runtime.core.conditioning import (
     enforce_rank2,
