@@ -36,6 +36,28 @@ def kernels(request):
     compiled.use(previous)
 
 
+@pytest.fixture
+def on_both_paths():
+    """run(fn) -> [fn() on the numpy / OpenCV fallbacks, fn() on the compiled kernels], for tests
+    that compare the two paths with each other (skipped without numba)."""
+    from aefabmap.runtime.core import compiled
+
+    if not compiled.available():
+        pytest.skip("numba is not installed (extra `fast`)")
+
+    def run(fn):
+        out = []
+        for flag in (False, True):
+            previous = compiled.use(flag)
+            try:
+                out.append(fn())
+            finally:
+                compiled.use(previous)
+        return out
+
+    return run
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     root = data_root()

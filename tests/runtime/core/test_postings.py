@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from aefabmap.errors import InputError, StateError
-from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.map_state import MapState
 from aefabmap.runtime.core.postings import PostingLists
 
@@ -50,21 +49,15 @@ def test_postings_are_exactly_the_places_words_after_adds_and_removals(weighted,
         lists.place_words(7)
 
 
-def test_compiled_append_builds_the_state_the_loop_builds():
+def test_compiled_append_builds_the_state_the_loop_builds(on_both_paths):
     """Adds take the compiled append where a buffer has room: postings, their order, buffer
     capacities and byte counts must be those of the per-word loop, through removals and reuse."""
-    if not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
-    states = []
-    for flag in (False, True):
-        previous = compiled.use(flag)
-        try:
-            lists = _churned(0)
-            lists.add(np.arange(0, V, 3))
-            states.append((lists.state(), lists.nbytes()))
-        finally:
-            compiled.use(previous)
-    (a, bytes_a), (b, bytes_b) = states
+    def build():
+        lists = _churned(0)
+        lists.add(np.arange(0, V, 3))
+        return lists.state(), lists.nbytes()
+
+    (a, bytes_a), (b, bytes_b) = on_both_paths(build)
     assert bytes_a == bytes_b and a.scalars == b.scalars and a.arrays.keys() == b.arrays.keys()
     for key in a.arrays:
         np.testing.assert_array_equal(a.arrays[key], b.arrays[key], err_msg=key)
