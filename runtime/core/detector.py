@@ -406,6 +406,13 @@ class LoopClosureDetector:
                         break  # the first candidate that passes is taken: true loops cost one check
                     if v.island and rank < v.island_candidates and self._island_try(int(pid), v.island, attempt):
                         break
+            if expect is not None and v.track and v.track_reach and not (check.best is not None and check.best.verified):
+                # The track window and FAB-MAP's candidates failed: the other stored frames within
+                # track_reach of where the track expects the robot, nearest first (ahead first).
+                for frame in sorted(range(expect - v.track_reach, expect + v.track_reach + 1),
+                                    key=lambda f: (abs(f - expect), f < expect)):
+                    if any(attempt(int(p), "track", v.bruteforce_track) for p in self._places_of_frames(frame, frame)):
+                        break
         check.geometry_ok = check.best is not None and check.best.verified
         check.verified = check.geometry_ok
         if self.temporal is not None:

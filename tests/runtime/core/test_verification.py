@@ -379,6 +379,34 @@ def test_track_memory_bridges_a_failed_frame(tmp_path):
     assert r[10].verified and r[10].verified_frame == 3
 
 
+def _skip_ahead_sequence():
+    """Six places, a revisit of place 0, then a jump to place 4 (the robot moved faster than
+    the track expects: frame 0 + 1 is expected, its window is 1, 2 and 0)."""
+    seq = _revisit_sequence()
+    return seq[:7] + [cv2.warpPerspective(texture(64), PERSPECTIVE, (480, 360))]
+
+
+def test_track_reach_finds_a_revisit_beyond_the_track_window(tmp_path):
+    _, r = _one_word_run(tmp_path, _skip_ahead_sequence(), track=2, track_memory=1, track_reach=3)
+    assert r[6].verified and r[6].verified_frame == 0
+    # Window 1, 2, 0 and FAB-MAP's place 0 fail; then within reach, nearest first: 3, then 4.
+    assert r[7].verified and r[7].verified_frame == 4 and r[7].candidates_tried == 5
+
+
+def test_track_reach_zero_stops_at_the_track_window(tmp_path):
+    _, r = _one_word_run(tmp_path, _skip_ahead_sequence(), track=2, track_memory=1, track_reach=0)
+    assert r[6].verified and r[6].verified_frame == 0
+    assert not r[7].verified and r[7].candidates_tried == 3
+
+
+def test_track_reach_never_reaches_past_its_frames(tmp_path):
+    seq = _skip_ahead_sequence()[:7] + [cv2.warpPerspective(texture(65), PERSPECTIVE, (480, 360))]
+    _, r = _one_word_run(tmp_path, seq, track=2, track_memory=1, track_reach=3)
+    assert not r[7].verified  # place 5 lies 4 frames past the expected frame 1
+    _, r = _one_word_run(tmp_path / "wider", seq, track=2, track_memory=1, track_reach=4)
+    assert r[7].verified and r[7].verified_frame == 5
+
+
 def test_without_track_fabmap_candidates_alone_miss_it(tmp_path):
     _, r = _one_word_run(tmp_path, _revisit_sequence(), track=0)
     assert r[6].verified and r[6].verified_frame == 0
