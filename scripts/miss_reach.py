@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from aefabmap.errors import AefabmapError
 from aefabmap.runtime.adapters.bundle_reader import load_detector
 from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.adapters.image_folder import list_images
@@ -64,12 +65,20 @@ def main() -> int:
     ap.add_argument("--frames", required=True, type=Path, help="per-frame records of that run (eval --frames)")
     ap.add_argument("--json", type=Path, help="write the per-miss results and the summary here")
     args = ap.parse_args()
-    detector = load_detector(args.model)
+    try:
+        detector = load_detector(args.model)
+        images = list_images(args.images)
+        records = misses(args.frames)
+    except (AefabmapError, OSError, ValueError) as exc:
+        print(f"miss_reach: {exc}")
+        return 2
     bar = detector.config.verification.max_log10_nfa
-    images = list_images(args.images)
     cache: dict = {}
     rows = []
-    for record in misses(args.frames):
+    for record in records:
+        if not all(0 <= int(i) < len(images) for i in [record["frame"], *record["true_frames"]]):
+            print(f"miss_reach: frame {record['frame']} names frames outside the {len(images)} images: wrong --images?")
+            return 2
         row = best_true_frame(detector, images, record, cache)
         rows.append(row)
         print(f"frame {row['frame']:5d}  true place among candidates: {str(row['true_place_candidate']):5s}  "

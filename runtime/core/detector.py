@@ -357,7 +357,8 @@ class LoopClosureDetector:
         Candidates, in order, the first that passes is taken: the tracked places (stored frames
         following the previous query's verified match, `VerificationConfig.track`), then the
         top_k places by FAB-MAP log-likelihood, each failed one followed by its island
-        neighbours (`VerificationConfig.island`). A place is verified at most once per query.
+        neighbours (`VerificationConfig.island`), then, during a track, the other stored frames
+        within `track_reach` of the expected one. A place is verified at most once per query.
         """
         v = self.config.verification
         check = _Check()

@@ -185,7 +185,8 @@ class VerificationConfig:
         training pairs of either kind verify more often than not (ORB 52 %, SIFT 80 % at 3 frames
         apart; 32 % / 52 % at 5, `ratio_bruteforce`). Only frames of an active track pay it. On
         the training revisit sequences (CamVid drives played twice at equal, double and half
-        speed) it found 1 more of 699 revisits (ORB 2k) and no extra wrong loop. 0 disables.
+        speed) it found 1-3 more of 699 revisits (ORB 1k / 2k, SIFT 2k) and no loop to another
+        street. 0 disables.
     island: each of the best `island_candidates` FAB-MAP candidates that fails is followed by
         its stored temporal neighbours within +-`island` frames (nearest first; only places
         still in the store). 0 (default) disables it: on training street pairs (same-word
