@@ -392,14 +392,14 @@ class LoopClosureDetector:
                     check.best, check.best_place, check.source = g, int(pid), source
                 return g.verified
 
-            done = False
-            if expect is not None and v.track:
-                # Tracked places get the brute-force retry as well (`bruteforce_track`).
-                for frame in [*range(expect, expect + v.track), expect - 1]:
-                    if any(attempt(int(p), "track", v.bruteforce_track) for p in self._places_of_frames(frame, frame)):
-                        done = True
-                        break
-            if not done:
+            def try_tracked(frames) -> bool:
+                """The places of these stored frames in order, with the brute-force retry as well
+                (`bruteforce_track`); True at the first that passes."""
+                return any(attempt(int(p), "track", v.bruteforce_track)
+                           for f in frames for p in self._places_of_frames(f, f))
+
+            tracking = expect is not None and v.track > 0
+            if not (tracking and try_tracked([*range(expect, expect + v.track), expect - 1])):
                 for rank, pid in enumerate(top):
                     if not np.isfinite(ranking[pid]) or check.tried >= cap:
                         break  # removed places (-inf) sort last
@@ -407,13 +407,11 @@ class LoopClosureDetector:
                         break  # the first candidate that passes is taken: true loops cost one check
                     if v.island and rank < v.island_candidates and self._island_try(int(pid), v.island, attempt):
                         break
-            if expect is not None and v.track and v.track_reach and not (check.best is not None and check.best.verified):
+            if tracking and v.track_reach and not (check.best is not None and check.best.verified):
                 # The track window and FAB-MAP's candidates failed: the other stored frames within
                 # track_reach of where the track expects the robot, nearest first (ahead first).
-                for frame in sorted(range(expect - v.track_reach, expect + v.track_reach + 1),
-                                    key=lambda f: (abs(f - expect), f < expect)):
-                    if any(attempt(int(p), "track", v.bruteforce_track) for p in self._places_of_frames(frame, frame)):
-                        break
+                try_tracked(sorted(range(expect - v.track_reach, expect + v.track_reach + 1),
+                                   key=lambda f: (abs(f - expect), f < expect)))
         check.geometry_ok = check.best is not None and check.best.verified
         check.verified = check.geometry_ok
         if self.temporal is not None:
