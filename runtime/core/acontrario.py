@@ -104,14 +104,14 @@ def significance(errors: np.ndarray, model: str, width: float, height: float, ma
     if n <= s:
         return Significance(float("inf"), 0, 0.0)
     e = np.sort(np.where(np.isfinite(errors), errors, np.inf))
-    k = np.arange(s + 1, n + 1)
     eps = e[s:]  # eps_k = k-th smallest error
-    usable = np.isfinite(eps)
+    # Sorted, so the usable k (finite eps_k, at most max_eps) are a prefix of length m.
+    m = int(np.searchsorted(eps, np.inf, side="left"))
     if max_eps is not None:
-        usable &= eps <= max_eps
-    if not usable.any():
+        m = min(m, int(np.searchsorted(eps, max_eps, side="right")))
+    if m == 0:
         return Significance(float("inf"), 0, 0.0)
-    k, eps = k[usable], eps[usable]
+    k, eps = np.arange(s + 1, s + 1 + m), eps[:m]
     # A zero error (duplicated point) would give log(0): floor it at a tiny fraction of a unit.
     alpha = np.minimum(alpha_coefficient(model, width, height) * np.maximum(eps, 1e-6) ** ERROR_DIMENSION[model], 1.0)
     log_nfa = (

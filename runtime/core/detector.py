@@ -24,6 +24,7 @@ from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Feat
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
 from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 from aefabmap.runtime.core.messages import Candidate, FrameResult  # records live with the wire messages
+from aefabmap.runtime.core.model_errors import epipolar_kernel, transfer_kernel
 from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Ranking, Scorer
 from aefabmap.runtime.core.temporal import TemporalFilter
@@ -175,9 +176,10 @@ class LoopClosureDetector:
         self.store: KeypointStore | None = None
         if v.enabled:
             self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
-            # Verification's kernels: match counting for every kind, the two matchers for binary ones.
+            # Verification's kernels: match counting and model errors for every kind, the two
+            # matchers for binary ones.
             binary = (nearest_two_kernel, same_word_kernel) if self.kind.distance == "hamming" else ()
-            compiled.prepare(distinct_kernel, *binary)
+            compiled.prepare(distinct_kernel, transfer_kernel, epipolar_kernel, *binary)
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)

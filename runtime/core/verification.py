@@ -51,6 +51,7 @@ from aefabmap.runtime.core.conditioning import (
 )
 from aefabmap.runtime.core.feature_kinds import DISTANCES
 from aefabmap.runtime.core.features import MAX_FEATURES
+from aefabmap.runtime.core.model_errors import epipolar_errors, transfer_errors
 from aefabmap.runtime.core.nearest import nearest_two, unit_rows
 from aefabmap.runtime.core.word_matches import match_same_word
 
@@ -540,6 +541,7 @@ def estimate_geometry(
         return res
     region = match_region(nq, np_, long_side=c.reference_long_side)
     best_key = (-1, -np.inf)
+    chosen: list = []  # [model name, matrix in reference units] of the best model so far
 
     def consider(name: str, M: np.ndarray, err: np.ndarray, conditioning=None) -> None:
         """Count the model's significant inliers, run the acceptance tests, keep the best model.
@@ -582,7 +584,7 @@ def estimate_geometry(
             res.verified, res.model, res.inliers, res.spread = ok, name, n_in, spread
             res.nfa, res.reason, res.inlier_mask = sig.log10_nfa, reason, mask
             res.extent = extent / c.reference_long_side
-            res.matrix = _to_pixels(name, M, sq, sp)
+            chosen[:] = [name, M]  # converted to pixels once, at the end
 
     # Fewer matches than a model's inlier floor cannot pass: do not fit it (unless full).
     H = _fit_homography(np_, nq, c) if full or k >= c.min_inliers_h else None
@@ -593,7 +595,7 @@ def estimate_geometry(
             ok = homography_is_plausible(H, np_[inl], c.h_max_scale, c.h_max_anisotropy)
             return "" if ok else "degenerate"
 
-        err_h = _transfer_error(H, np_, nq)
+        err_h = transfer_errors(H, np_, nq)
         consider("H", H, err_h, h_conditioning)
     if (full or not res.verified) and k > SAMPLE_SIZE["F"] and (full or k >= c.min_inliers):
         if c.camera is not None:
@@ -613,7 +615,9 @@ def estimate_geometry(
                 consider("F", F, epipolar_errors(F, nq, np_), f_conditioning)
     if res.model is None:
         res.reason = "no_evidence"
-    elif distinct.size < res.matches:
+        return res
+    res.matrix = _to_pixels(*chosen, sq, sp)
+    if distinct.size < res.matches:
         # Report the mask over all the matches given (copies of a location count as outliers).
         full_mask = np.zeros(res.matches, bool)
         full_mask[distinct[res.inlier_mask]] = True
@@ -755,44 +759,6 @@ def relative_pose_from_recover(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray
     c = -R_pq @ np.asarray(t, np.float64).reshape(3)
     n = float(np.linalg.norm(c))
     return R_pq, (c / n if n > 0 else c)
-
-
-def _transfer_error(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Larger of the forward (src -> dst) and backward transfer errors of H (K,); inf where undefined."""
-    try:
-        Hi = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return np.full(src.shape[0], np.inf)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        err = np.maximum(_transfer(H, src, dst), _transfer(Hi, dst, src))
-    return np.where(np.isfinite(err), err, np.inf)
-
-
-def _transfer(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Distance (K,) between H applied to src (K, 2) and dst (K, 2)."""
-    x, y = src[:, 0], src[:, 1]
-    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-    u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w - dst[:, 0]
-    v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w - dst[:, 1]
-    return np.sqrt(u * u + v * v)
-
-
-def epipolar_errors(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> np.ndarray:
-    """Larger of the two point-to-epipolar-line distances (K,) of matches xp -> xq under x_q^T F x_p = 0.
-
-    The a-contrario test counts a match as explained only when both points lie near their
-    lines. A line with (near) zero normal is undefined: its matches get an infinite error
-    (never an inlier, unlike a clamped denominator, which makes a null F explain everything).
-    """
-    lq = xp @ F[:, :2].T + F[:, 2]  # lines F x_p in the query image, (K, 3)
-    lp = xq @ F[:2, :] + F[2, :]  # lines F^T x_q in the place image
-    num = np.abs(xq[:, 0] * lq[:, 0] + xq[:, 1] * lq[:, 1] + lq[:, 2])
-    nq, np_ = np.hypot(lq[:, 0], lq[:, 1]), np.hypot(lp[:, 0], lp[:, 1])
-    scale = max(np.linalg.norm(F), 1e-300)
-    ok = (nq > 1e-9 * scale) & (np_ > 1e-9 * scale)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.maximum(num / nq, num / np_)
-    return np.where(ok & np.isfinite(err), err, np.inf)
 
 
 def _fit_homography(src: np.ndarray, dst: np.ndarray, c: VerificationConfig) -> np.ndarray | None:

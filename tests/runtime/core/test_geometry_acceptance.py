@@ -14,12 +14,12 @@ from aefabmap.runtime.core.conditioning import (
     rank2_fundamental,
 )
 from aefabmap.runtime.core.feature_kinds import get_kind
+from aefabmap.runtime.core.model_errors import epipolar_errors
 from aefabmap.runtime.core.verification import (
     GEOMETRY_METHODS,
     VerificationConfig,
     distinct_matches,
     independence_radius,
-    epipolar_errors,
     estimate_geometry,
     match_all,
     parse_camera,
