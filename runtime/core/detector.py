@@ -360,7 +360,10 @@ class LoopClosureDetector:
         following the previous query's verified match, `VerificationConfig.track`), then the
         top_k places by FAB-MAP log-likelihood, each failed one followed by its island
         neighbours (`VerificationConfig.island`), then, during a track, the other stored frames
-        within `track_reach` of the expected one. A place is verified at most once per query.
+        within `track_reach` of the expected one, each with the brute-force retry. A place is
+        verified at most once per query, except that one checked by same-word matching only (a
+        FAB-MAP candidate past `bruteforce_fallback`, an island neighbour) is checked again with
+        the retry when the track's reach comes to it.
         """
         v = self.config.verification
         check = _Check()
@@ -371,19 +374,21 @@ class LoopClosureDetector:
         elif features is not None and len(features) and ranking.size:
             q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
             radius = independence_radius(self.kind.window_radius(features.sizes), v)
-            tried: set[int] = set()
+            tried: dict[int, bool] = {}  # place id -> whether its check included the brute-force retry
             cap = v.max_trials if v.max_trials is not None else np.inf
             bf_cap = v.max_bruteforce if v.max_bruteforce is not None else np.inf
 
             def attempt(pid: int, source: str, bruteforce: bool = False) -> bool:
-                if pid in tried or check.tried >= cap or not np.isfinite(ranking[pid]):
+                bruteforce = bruteforce and check.bruteforce < bf_cap
+                done = tried.get(pid)
+                if done or (done is not None and not bruteforce) or check.tried >= cap \
+                        or not np.isfinite(ranking[pid]):
                     return False
-                tried.add(pid)
+                tried[pid] = bruteforce
                 place = self.store.get(pid)
                 if place is None or len(place) == 0:
                     return False
                 check.tried += 1
-                bruteforce = bruteforce and check.bruteforce < bf_cap
                 check.bruteforce += bruteforce
                 g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                 place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance,

@@ -17,6 +17,7 @@ from aefabmap.runtime.core.keypoint_store import PLACE_OVERHEAD_BYTES, KeypointS
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.verification import (
     NO_WORD,
+    GeometryResult,
     VerificationConfig,
     estimate_geometry,
     match_keypoints,
@@ -345,7 +346,7 @@ def _one_word_run(tmp_path, images, **verification):
     only the track prior / island can find any other place."""
     from aefabmap.runtime.core.verification import VerificationConfig as VC
 
-    det = _detector(tmp_path, verification=VC(top_k=1, **verification))
+    det = _detector(tmp_path, verification=VC(**{"top_k": 1, **verification}))
     ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=500, long_side=None))
     out = []
     for img in images:
@@ -405,6 +406,33 @@ def test_track_reach_never_reaches_past_its_frames(tmp_path):
     assert not r[7].verified  # place 5 lies 4 frames past the expected frame 1
     _, r = _one_word_run(tmp_path / "wider", seq, track=2, track_memory=1, track_reach=4)
     assert r[7].verified and r[7].verified_frame == 5
+
+
+def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_only(tmp_path, monkeypatch):
+    """A FAB-MAP candidate past `bruteforce_fallback` is checked by same-word matching only.
+    When that fails (here every same-word check is made to fail) and the place lies within the
+    track's reach, the reach checks it again with the brute-force retry: the reach's rule is
+    "each with the retry", whatever checked the place before."""
+    from aefabmap.runtime.core import detector as detector_module
+
+    real = detector_module.verify_pair
+
+    def same_word_fails(*args, bruteforce=False, **kw):
+        if not bruteforce:
+            return GeometryResult()
+        return real(*args, bruteforce=True, **kw)
+
+    monkeypatch.setattr(detector_module, "verify_pair", same_word_fails)
+    # All words tie, so FAB-MAP ranks places 0, 1, 2, 3, 4; the track (expected frame 1) has
+    # already tried 1, 2 and 0 with the retry; 3 and 4 get same-word checks only (ranks 3, 4).
+    for reach, found in ((3, True), (0, False)):
+        _, r = _one_word_run(tmp_path / str(reach), _skip_ahead_sequence(), track=2, track_memory=1,
+                             track_reach=reach, top_k=5, bruteforce_fallback=1)
+        assert r[6].verified and r[6].verified_frame == 0
+        assert r[7].verified == found
+        if found:
+            # Track window 1, 2, 0; FAB-MAP 3, 4 (same word); reach: 3 again, then 4 again.
+            assert r[7].verified_frame == 4 and r[7].candidates_tried == 7
 
 
 def test_without_track_fabmap_candidates_alone_miss_it(tmp_path):
