@@ -3,10 +3,12 @@ and their numpy / OpenCV fallbacks (the one place that imports numba).
 
 Kernels (the FAB-MAP scatter in runtime/core/scatter.py, the Hamming nearest-neighbour search in
 runtime/core/bits.py, same-word matching in runtime/core/word_matches.py, the count of distinct
-matches in runtime/core/verification.py, the int8 search's re-rank in runtime/core/bit_centroids.py)
-wrap their builder with `kernel`; each is compiled on first use, or by `prepare` when its user is
-built (FAB-MAP its scatter, a verifying detector its matchers, the int8 search its re-rank). Every kernel
-has a fallback that gives the same results, so the choice changes speed only.
+matches in runtime/core/verification.py, the model errors in runtime/core/model_errors.py, the
+int8 search's re-rank in runtime/core/bit_centroids.py) wrap their builder with `kernel`; each is
+compiled on first use, or by `prepare` when its user is built (FAB-MAP its scatter, a verifying
+detector its matchers and model errors, the int8 search its re-rank). Every kernel has a fallback
+that gives the same results (the model errors: to float64 rounding), so the choice changes speed
+only.
 
 numba is the extra `fast`. It also fails to import where its JIT cannot map executable memory
 (a systemd unit with MemoryDenyWriteExecute=yes, such as deploy/aefabmap.service): the runtime

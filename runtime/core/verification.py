@@ -1,5 +1,6 @@
-"""Geometric verification of loop-closure candidates (pure: numpy + OpenCV, no I/O; the matching
-and match-counting loops also have compiled forms, runtime/core/compiled.py, with the same results).
+"""Geometric verification of loop-closure candidates (pure: numpy + OpenCV, no I/O; the matching,
+match-counting and model-error loops also have compiled forms, runtime/core/compiled.py, with the
+same results).
 
 A candidate place is accepted when the query frame's keypoints and the place's stored
 keypoints admit a well-conditioned two-view geometry whose support is very unlikely to be
