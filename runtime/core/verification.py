@@ -542,7 +542,7 @@ def estimate_geometry(
         return res
     region = match_region(nq, np_, long_side=c.reference_long_side)
     best_key = (-1, -np.inf)
-    chosen: list = []  # [model name, matrix in reference units] of the best model so far
+    best_matrix = None  # res.model's matrix in reference units, converted to pixels at the end
 
     def consider(name: str, M: np.ndarray, err: np.ndarray, conditioning=None) -> None:
         """Count the model's significant inliers, run the acceptance tests, keep the best model.
@@ -550,7 +550,7 @@ def estimate_geometry(
         conditioning: None or a callable -> "" (well conditioned) or a reject reason; called
         only for a significant model (it costs more than the NFA).
         """
-        nonlocal best_key
+        nonlocal best_key, best_matrix
         sig = significance(err, name, region[0], region[1], c.h_threshold if name == "H" else c.f_threshold)
         mask = (err <= sig.eps) if sig.inliers else np.zeros(k, bool)
         n_in = int(mask.sum())
@@ -585,7 +585,7 @@ def estimate_geometry(
             res.verified, res.model, res.inliers, res.spread = ok, name, n_in, spread
             res.nfa, res.reason, res.inlier_mask = sig.log10_nfa, reason, mask
             res.extent = extent / c.reference_long_side
-            chosen[:] = [name, M]  # converted to pixels once, at the end
+            best_matrix = M
 
     # Fewer matches than a model's inlier floor cannot pass: do not fit it (unless full).
     H = _fit_homography(np_, nq, c) if full or k >= c.min_inliers_h else None
@@ -617,7 +617,7 @@ def estimate_geometry(
     if res.model is None:
         res.reason = "no_evidence"
         return res
-    res.matrix = _to_pixels(*chosen, sq, sp)
+    res.matrix = _to_pixels(res.model, best_matrix, sq, sp)
     if distinct.size < res.matches:
         # Report the mask over all the matches given (copies of a location count as outliers).
         full_mask = np.zeros(res.matches, bool)
