@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import warnings
 from pathlib import Path
 
@@ -27,6 +28,12 @@ OPSET = 18
 PRODUCER = "aefabmap"
 
 
+def argmax_block(words: int) -> int:
+    """Block length of the two-stage arg-max over `words` codebook scores: ~sqrt(K), so that
+    both arg-max passes are short, rounded up to 16 (one AVX-512 register of float32)."""
+    return 16 * max(1, math.ceil(math.sqrt(words) / 16))
+
+
 class QuantizerGraph(nn.Module):
     """descriptors (B, D) -> (words (B,) int32, codes (B, latent) float32)."""
 
@@ -36,17 +43,35 @@ class QuantizerGraph(nn.Module):
         if codebook.ndim != 2 or codebook.shape[1] != encoder.latent_dim or codebook.shape[0] < 1:
             raise InputError(f"codebook must have shape (K, {encoder.latent_dim}), got {codebook.shape}")
         self.encoder = copy.deepcopy(encoder).eval()
+        self.words = codebook.shape[0]
+        self.block = argmax_block(self.words)
+        padded = self.block * math.ceil(self.words / self.block)
         # argmin |z - c|^2 == argmax (z.c - |c|^2 / 2): one product, no (B, K, latent) tensor,
         # with -|c|^2 / 2 as the product's bias (one Gemm: no second pass over the B x K scores).
-        self.register_buffer("codebook_t", torch.from_numpy(codebook.T.copy()))
-        self.register_buffer("neg_half_sq_norms",
-                             torch.from_numpy(-0.5 * np.einsum("kd,kd->k", codebook, codebook)))
+        # The codebook is padded to whole blocks with zero codewords of bias -inf: never chosen.
+        codebook_t = np.zeros((codebook.shape[1], padded), np.float32)
+        codebook_t[:, : self.words] = codebook.T
+        bias = np.full(padded, -np.inf, np.float32)
+        bias[: self.words] = -0.5 * np.einsum("kd,kd->k", codebook, codebook)
+        self.register_buffer("codebook_t", torch.from_numpy(codebook_t))
+        self.register_buffer("neg_half_sq_norms", torch.from_numpy(bias))
+
+    def scores(self, codes: torch.Tensor) -> torch.Tensor:
+        """Latent scores (B, K) of codes (B, latent): larger is nearer; padding excluded."""
+        return torch.addmm(self.neg_half_sq_norms, codes, self.codebook_t)[:, : self.words]
 
     def forward(self, descriptors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         codes = self.encoder(descriptors)
         scores = torch.addmm(self.neg_half_sq_norms, codes, self.codebook_t)
-        words = torch.argmax(scores, dim=1).to(torch.int32)
-        return words, codes
+        # Arg-max in two stages, the first index of the maximum as one flat arg-max would give:
+        # the first block holding the row's maximum (block maxima are one vectorised reduction),
+        # then the first maximum inside it. onnxruntime's ArgMax is scalar: over all B x K
+        # scores it cost as much as the product itself.
+        blocks = scores.view(-1, scores.shape[1] // self.block, self.block)
+        best_block = blocks.amax(dim=2).argmax(dim=1, keepdim=True)
+        inside = torch.gather(blocks, 1, best_block.unsqueeze(2).expand(-1, -1, self.block)).squeeze(1)
+        words = best_block.squeeze(1) * self.block + inside.argmax(dim=1)
+        return words.to(torch.int32), codes
 
 
 def export_quantizer_onnx(encoder: Encoder, codebook: np.ndarray, path: str | Path) -> Path:

@@ -52,7 +52,7 @@ class Exported:
         g = QuantizerGraph(self.encoder, self.codebook).eval()
         with torch.no_grad():
             words, codes = g(torch.from_numpy(x))
-            scores = codes @ g.codebook_t + g.neg_half_sq_norms
+            scores = g.scores(codes)
         return words.numpy(), codes.numpy(), scores.numpy()
 
 
@@ -144,6 +144,37 @@ def test_int8_kernels_compute_the_graphs_qdq_arithmetic(exported):
     fused = codes(ort.GraphOptimizationLevel.ORT_ENABLE_ALL)
     emulated = codes(ort.GraphOptimizationLevel.ORT_DISABLE_ALL)
     assert np.linalg.norm(fused - emulated) <= 1e-3 * np.linalg.norm(emulated)
+
+
+def test_graph_arg_max_is_the_first_maximum_across_blocks_and_padding(tmp_path):
+    # The graph's arg-max runs in blocks of argmax_block(K) scores, with the codebook padded to
+    # whole blocks: it must still give the first index of the row's maximum, as one flat
+    # arg-max does, wherever ties fall (inside a block, across a block boundary, in the padded
+    # last block) and never a padding index. K = 70 -> blocks of 16, 80 columns.
+    from aefabmap.export.onnx_export import argmax_block
+    from aefabmap.trainer.autoencoder import Autoencoder
+
+    torch.manual_seed(0)
+    words = 70
+    assert argmax_block(words) == 16 and words % 16
+    enc = Autoencoder(128, AeConfig(arch="light", latent_dim=8).resolved(128, "sift")).encoder.eval()
+    rng = np.random.default_rng(1)
+    x = rng.random((400, 128)).astype(np.float32)
+    with torch.no_grad():
+        codes = enc(torch.from_numpy(x)).numpy()
+    codebook = (codes[rng.choice(400, words, replace=False)] + rng.normal(0, 0.5, (words, 8))).astype(np.float32)
+    # Codewords equal to the codes of rows 0-2, each duplicated further on: exact score ties.
+    pairs = [(3, 9), (15, 16), (64, 69)]
+    for row, (first, second) in enumerate(pairs):
+        codebook[first] = codebook[second] = codes[row]
+    model = OnnxQuantizer(export_quantizer_onnx(enc, codebook, tmp_path / "q.onnx"), vocabulary_size=words,
+                          descriptor_length=128)
+    got = model.quantize(x)
+    assert got.max() < words
+    assert got[: len(pairs)].tolist() == [first for first, _ in pairs]
+    scores = model.encode(x) @ codebook.T - 0.5 * np.einsum("kd,kd->k", codebook, codebook)
+    flat = np.argmax(scores, axis=1)
+    assert np.all(tie_gap(scores, got, flat) <= 1e-5) and np.mean(got == flat) >= 0.99
 
 
 @pytest.mark.parametrize("which", ["fp32", "int8"])
