@@ -7,7 +7,7 @@ import onnxruntime as ort
 import pytest
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core.bit_centroids import BitCentroidQuantizer
+from aefabmap.runtime.core.bit_centroids import BLOCK_BYTES, BitCentroidQuantizer, product_chunk
 from aefabmap.runtime.core.onnx_matmul import INPUT_NAME, OUTPUT_NAME, matmul_integer_model
 from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
 
@@ -73,6 +73,31 @@ def test_ties_go_to_the_lowest_id_and_far_centroids_stay_exact(kernels):
     wild_words = BitCentroidQuantizer(wild).quantize_raw(np.packbits(bits, axis=1))
     assert np.array_equal(words, _exact_words(bits, centroids)) and words.max() < 60
     assert np.array_equal(wild_words, _exact_words(bits, wild))
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_words_stay_exact_when_every_residual_has_one_sign(sign, kernels):
+    """Each word's interval of the int8 error is one-sided when every centroid value lies above
+    (or below) its int8 level, by up to half a step, by different amounts in each word: the
+    candidates must still hold the exact best word."""
+    centroids, bits = _clustered(7, k=200, n=1500)
+    levels = np.clip(np.rint(127 * (2.0 * centroids.astype(np.float64) - 1.0)), -126, 126)
+    offsets = np.random.default_rng(7).random(levels.shape) * np.linspace(0.0, 0.99, levels.shape[0])[:, None]
+    snapped = ((levels / 127 + 1.0) / 2 + sign * offsets / 508).astype(np.float32)
+    q = BitCentroidQuantizer(snapped)
+    assert np.array_equal(q.quantize_raw(np.packbits(bits, axis=1)), _exact_words(bits, snapped))
+
+
+def test_product_chunks_keep_the_block_of_products_in_cache():
+    for words in (1, 300, 1000, 2000, 3000, 5000, 10**5):
+        chunk = product_chunk(words)
+        assert 64 <= chunk <= 512 and chunk & (chunk - 1) == 0
+        assert chunk * words * 4 <= BLOCK_BYTES or chunk == 64
+        assert chunk == 512 or 2 * chunk * words * 4 > BLOCK_BYTES  # the largest that fits
+    centroids, bits = _clustered(8, k=300, n=1300)
+    packed = np.packbits(bits, axis=1)
+    assert np.array_equal(BitCentroidQuantizer(centroids).quantize_raw(packed),
+                          BitCentroidQuantizer(centroids, chunk=100).quantize_raw(packed))
 
 
 def test_vectors_that_are_not_bits_take_the_float_search():
