@@ -20,7 +20,7 @@ word (the norm term's rounding is known exactly). The best word b has z_b + hi_b
 Rows with one such candidate take it; the others are re-ranked with exact float64 products.
 The result is the exact arg-min (ties to the lowest id), whatever the centroids; centroids far
 from [0, 1] only widen the intervals and cost time (`flat_quantizer` then keeps the float search).
-Bounds per word, rather than one band of the worst word's width, halve the rows re-ranked (30 ->
+Bounds per word, rather than one band of the worst word's width, halve the rows re-ranked (31 ->
 15 % of ORB descriptors with 3000 CamVid words).
 
 The int8 product cannot saturate on x86 without VNNI (pairs of products are summed in int16):
