@@ -36,6 +36,7 @@ from aefabmap.runtime.core.verification import (
     distinct_kernel,
     independence_radius,
     verify_pair,
+    verify_pair_bruteforce,
 )
 from aefabmap.runtime.core.word_matches import same_word_kernel
 
@@ -333,7 +334,12 @@ class LoopClosureDetector:
         """The top places of the ranking (log-likelihood or similarity) and every place checked."""
         ranking = ranked.order
         top = [int(p) for p in top_places if np.isfinite(ranking[p])]  # removed places are -inf
-        attempts = {pid: (source, g) for pid, source, g in (check.attempts if check is not None else [])}
+        # A place checked twice (same-word, then the reach's retry) shows its last source and its
+        # most significant result.
+        attempts: dict[int, tuple] = {}
+        for pid, source, g in check.attempts if check is not None else []:
+            old = attempts.get(pid)
+            attempts[pid] = (source, g if old is None or g.verified or g.nfa < old[1].nfa else old[1])
         pids = top + [p for p in attempts if p not in top]
         out = []
         for pid in pids:
@@ -362,8 +368,8 @@ class LoopClosureDetector:
         neighbours (`VerificationConfig.island`), then, during a track, the other stored frames
         within `track_reach` of the expected one, each with the brute-force retry. A place is
         verified at most once per query, except that one checked by same-word matching only (a
-        FAB-MAP candidate past `bruteforce_fallback`, an island neighbour) is checked again with
-        the retry when the track's reach comes to it.
+        FAB-MAP candidate past `bruteforce_fallback`, an island neighbour) is given the retry
+        alone when the track's reach comes to it; it counts once in `candidates_tried`.
         """
         v = self.config.verification
         check = _Check()
@@ -388,11 +394,16 @@ class LoopClosureDetector:
                 place = self.store.get(pid)
                 if place is None or len(place) == 0:
                     return False
-                check.tried += 1
                 check.bruteforce += bruteforce
-                g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
-                                place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance,
-                                radius=radius)
+                if done is False:
+                    # Its same-word check failed earlier in this query: only the retry is new.
+                    g = verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
+                                               v, distance=self.kind.distance, radius=radius)
+                else:
+                    check.tried += 1
+                    g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
+                                    place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance,
+                                    radius=radius)
                 check.attempts.append((int(pid), source, g))
                 # Keep the accepted attempt, else the most significant one (diagnostics).
                 if check.best is None or g.verified or g.nfa < check.best.nfa:

@@ -830,14 +830,36 @@ def verify_pair(
         _keep_points(res, pairs, q_xy, p_xy, c)
     if res.verified or not bruteforce:
         return res
+    retry = verify_pair_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius)
+    return retry if retry.verified or retry.nfa < res.nfa else res
+
+
+def verify_pair_bruteforce(
+    q_xy: np.ndarray,
+    q_desc: np.ndarray,
+    shape_q: tuple[int, int],
+    p_xy: np.ndarray,
+    p_desc: np.ndarray,
+    shape_p: tuple[int, int],
+    config: VerificationConfig | None = None,
+    *,
+    distance: str,
+    radius: float | None = None,
+) -> GeometryResult:
+    """The brute-force retry of `verify_pair` alone: all-pairs matching, then the geometry.
+
+    For a place whose same-word check already failed (its result is known), so that only the
+    retry is paid. Arguments as `verify_pair`'s.
+    """
+    c = config or VerificationConfig()
     pairs = match_all(q_desc, p_desc, c, distance=distance)
     if pairs.shape[0] == 0:
-        return res
+        return GeometryResult()
     # Same criterion: the NFA grows with the number of matches, so the extra chance matches of
     # all-pairs matching raise the support a model needs by themselves.
-    retry = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c, radius=radius)
-    _keep_points(retry, pairs, q_xy, p_xy, c)
-    return retry if retry.verified or retry.nfa < res.nfa else res
+    res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c, radius=radius)
+    _keep_points(res, pairs, q_xy, p_xy, c)
+    return res
 
 
 def _keep_points(res: GeometryResult, pairs: np.ndarray, q_xy: np.ndarray, p_xy: np.ndarray, c: VerificationConfig) -> None:

@@ -415,24 +415,35 @@ def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_
     "each with the retry", whatever checked the place before."""
     from aefabmap.runtime.core import detector as detector_module
 
-    real = detector_module.verify_pair
+    real, real_retry = detector_module.verify_pair, detector_module.verify_pair_bruteforce
+    retries_alone: list[int] = []
 
     def same_word_fails(*args, bruteforce=False, **kw):
         if not bruteforce:
             return GeometryResult()
         return real(*args, bruteforce=True, **kw)
 
+    def retry_alone(*args, **kw):
+        retries_alone.append(1)
+        return real_retry(*args, **kw)
+
     monkeypatch.setattr(detector_module, "verify_pair", same_word_fails)
+    monkeypatch.setattr(detector_module, "verify_pair_bruteforce", retry_alone)
     # All words tie, so FAB-MAP ranks places 0, 1, 2, 3, 4; the track (expected frame 1) has
     # already tried 1, 2 and 0 with the retry; 3 and 4 get same-word checks only (ranks 3, 4).
     for reach, found in ((3, True), (0, False)):
+        retries_alone.clear()
         _, r = _one_word_run(tmp_path / str(reach), _skip_ahead_sequence(), track=2, track_memory=1,
                              track_reach=reach, top_k=5, bruteforce_fallback=1)
         assert r[6].verified and r[6].verified_frame == 0
         assert r[7].verified == found
         if found:
-            # Track window 1, 2, 0; FAB-MAP 3, 4 (same word); reach: 3 again, then 4 again.
-            assert r[7].verified_frame == 4 and r[7].candidates_tried == 7
+            # Track window 1, 2, 0; FAB-MAP 3, 4 (same word); reach: the retry alone for 3, then
+            # for 4, whose same-word checks already failed: five places, each counted once.
+            assert r[7].verified_frame == 4 and r[7].candidates_tried == 5
+            assert len(retries_alone) == 2
+        else:
+            assert not retries_alone
 
 
 def test_without_track_fabmap_candidates_alone_miss_it(tmp_path):
