@@ -105,11 +105,11 @@ def main() -> int:
         bundle = load_bundle(args.model)
         images = list_images(args.images)
         gt = load_ground_truth(args.gt, len(images))
+        cv2.setNumThreads(1)
+        best, score = run(bundle, images, args.exclude, args.threshold)
     except (AefabmapError, OSError, ValueError) as exc:
         print(f"fixed_bar_baseline: {exc}")
         return 2
-    cv2.setNumThreads(1)
-    best, score = run(bundle, images, args.exclude, args.threshold)
     metrics = evaluate_predictions(best, score, gt, args.tolerance)
     correct = correct_predictions(best, np.tril(gt, -1), args.tolerance)
     relevant = metrics["relevant_frames"]
