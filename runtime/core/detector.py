@@ -35,6 +35,7 @@ from aefabmap.runtime.core.verification import (
     VerificationConfig,
     distinct_kernel,
     independence_radius,
+    more_significant,
     verify_pair,
     verify_pair_bruteforce,
 )
@@ -338,8 +339,8 @@ class LoopClosureDetector:
         # most significant result.
         attempts: dict[int, tuple] = {}
         for pid, source, g in check.attempts if check is not None else []:
-            old = attempts.get(pid)
-            attempts[pid] = (source, g if old is None or g.verified or g.nfa < old[1].nfa else old[1])
+            prev = attempts[pid][1] if pid in attempts else None
+            attempts[pid] = (source, g if more_significant(g, prev) else prev)
         pids = top + [p for p in attempts if p not in top]
         out = []
         for pid in pids:
@@ -406,7 +407,7 @@ class LoopClosureDetector:
                                     radius=radius)
                 check.attempts.append((int(pid), source, g))
                 # Keep the accepted attempt, else the most significant one (diagnostics).
-                if check.best is None or g.verified or g.nfa < check.best.nfa:
+                if more_significant(g, check.best):
                     check.best, check.best_place, check.source = g, int(pid), source
                 return g.verified
 

@@ -799,6 +799,12 @@ def _to_pixels(model: str, M: np.ndarray, sq: float, sp: float) -> np.ndarray:
     return out / out[2, 2] if abs(out[2, 2]) > 1e-12 else out
 
 
+def more_significant(g: GeometryResult, other: GeometryResult | None) -> bool:
+    """Whether result g should stand in for `other` (None: no result yet): g was accepted, or its
+    model is more significant (smaller log10 NFA)."""
+    return other is None or g.verified or g.nfa < other.nfa
+
+
 def verify_pair(
     q_xy: np.ndarray,
     q_words: np.ndarray,
@@ -831,7 +837,7 @@ def verify_pair(
     if res.verified or not bruteforce:
         return res
     retry = verify_pair_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius)
-    return retry if retry.verified or retry.nfa < res.nfa else res
+    return retry if more_significant(retry, res) else res
 
 
 def verify_pair_bruteforce(
