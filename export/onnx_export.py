@@ -56,13 +56,17 @@ class QuantizerGraph(nn.Module):
         self.register_buffer("codebook_t", torch.from_numpy(codebook_t))
         self.register_buffer("neg_half_sq_norms", torch.from_numpy(bias))
 
+    def _padded_scores(self, codes: torch.Tensor) -> torch.Tensor:
+        """Latent scores (B, padded K) of codes (B, latent): larger is nearer; padding -inf."""
+        return torch.addmm(self.neg_half_sq_norms, codes, self.codebook_t)
+
     def scores(self, codes: torch.Tensor) -> torch.Tensor:
         """Latent scores (B, K) of codes (B, latent): larger is nearer; padding excluded."""
-        return torch.addmm(self.neg_half_sq_norms, codes, self.codebook_t)[:, : self.words]
+        return self._padded_scores(codes)[:, : self.words]
 
     def forward(self, descriptors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         codes = self.encoder(descriptors)
-        scores = torch.addmm(self.neg_half_sq_norms, codes, self.codebook_t)
+        scores = self._padded_scores(codes)
         # Arg-max in two stages, the first index of the maximum as one flat arg-max would give:
         # the first block holding the row's maximum (block maxima are one vectorised reduction),
         # then the first maximum inside it. onnxruntime's ArgMax is scalar: over all B x K
