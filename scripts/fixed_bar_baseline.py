@@ -3,9 +3,9 @@
 
 The kind of throwaway prototype loop-closure detectors are often first built as: the bundle's
 features (1000 keypoints per frame, all quantised) and vocabulary, the 5 most similar stored
-frames by tf-idf cosine (outside the exclusion window), cross-checked brute-force matching,
-one fundamental-matrix RANSAC per candidate (`--threshold` pixels of the original images), and
-the candidate with most inliers; its score is that raw inlier count. It has no notion of
+frames by the runtime's tf-idf cosine (idf from the bundle's training observations; outside the
+exclusion window), cross-checked brute-force matching, one fundamental-matrix RANSAC per
+candidate (`--threshold` pixels of the original images), and the candidate with most inliers; its score is that raw inlier count. It has no notion of
 chance: whether N inliers are evidence depends on the sequence, so a bar is only right for
 the sequence it was read off.
 
@@ -30,6 +30,7 @@ from aefabmap.errors import AefabmapError
 from aefabmap.runtime.adapters.bundle_reader import load_bundle
 from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.adapters.image_folder import list_images
+from aefabmap.runtime.core.bow import BowIndex
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.runtime.tools.pr_metrics import correct_predictions, evaluate_predictions
@@ -37,17 +38,6 @@ from aefabmap.runtime.tools.sequence_eval import load_ground_truth
 
 CANDIDATES = 5
 MIN_INLIERS = 15  # below this the baseline makes no prediction at all
-
-
-def tfidf_top(bows: np.ndarray, i: int, n_db: int, k: int) -> np.ndarray:
-    """The k stored frames (ids < n_db) most similar to frame i: tf-idf cosine, idf of the store."""
-    db = bows[:n_db]
-    idf = np.log(n_db / np.maximum((db > 0).sum(axis=0), 1))
-    vecs = db * idf
-    vecs /= np.linalg.norm(vecs, axis=1, keepdims=True) + 1e-12
-    query = bows[i] * idf
-    query /= np.linalg.norm(query) + 1e-12
-    return np.argsort(-(vecs @ query), kind="stable")[:k]
 
 
 def f_inliers(a, b, matcher, threshold: float) -> int:
@@ -68,22 +58,21 @@ def run(bundle, images: list[Path], exclude: int, threshold: float) -> tuple[np.
     kind = bundle.features.spec
     extractor = FeatureExtractor(FeatureConfig(**{**bundle.features.to_dict(), "max_features": 1000}))
     quantizer = bundle.quantizer("fp32")
-    feats, bows = [], []
+    feats, words = [], []
     for path in images:
         f = extractor.extract(load_image(path))
-        words = quantize_raw(quantizer, kind, f.descriptors) if len(f) else np.zeros(0, np.int64)
         feats.append(f)
-        bows.append(np.bincount(words, minlength=bundle.vocabulary_size).astype(np.float64))
-    bows = np.asarray(bows)
+        words.append(quantize_raw(quantizer, kind, f.descriptors) if len(f) else np.zeros(0, np.int64))
+    # The runtime's tf-idf index (`--scorer bow`); frames enter it after the exclusion window, in
+    # order, so place ids are frame numbers.
+    index = BowIndex(bundle.vocabulary_size, bundle.training_observations)
     matcher = cv2.BFMatcher(cv2.NORM_HAMMING if kind.distance == "hamming" else cv2.NORM_L2, crossCheck=True)
     best = np.full(len(images), -1, np.int64)
     score = np.zeros(len(images))
-    for i in range(len(images)):
-        n_db = i - exclude
-        if n_db <= 0:
-            continue
-        counts = [(f_inliers(feats[i], feats[j], matcher, threshold), int(j))
-                  for j in tfidf_top(bows, i, n_db, CANDIDATES)]
+    for i in range(exclude + 1, len(images)):
+        index.add(words[i - exclude - 1])
+        top = np.argsort(-index.similarity(words[i]), kind="stable")[:CANDIDATES]
+        counts = [(f_inliers(feats[i], feats[j], matcher, threshold), int(j)) for j in top]
         inliers, frame = max(counts, key=lambda c: c[0])
         if inliers >= MIN_INLIERS:
             best[i], score[i] = frame, inliers
