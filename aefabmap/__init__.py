@@ -1,4 +1,18 @@
-"""aefabmap: appearance-based loop-closure detection (FAB-MAP 2.0) for small robots."""
+"""aefabmap: appearance-based loop-closure detection (FAB-MAP 2.0) for small robots.
+
+Library use::
+
+    from aefabmap import DetectorConfig, load_detector
+    detector = load_detector("bundles/orb_kmeans_3000", DetectorConfig())
+    result = detector.process(gray_image)      # a FrameResult; result.verified, result.verified_frame
+
+The names below load lazily, so ``import aefabmap`` stays cheap for the CLI; none of them imports
+zenoh, mcap, torch or onnx.
+"""
+
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
@@ -6,24 +20,65 @@ from aefabmap.errors import (  # noqa: E402
     AefabmapError,
     BundleError,
     ConfigError,
+    DataNotFoundError,
     ImageDecodeError,
     InputError,
     LogError,
+    StateError,
     TransportError,
 )
-from aefabmap.runtime.core.fabmap import FabMap2, Localization  # noqa: E402
-from aefabmap.runtime.core.tree import ChowLiuTree  # noqa: E402
+
+# public name -> module that owns it
+_LAZY = {
+    "LoopClosureDetector": "aefabmap.runtime.core.detector",
+    "DetectorConfig": "aefabmap.runtime.core.detector",
+    "CandidateConfig": "aefabmap.runtime.core.candidates",
+    "VerificationConfig": "aefabmap.runtime.core.verification",
+    "RunConfig": "aefabmap.runtime.core.run_config",
+    "FrameResult": "aefabmap.runtime.core.messages",
+    "Candidate": "aefabmap.runtime.core.messages",
+    "load_detector": "aefabmap.runtime.adapters.bundle_reader",
+    "load_bundle": "aefabmap.runtime.adapters.bundle_reader",
+    "FabMap2": "aefabmap.runtime.core.fabmap",
+    "Localization": "aefabmap.runtime.core.fabmap",
+    "ChowLiuTree": "aefabmap.runtime.core.tree",
+}
+
+
+def __getattr__(name: str):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'aefabmap' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)
+
 
 __all__ = [
     "AefabmapError",
     "BundleError",
+    "Candidate",
+    "CandidateConfig",
     "ChowLiuTree",
     "ConfigError",
+    "DataNotFoundError",
+    "DetectorConfig",
     "FabMap2",
+    "FrameResult",
     "ImageDecodeError",
     "InputError",
     "Localization",
     "LogError",
+    "LoopClosureDetector",
+    "RunConfig",
+    "StateError",
     "TransportError",
+    "VerificationConfig",
     "__version__",
+    "load_bundle",
+    "load_detector",
 ]

@@ -6,8 +6,9 @@ import dataclasses
 import json
 from pathlib import Path
 
+from aefabmap.cli.run_config import add_detector_options, build_run_config
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
+from aefabmap.runtime.core.detector import SCORERS, DetectorConfig
 from aefabmap.runtime.core.verification import VerificationConfig
 
 
@@ -16,31 +17,8 @@ def register(sub) -> None:
     p.add_argument("--model", required=True, type=Path, metavar="BUNDLE")
     p.add_argument("--images", required=True, type=Path, metavar="DIR", help="frames, sorted by name = temporal order")
     p.add_argument("--gt", required=True, type=Path, metavar="GT.npy", help="bool N x N ground truth")
-    p.add_argument("--exclude", type=int, default=50, help="exclusion window / insertion delay in frames (default 50)")
     p.add_argument("--tolerance", type=int, default=10, help="frames of tolerance for the tolerant metrics (default 10)")
-    p.add_argument("--scorer", choices=SCORERS + ("both",), default="fabmap", help="fabmap, bow (tf-idf cosine) or both")
-    p.add_argument("--variant", choices=("fp32", "int8", "flat", "flat-fp32"), default="fp32",
-                   help="quantiser variant: fp32 / int8 (autoencoder bundles); flat: exhaustive search of a k-means "
-                   "bundle that has an inverted index; flat-fp32: that search as one float32 product (binary kinds "
-                   "otherwise use an int8 product with an exact re-rank: the same words)")
-    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
-    p.add_argument("--motion-model", action="store_true", help="FAB-MAP motion prior")
-    p.add_argument("--naive-bayes", action="store_true", help="FAB-MAP without the Chow-Liu tree")
-    p.add_argument("--fabmap-score", choices=FABMAP_SCORES, default="probability",
-                   help="raw FAB-MAP score: posterior probability (default) or llr (best place vs new place)")
-    p.add_argument("--no-verify", action="store_true", help="raw FAB-MAP/BoW only: no geometric verification")
-    p.add_argument("--verify-top-k", type=int, default=None, metavar="K",
-                   help=f"candidates verified per frame (default {VerificationConfig.top_k})")
-    p.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
-                   help=f"keypoints per frame extracted and matched for verification (default "
-                   f"{VerificationConfig.keypoints}; FAB-MAP observes the bundle's budget)")
-    p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
-                   help="pinhole intrinsics in pixels of the images: verify with an essential matrix "
-                        "(cheirality-checked) instead of a fundamental matrix")
-    p.add_argument("--temporal-frames", type=int, default=0, metavar="N",
-                   help="temporal consistency: N preceding frames must agree (default 0 = off)")
-    p.add_argument("--temporal-tolerance", type=int, default=10, metavar="F",
-                   help="frames by which agreeing matches may differ (default 10)")
+    add_detector_options(p, scorers=SCORERS + ("both",))
     p.add_argument("--json", type=Path, metavar="OUT.json")
     p.add_argument("--frames", type=Path, metavar="OUT.jsonl",
                    help="per-frame evidence, one JSON line per frame (candidates, checks, choice, correctness)")
@@ -68,39 +46,23 @@ def run(args) -> int:
         require_plotting()  # fail before a long run, not after it
     if args.failures and args.no_verify:
         raise ConfigError("--failures shows verified matches and misses: it needs verification (drop --no-verify)")
-    scorers = SCORERS if args.scorer == "both" else (args.scorer,)
+    scorers = SCORERS if args.scorer == "both" else (args.scorer or DetectorConfig().scorer,)
     save_state = None
-    if getattr(args, "state", None) is not None:
+    if args.state is not None:
         if len(scorers) > 1:
             raise ConfigError("--state keeps one map: choose --scorer fabmap or bow, not both")
         save_state = _state_saver(args.state)
-    verification = VerificationConfig(enabled=not args.no_verify, camera=getattr(args, "camera", None))
-    if args.verify_top_k is not None:
-        verification = dataclasses.replace(verification, top_k=args.verify_top_k)
-    if args.verify_keypoints is not None:
-        verification = dataclasses.replace(verification, keypoints=args.verify_keypoints)
-    if args.failures:
-        verification = dataclasses.replace(verification, keep_inlier_points=True)
+    run_config = build_run_config(args, keep_inlier_points=bool(args.failures))
+    verification = run_config.detector.verification
     rows, runs, table = {}, {}, {}
     for scorer in scorers:
-        config = DetectorConfig(
-            scorer=scorer,
-            exclude=args.exclude,
-            quantizer_variant=args.variant,
-            threads=args.threads,
-            motion_model=args.motion_model,
-            naive_bayes=args.naive_bayes,
-            fabmap_score=args.fabmap_score,
-            verification=verification,
-            temporal_frames=args.temporal_frames if not args.no_verify else 0,
-            temporal_tolerance=args.temporal_tolerance,
-        )
+        config = dataclasses.replace(run_config.detector, scorer=scorer)
         rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance,
                                                      not args.no_progress, after_run=save_state)
         # The product's output (verified) first, then the raw score it starts from.
         if "verified" in rows[scorer]:
             table[f"{scorer} verified (output)"] = rows[scorer]["verified"]
-        raw_score = args.fabmap_score if scorer == "fabmap" else "cosine"
+        raw_score = run_config.detector.fabmap_score if scorer == "fabmap" else "cosine"
         table[f"{scorer} raw ({raw_score})"] = rows[scorer]
     print(format_table(table))
     if args.frames or args.failures:

@@ -7,6 +7,7 @@ errors exit with the code of their aefabmap.errors class.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 
@@ -43,6 +44,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap.cli.run import start_live_view
+    from aefabmap.cli.run_config import logged_run_config
     from aefabmap.cli.state_options import open_state
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.log_set import log_files
@@ -52,27 +54,23 @@ def main(args: argparse.Namespace) -> int:
     )
     from aefabmap.runtime.adapters.replay import replay
     from aefabmap.runtime.adapters.ros_bag import is_ros_bag
-    from aefabmap.runtime.core.detector import DetectorConfig
 
     state_dir = view = None
     try:
-        # Replay with the detector options of the logged run (max places, memory budget).
+        # Replay with the whole configuration of the logged run (a bag has none: the defaults).
         bag = len(args.log) == 1 and is_ros_bag(args.log[0])
         source = args.log[0] if bag else log_files(args.log)
         logged = {} if bag else read_log_metadata(source[0]).get(RUN_CONFIG_METADATA) or {}
-        from aefabmap.runtime.core.verification import VerificationConfig
-
+        detector_config = logged_run_config(logged).detector
         # --foxglove draws the inlier matches (kept only then; they do not change any decision).
-        verification = VerificationConfig(keep_inlier_points=getattr(args, "foxglove", None) is not None)
-        detector = load_detector(
-            args.model, DetectorConfig(max_places=logged.get("max_places"), memory_mb=logged.get("memory_mb"),
-                                       verification=verification)
-        )
-        if getattr(args, "state", None) is not None:
+        detector_config = dataclasses.replace(detector_config, verification=dataclasses.replace(
+            detector_config.verification, keep_inlier_points=args.foxglove is not None))
+        detector = load_detector(args.model, detector_config)
+        if args.state is not None:
             state_dir = open_state(args.state, detector, log)
         view = start_live_view(args)
         summary = replay(detector, source, out_path=args.out, check=args.check,
-                         image_topic=getattr(args, "topic", None), view=view)
+                         image_topic=args.topic, view=view)
         if state_dir is not None:
             info = state_dir.save(detector.state())
             log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)

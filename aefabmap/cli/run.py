@@ -12,8 +12,14 @@ import json
 import logging
 import threading
 
+from aefabmap.cli.run_config import (
+    RUN_CONFIG_KEY,
+    add_detector_options,
+    apply_process_settings,
+    build_run_config,
+)
 from aefabmap.errors import AefabmapError, ConfigError
-from aefabmap.runtime.core.profiles import PROFILES, get_profile
+from aefabmap.runtime.core.profiles import get_profile
 
 log = logging.getLogger("aefabmap.run")
 
@@ -47,11 +53,9 @@ def log_rotation_config(args: argparse.Namespace):
     """The LogRotationConfig of the parsed options (ConfigError when inconsistent)."""
     from aefabmap.runtime.adapters.rotating_log import LogRotationConfig
 
-    # getattr: a Namespace built by hand (an older caller) means the defaults.
-    min_free = getattr(args, "log_min_free_mb", None)
+    min_free = args.log_min_free_mb
     free = {} if min_free is None else {"images_min_free_mb": min_free[0], "results_min_free_mb": min_free[1]}
-    return LogRotationConfig(max_mb=getattr(args, "mcap_max_mb", None), budget_mb=getattr(args, "log_budget_mb", None),
-                             **free)
+    return LogRotationConfig(max_mb=args.mcap_max_mb, budget_mb=args.log_budget_mb, **free)
 
 
 def add_foxglove_options(p: argparse.ArgumentParser) -> None:
@@ -67,12 +71,12 @@ def add_foxglove_options(p: argparse.ArgumentParser) -> None:
 
 def start_live_view(args: argparse.Namespace):
     """The LiveView of the parsed options (None without --foxglove); ConfigError without foxglove-sdk."""
-    port = getattr(args, "foxglove", None)
+    port = args.foxglove
     if port is None:
         return None
     from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer, LiveView
 
-    server = FoxgloveServer(port=port, host=getattr(args, "foxglove_host", "127.0.0.1"))
+    server = FoxgloveServer(port=port, host=args.foxglove_host)
     log.info("Foxglove live view on ws://%s:%d", server.host, server.port)
     return LiveView(server)
 
@@ -85,10 +89,6 @@ def register(subparsers) -> argparse.ArgumentParser:
         "on the sibling key 'lcd' and log images, results and stats to MCAP. Stop with Ctrl-C/SIGTERM.",
     )
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
-    p.add_argument("--profile", default=None, choices=tuple(PROFILES), metavar="NAME",
-                   help="named preset (runtime/core/profiles.py): 'board' = ORB 500 keypoints, 3000-word flat "
-                   "k-means vocabulary, 1 thread, --memory-mb 64, --queue 2; explicit options win; the bundle must "
-                   "be the profile's model")
     p.add_argument("--key", default=None, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
     p.add_argument("--ros-topic", default=None, metavar="TOPIC",
                    help="instead of --key: ROS 2 image topic (sensor_msgs Image or CompressedImage) read over "
@@ -106,15 +106,11 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="MCAP log to write: a file (an existing one is never overwritten: the next is LOG-0001.mcap), "
                    "a directory (files lcd-YYYYmmdd-HHMMSS-0001.mcap) or a pattern with {n} (run-{n}.mcap)")
     add_log_rotation_options(p)
-    p.add_argument("--max-places", type=int, default=None, metavar="N", help="cap on places in the map")
-    p.add_argument("--memory-mb", type=float, default=None, metavar="MB",
-                   help="memory budget of the map (MB; default: none, or the profile's)")
-    p.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
-                   help="pinhole intrinsics in pixels of the images: verify loops with an essential matrix")
     p.add_argument("--queue", type=int, default=None, metavar="N",
                    help="frames kept while busy; older ones are dropped (default 2, or the profile's)")
     p.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
+    add_detector_options(p, profile=True)
     from aefabmap.cli.state_options import add_state_options
 
     add_state_options(p, snapshots=True)
@@ -130,19 +126,16 @@ def main(args: argparse.Namespace) -> int:
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
     from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
-    from aefabmap.runtime.core.detector import DetectorConfig
-    from aefabmap.runtime.core.verification import VerificationConfig
 
     stop = threading.Event()
     state_dir = snapshotter = view = None
     try:
-        ros_topic = getattr(args, "ros_topic", None)
+        ros_topic = args.ros_topic
         if (args.key is None) == (ros_topic is None):
             raise ConfigError("give exactly one of --key (zenoh image key) and --ros-topic (ROS 2 image topic)")
         ros = None
         if ros_topic is not None:
-            ros = RosOptions(topic=ros_topic, domain=getattr(args, "ros_domain", 0),
-                             distro=getattr(args, "ros_distro", "humble"))
+            ros = RosOptions(topic=ros_topic, domain=args.ros_domain, distro=args.ros_distro)
         rotation = log_rotation_config(args)
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
@@ -151,25 +144,19 @@ def main(args: argparse.Namespace) -> int:
             # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
             session = dataclasses.replace(session, mode="client")
         # The live view draws the inlier matches: keep them (a few hundred floats a frame).
-        verification = VerificationConfig(camera=getattr(args, "camera", None),
-                                          keep_inlier_points=getattr(args, "foxglove", None) is not None)
-        settings = run_settings(args)
-        if settings["profile"] is not None:  # before loading: the profile's model or nothing
-            get_profile(settings["profile"]).check_bundle(read_manifest(Path(args.model)))
-        detector = load_detector(args.model, DetectorConfig(
-            max_places=args.max_places, memory_mb=settings["memory_mb"], verification=verification,
-            threads=settings["threads"], quantizer_variant=settings["quantizer_variant"]))
+        config = build_run_config(args, keep_inlier_points=args.foxglove is not None)
+        if config.profile is not None:  # before loading: the profile's model or nothing
+            get_profile(config.profile).check_bundle(read_manifest(Path(args.model)))
+        apply_process_settings(config)
+        detector = load_detector(args.model, config.detector)
         from aefabmap.runtime.core import compiled
 
         if compiled.active() == "numpy" and compiled.unavailable_reason():
             log.info("FAB-MAP scores on numpy: %s", compiled.unavailable_reason())
-        # `camera` as a list: VerificationConfig(camera=...) reads it back from this record.
-        run_config = {"model": str(args.model), "max_places": args.max_places, "memory_mb": settings["memory_mb"],
-                      "camera": list(verification.camera) if verification.camera else None}
 
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
-                              queue_size=settings["queue"], stats_period_s=5.0, image_log_every=args.image_every,
-                              run_config=run_config, result_key=getattr(args, "results_key", None), ros=ros,
+                              queue_size=config.queue, stats_period_s=5.0, image_log_every=args.image_every,
+                              run_config={RUN_CONFIG_KEY: config.to_dict()}, result_key=args.results_key, ros=ros,
                               log_rotation=rotation)
 
         def on_stats(msg) -> None:
@@ -180,7 +167,7 @@ def main(args: argparse.Namespace) -> int:
                 _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb, msg.log_state, msg.log_errors,
             )
 
-        if getattr(args, "state", None) is not None:
+        if args.state is not None:
             from aefabmap.cli.state_options import open_state
             from aefabmap.runtime.adapters.map_state import SnapshotPolicy, Snapshotter
 
@@ -213,27 +200,6 @@ def main(args: argparse.Namespace) -> int:
             state_dir.close()
     print(json.dumps(summary.to_dict()))
     return 0
-
-
-def run_settings(args: argparse.Namespace) -> dict:
-    """memory_mb, queue, threads, quantizer_variant and profile of the parsed options: explicit
-    options first, then the --profile preset, then the defaults (no cap, queue 2, 1 thread)."""
-    name = getattr(args, "profile", None)
-    prof = get_profile(name) if name is not None else None
-    memory_mb = getattr(args, "memory_mb", None)
-    queue = getattr(args, "queue", None)
-    settings = {
-        "profile": name,
-        "memory_mb": memory_mb if memory_mb is not None else (prof.memory_mb if prof else None),
-        "queue": queue if queue is not None else (prof.queue if prof else 2),
-        "threads": prof.threads if prof else 1,
-        "quantizer_variant": prof.quantizer_variant if prof else "fp32",
-    }
-    if prof is not None:
-        import cv2
-
-        cv2.setNumThreads(prof.threads)
-    return settings
 
 
 def _fmt(v) -> str:

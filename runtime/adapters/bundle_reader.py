@@ -91,7 +91,8 @@ class ModelBundle:
         return str(self.manifest["quantizer"]["type"])
 
     @property
-    def detector(self) -> dict:
+    def word_detection(self) -> dict:
+        """FAB-MAP's detector model of the manifest: {"pzge": P(z=1 | e=1), "pzgne": P(z=1 | e=0)}."""
         return dict(self.manifest.get("detector", {"pzge": 0.39, "pzgne": 0.0}))
 
     def quantizer(self, variant: str = "fp32", threads: int = 1):

@@ -27,7 +27,7 @@ from aefabmap.runtime.adapters.frames import (
 from aefabmap.runtime.core.messages import FrameResult, LatencySummary, StatsMessage
 
 
-class Detector(Protocol):
+class FrameProcessor(Protocol):
     """What the frame loop needs from the per-frame core (LoopClosureDetector or a stand-in)."""
 
     manifest: dict
@@ -71,7 +71,7 @@ class FrameLoop:
     Counters: frames_in (every frame offered), processed (results), loops, bad.
     """
 
-    def __init__(self, detector: Detector, *, strict: bool = False) -> None:
+    def __init__(self, detector: FrameProcessor, *, strict: bool = False) -> None:
         self.detector = detector
         self.strict = strict
         self.bad = BadFrameCounter()

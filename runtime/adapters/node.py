@@ -35,7 +35,7 @@ from typing import Any, Self
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.adapters.frame_loop import Detector, FrameLoop, FrameOutcome
+from aefabmap.runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.health import HealthEndpoint, StatusBoard, rss_mb
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
 from aefabmap.runtime.adapters.rmw_zenoh import (
@@ -55,7 +55,7 @@ from aefabmap.runtime.adapters.zenoh_transport import (
 )
 from aefabmap.runtime.core.messages import LatencySummary, RunSummary, StatsMessage
 
-__all__ = ["Detector", "NodeOptions", "RunStats", "RunSummary", "rss_mb", "run_node", "stop_on_signals"]
+__all__ = ["FrameProcessor", "NodeOptions", "RunStats", "RunSummary", "rss_mb", "run_node", "stop_on_signals"]
 
 
 def _percentile(values, q: float) -> float | None:
@@ -244,7 +244,7 @@ class _Transport:
 
 
 def run_node(
-    detector: Detector,
+    detector: FrameProcessor,
     options: NodeOptions,
     *,
     stop_event: threading.Event,

@@ -188,7 +188,7 @@ def replay(
     on_result: Callable[[dict], None] | None = None,
     view=None,
 ) -> ReplaySummary:
-    """Run ``detector`` (see frame_loop.Detector) over the images of ``mcap_path``: an aefabmap
+    """Run ``detector`` (see frame_loop.FrameProcessor) over the images of ``mcap_path``: an aefabmap
     log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/adapters/ros_bag.py).
 
     mcap_path: one log, or a log set read in run order as one run: a directory of rotated

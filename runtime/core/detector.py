@@ -6,10 +6,11 @@ It does no I/O: it takes decoded images and returns FrameResult records.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -19,6 +20,7 @@ from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
 from aefabmap.runtime.core.bits import nearest_two_kernel
 from aefabmap.runtime.core.bow import BowIndex
+from aefabmap.runtime.core.candidates import CandidateConfig, CandidatePolicy, Search, top_places
 from aefabmap.runtime.core.fabmap import FabMap2
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features
 from aefabmap.runtime.core.keypoint_store import KeypointStore, PlaceKeypoints
@@ -42,7 +44,7 @@ from aefabmap.runtime.core.verification import (
 from aefabmap.runtime.core.word_matches import same_word_kernel
 
 
-class DetectorModel(Protocol):
+class TrainedModel(Protocol):
     """What the detector needs from a trained model (a bundle reader provides it).
 
     training_observations: list of sorted word-id arrays, the new-place model's samples.
@@ -58,7 +60,7 @@ class DetectorModel(Protocol):
     def vocabulary_size(self) -> int: ...
 
     @property
-    def detector(self) -> dict: ...
+    def word_detection(self) -> dict: ...
 
     def quantizer(self, variant: str = "fp32", threads: int = 1): ...
 
@@ -89,11 +91,11 @@ class DetectorConfig:
         is evicted before a new one is added (with either scorer).
     verification: geometric verification of the best candidates (runtime/core/verification.py);
         on by default. When enabled, `loop` means "verified" and loop_threshold is not used:
-        the top_k places by FAB-MAP log-likelihood (or BoW similarity) are checked whatever
-        their score, because the posterior saturates and ranks better than it thresholds;
-        before them, the places following the last verified match (the track prior,
-        `VerificationConfig.track`). Each place then keeps its keypoints
+        the places `candidates` picks are checked whatever their score, because the posterior
+        saturates and ranks better than it thresholds. Each place then keeps its keypoints
         (runtime/core/keypoint_store.py) inside memory_mb.
+    candidates: which places a frame is verified against and in what order
+        (runtime/core/candidates.py: track prior, FAB-MAP's top_k, islands, the track's reach).
     temporal_frames: temporal consistency (runtime/core/temporal.py): a verified match counts only
         when the `temporal_frames` preceding frames were verified to frames within
         `temporal_tolerance` frames of it. 0 (default) switches the check off.
@@ -111,6 +113,7 @@ class DetectorConfig:
     max_places: int | None = None
     memory_mb: float | None = None
     verification: VerificationConfig = field(default_factory=VerificationConfig)
+    candidates: CandidateConfig = field(default_factory=CandidateConfig)
     temporal_frames: int = 0
     temporal_tolerance: int = 10
 
@@ -135,6 +138,8 @@ class DetectorConfig:
             raise ConfigError(f"threads must be >= 1, got {self.threads}")
         if not isinstance(self.verification, VerificationConfig):
             raise ConfigError(f"verification must be a VerificationConfig, got {type(self.verification).__name__}")
+        if not isinstance(self.candidates, CandidateConfig):
+            raise ConfigError(f"candidates must be a CandidateConfig, got {type(self.candidates).__name__}")
         if self.temporal_frames < 0 or self.temporal_tolerance < 0:
             raise ConfigError("temporal_frames and temporal_tolerance must be >= 0")
         if self.temporal_frames and not self.verification.enabled:
@@ -144,7 +149,7 @@ class DetectorConfig:
 class LoopClosureDetector:
     """Stateful per-frame detector for one model bundle (not thread-safe)."""
 
-    def __init__(self, bundle: DetectorModel, config: DetectorConfig | None = None) -> None:
+    def __init__(self, bundle: TrainedModel, config: DetectorConfig | None = None) -> None:
         self.bundle = bundle
         self.config = config or DetectorConfig()
         c = self.config
@@ -158,7 +163,7 @@ class LoopClosureDetector:
         self.extractor = FeatureExtractor(extract)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
-        det = bundle.detector
+        det = bundle.word_detection
         # The one place that knows which scorer it is (runtime/core/scorer.py).
         self.scorer: Scorer
         if c.scorer == "fabmap":
@@ -188,9 +193,7 @@ class LoopClosureDetector:
         self._last_used = np.zeros(0, np.int64)
         self._sequence = 0
         self._last_scores: np.ndarray | None = None
-        # Frame sequence / stored frame of the last geometrically verified match (track prior).
-        self._track_seq = -2
-        self._track_frame = -1
+        self.policy = CandidatePolicy(c.candidates)
 
     @property
     def manifest(self) -> dict:
@@ -247,18 +250,8 @@ class LoopClosureDetector:
         t1 = time.perf_counter()
         words = self.words_of(feats)
         t2 = time.perf_counter()
-        res = self.process_words(words, stamp_ns, feats)
-        t3 = time.perf_counter()
-        res.n_keypoints = len(feats)
-        verify_ms = res.timings_ms.get("verification")
-        res.timings_ms = {
-            "features": (t1 - t0) * 1e3,
-            "quantise": (t2 - t1) * 1e3,
-            "inference": (t3 - t2) * 1e3 - (verify_ms or 0.0),
-        }
-        if verify_ms is not None:
-            res.timings_ms["verification"] = verify_ms
-        return res
+        stages = {"features": (t1 - t0) * 1e3, "quantise": (t2 - t1) * 1e3}
+        return self._step(words, stamp_ns, feats, stages)
 
     def process_words(self, words: np.ndarray, stamp_ns: int = 0, features: Features | None = None) -> FrameResult:
         """Score one frame given its keypoints' word ids, then queue it for delayed insertion.
@@ -270,11 +263,46 @@ class LoopClosureDetector:
         FAB-MAP observes the words of the bundle's keypoint budget (the first
         `features.max_features`); verification uses every keypoint.
         """
-        all_words = words
-        if features is not None:
-            words = words[: self._observed_keypoints]
+        return self._step(words, stamp_ns, features, None)
+
+    def _step(self, words: np.ndarray, stamp_ns: int, features: Features | None,
+              stages: dict[str, float] | None) -> FrameResult:
+        """One frame: insert the frames now due, rank, verify, queue this frame, build its result.
+        stages: times of the stages before (process()); then the result's timings gain inference."""
+        t0 = time.perf_counter()
+        if features is not None and len(features) != words.size:
+            raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
+        observed = words[: self._observed_keypoints] if features is not None else words
         seq = self._sequence
         self._sequence += 1
+        inserted = self._insert_due(seq)
+        ranked = self.scorer.rank(observed)
+        top = top_places(ranked.order, self.config.candidates.top_k)  # verification and evidence share it
+        self._last_scores = ranked.scores
+        verdict = None
+        query_kps = None
+        if self.store is not None:
+            if features is not None:
+                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape)
+            verdict = self._verify(seq, features, words, ranked.order, top)
+            loop = verdict.verified
+        else:
+            loop = ranked.best is not None and ranked.score >= self.config.loop_threshold
+        if loop:
+            self._last_used[verdict.place if verdict is not None else ranked.best] = seq
+        self._pending.append((seq, observed, query_kps))
+        timings = {} if stages is None else dict(stages)
+        if stages is not None:
+            verify_ms = verdict.timing_ms if verdict is not None else 0.0
+            timings["inference"] = (time.perf_counter() - t0) * 1e3 - verify_ms
+        if verdict is not None:
+            timings["verification"] = verdict.timing_ms
+        return self._result(seq, stamp_ns, len(features) if features is not None else int(words.size),
+                            observed, ranked, top, inserted, loop, verdict, timings)
+
+    def _insert_due(self, seq: int) -> tuple[int | None, int | None, int | None]:
+        """Move the queued frames whose delay has passed into the map, evicting to stay within the
+        caps; returns (last inserted frame, its place id, last evicted place id)."""
         inserted_frame = inserted_place = evicted = None
         while self._pending and self._pending[0][0] <= seq - self.config.exclude:
             inserted_frame, pending_words, pending_kps = self._pending.popleft()
@@ -288,34 +316,66 @@ class LoopClosureDetector:
             trimmed = self._trim(inserted_place)
             if trimmed is not None:
                 evicted = trimmed
-        uniq = np.unique(words)
-        ranked = self.scorer.rank(words)
-        top = _top_places(ranked.order, self.config.verification.top_k)  # verification and evidence share it
-        best, score = ranked.best, ranked.score
-        self._last_scores = ranked.scores
-        loop = best is not None and score >= self.config.loop_threshold
-        check = None
-        query_kps = None
-        if self.store is not None:
-            if features is not None:
-                if len(features) != all_words.size:
-                    raise InputError(f"features ({len(features)}) and words ({all_words.size}) differ in count")
-                query_kps = self.store.pack(features.keypoints, all_words, features.descriptors, features.image_shape)
-            t0 = time.perf_counter()
-            check = self._verify(features, all_words, ranked.order, top, seq)
-            check.timing_ms = (time.perf_counter() - t0) * 1e3
-            loop = check.verified
-        if loop:
-            self._last_used[check.place if check is not None else best] = seq
-        self._pending.append((seq, words, query_kps))
-        res = FrameResult(
+        return inserted_frame, inserted_place, evicted
+
+    def _verify(self, seq: int, features: Features | None, words: np.ndarray, ranking: np.ndarray,
+                top: np.ndarray) -> "_Verdict":
+        """Geometric (+ temporal) verification of query `seq`: the candidate policy picks the
+        places (runtime/core/candidates.py), `verify_pair` judges each pair."""
+        t0 = time.perf_counter()
+        verdict = _Verdict()
+        if features is not None and ranking.size and len(features) <= SAMPLE_SIZE["H"]:
+            verdict.reason = "no_evidence"  # texture-poor frame: nothing to verify with
+        elif features is not None and len(features) and ranking.size:
+            verdict.search = self.policy.search(seq, top, ranking, self.place_frames(), self.store.__contains__,
+                                                self._pair_check(features, words))
+        best = verdict.search.best
+        verdict.geometry_ok = best is not None and bool(best.verified)
+        verdict.verified = verdict.geometry_ok
+        if self.temporal is not None:
+            matched = int(self._place_frame[verdict.search.best_place]) if verdict.geometry_ok else None
+            verdict.temporal_ok = self.temporal.update(matched)
+            verdict.verified = verdict.geometry_ok and verdict.temporal_ok
+        verdict.place = verdict.search.best_place if verdict.verified else None
+        if verdict.geometry_ok:
+            self.policy.track.confirm(seq, int(self._place_frame[verdict.search.best_place]))
+        verdict.timing_ms = (time.perf_counter() - t0) * 1e3
+        return verdict
+
+    def _pair_check(self, features: Features, words: np.ndarray):
+        """The policy's PairCheck for this query: verify it against one stored place."""
+        v = self.config.verification
+        q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
+        radius = independence_radius(self.kind.window_radius(features.sizes), v)
+        distance = self.kind.distance
+
+        def check(pid: int, bruteforce: bool, retry_only: bool) -> GeometryResult | None:
+            place = self.store.get(pid)
+            if place is None or len(place) == 0:
+                return None
+            if retry_only:
+                return verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
+                                              v, distance=distance, radius=radius)
+            return verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
+                               place.image_shape, v, bruteforce=bruteforce, distance=distance, radius=radius)
+
+        return check
+
+    def _result(self, seq: int, stamp_ns: int, n_keypoints: int, observed: np.ndarray, ranked: Ranking,
+                top: np.ndarray, inserted: tuple, loop: bool, verdict: "_Verdict | None",
+                timings: dict[str, float]) -> FrameResult:
+        """The frame's FrameResult, built in one place."""
+        best = ranked.best
+        inserted_frame, inserted_place, evicted = inserted
+        geometry = _verdict_fields(verdict, self._place_frame) if verdict is not None else {}
+        return FrameResult(
             sequence=seq,
             stamp_ns=int(stamp_ns),
-            n_keypoints=int(words.size),
-            n_words=int(uniq.size),
+            n_keypoints=int(n_keypoints),
+            n_words=int(np.unique(observed).size),
             best_place=best,
             best_frame=int(self._place_frame[best]) if best is not None else None,
-            score=float(score),
+            score=float(ranked.score),
             p_new=ranked.p_new,
             loop=bool(loop),
             probability=ranked.probability,
@@ -325,22 +385,21 @@ class LoopClosureDetector:
             evicted_place=evicted,
             n_places=self.n_places,
             score_kind=self.config.fabmap_score if self.config.scorer == "fabmap" else "similarity",
+            timings_ms=timings,
+            candidates=self._candidates(ranked, top, verdict.search if verdict is not None else None),
+            **geometry,
         )
-        if check is not None:
-            check.fill(res, self._place_frame)
-        res.candidates = self._candidates(ranked, top, check)
-        return res
 
-    def _candidates(self, ranked: Ranking, top_places: np.ndarray, check: _Check | None) -> list[Candidate]:
+    def _candidates(self, ranked: Ranking, top_places: np.ndarray, search: Search | None) -> list[Candidate]:
         """The top places of the ranking (log-likelihood or similarity) and every place checked."""
         ranking = ranked.order
         top = [int(p) for p in top_places if np.isfinite(ranking[p])]  # removed places are -inf
         # A place checked twice (same-word, then the reach's retry) shows its last source and its
         # most significant result.
         attempts: dict[int, tuple] = {}
-        for pid, source, g in check.attempts if check is not None else []:
-            prev = attempts[pid][1] if pid in attempts else None
-            attempts[pid] = (source, g if more_significant(g, prev) else prev)
+        for a in search.attempts if search is not None else []:
+            prev = attempts[a.place][1] if a.place in attempts else None
+            attempts[a.place] = (a.source, a.result if more_significant(a.result, prev) else prev)
         pids = top + [p for p in attempts if p not in top]
         out = []
         for pid in pids:
@@ -358,104 +417,6 @@ class LoopClosureDetector:
                 c.inlier_points = None if g.inlier_points is None else g.inlier_points.tolist()
             out.append(c)
         return out
-
-    def _verify(self, features: Features | None, words: np.ndarray, ranking: np.ndarray, top: np.ndarray,
-                seq: int) -> "_Check":
-        """Geometric (+ temporal) verification of one query.
-
-        Candidates, in order, the first that passes is taken: the tracked places (stored frames
-        following the previous query's verified match, `VerificationConfig.track`), then the
-        top_k places by FAB-MAP log-likelihood, each failed one followed by its island
-        neighbours (`VerificationConfig.island`), then, during a track, the other stored frames
-        within `track_reach` of the expected one, each with the brute-force retry. A place is
-        verified at most once per query, except that one checked by same-word matching only (a
-        FAB-MAP candidate past `bruteforce_fallback`, an island neighbour) is given the retry
-        alone when the track's reach comes to it; it counts once in `candidates_tried`.
-        """
-        v = self.config.verification
-        check = _Check()
-        lag = seq - self._track_seq  # query frames since the last verified match
-        expect = self._track_frame + lag if 1 <= lag <= v.track_memory else None
-        if features is not None and ranking.size and len(features) <= SAMPLE_SIZE["H"]:
-            check.reason = "no_evidence"  # texture-poor frame: nothing to verify with
-        elif features is not None and len(features) and ranking.size:
-            q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
-            radius = independence_radius(self.kind.window_radius(features.sizes), v)
-            tried: dict[int, bool] = {}  # place id -> whether its check included the brute-force retry
-            cap = v.max_trials if v.max_trials is not None else np.inf
-            bf_cap = v.max_bruteforce if v.max_bruteforce is not None else np.inf
-
-            def attempt(pid: int, source: str, bruteforce: bool = False) -> bool:
-                bruteforce = bruteforce and check.bruteforce < bf_cap
-                done = tried.get(pid)
-                if done or (done is not None and not bruteforce) or check.tried >= cap \
-                        or not np.isfinite(ranking[pid]):
-                    return False
-                tried[pid] = bruteforce
-                place = self.store.get(pid)
-                if place is None or len(place) == 0:
-                    return False
-                check.bruteforce += bruteforce
-                if done is False:
-                    # Its same-word check failed earlier in this query: only the retry is new.
-                    g = verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
-                                               v, distance=self.kind.distance, radius=radius)
-                else:
-                    check.tried += 1
-                    g = verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
-                                    place.image_shape, v, bruteforce=bruteforce, distance=self.kind.distance,
-                                    radius=radius)
-                check.attempts.append((int(pid), source, g))
-                # Keep the accepted attempt, else the most significant one (diagnostics).
-                if more_significant(g, check.best):
-                    check.best, check.best_place, check.source = g, int(pid), source
-                return g.verified
-
-            def try_tracked(frames) -> bool:
-                """The places of these stored frames in order, with the brute-force retry as well
-                (`bruteforce_track`); True at the first that passes."""
-                return any(attempt(int(p), "track", v.bruteforce_track)
-                           for f in frames for p in self._places_of_frames(f, f))
-
-            tracking = expect is not None and v.track > 0
-            if not (tracking and try_tracked([*range(expect, expect + v.track), expect - 1])):
-                for rank, pid in enumerate(top):
-                    if not np.isfinite(ranking[pid]) or check.tried >= cap:
-                        break  # removed places (-inf) sort last
-                    if attempt(int(pid), "fabmap", rank < v.bruteforce_fallback):
-                        break  # the first candidate that passes is taken: true loops cost one check
-                    if v.island and rank < v.island_candidates and self._island_try(int(pid), v.island, attempt):
-                        break
-            if tracking and v.track_reach and not (check.best is not None and check.best.verified):
-                # The track window and FAB-MAP's candidates failed: the other stored frames within
-                # track_reach of where the track expects the robot, nearest first (ahead first).
-                try_tracked(sorted(range(expect - v.track_reach, expect + v.track_reach + 1),
-                                   key=lambda f: (abs(f - expect), f < expect)))
-        check.geometry_ok = check.best is not None and check.best.verified
-        check.verified = check.geometry_ok
-        if self.temporal is not None:
-            matched = int(self._place_frame[check.best_place]) if check.geometry_ok else None
-            check.temporal_ok = self.temporal.update(matched)
-            check.verified = check.geometry_ok and check.temporal_ok
-        check.place = check.best_place if check.verified else None
-        if check.geometry_ok:
-            self._track_seq, self._track_frame = seq, int(self._place_frame[check.best_place])
-        return check
-
-    def _places_of_frames(self, lo: int, hi: int) -> np.ndarray:
-        """Place ids (alive in the keypoint store) made by frames lo..hi, nearest to lo first."""
-        frames = self._place_frame[: self._id_range()]
-        pids = np.flatnonzero((frames >= lo) & (frames <= hi))
-        pids = pids[np.argsort(frames[pids] - lo, kind="stable")]
-        return np.array([p for p in pids if int(p) in self.store], np.int64)
-
-    def _island_try(self, pid: int, radius: int, attempt) -> bool:
-        """Try the stored temporal neighbours of place pid (within +-radius frames), nearest first."""
-        f = int(self._place_frame[pid])
-        frames = self._place_frame[: self._id_range()]
-        pids = np.flatnonzero((np.abs(frames - f) <= radius) & (frames >= 0))
-        pids = pids[np.argsort(np.abs(frames[pids] - f), kind="stable")]
-        return any(attempt(int(p), "island") for p in pids if int(p) != pid)
 
     def _id_range(self) -> int:
         return self.scorer.n_places
@@ -481,8 +442,10 @@ class LoopClosureDetector:
         st.scalars.update(
             scorer=c.scorer, verification=self.store is not None, vocabulary_size=int(self.bundle.vocabulary_size),
             max_keypoints=self.store.max_keypoints if self.store is not None else None,
-            sequence=self._sequence, track_seq=self._track_seq, track_frame=self._track_frame,
+            sequence=self._sequence, track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
             n_places=self.scorer.n_places, n_alive=self.n_places,
+            # The settings the map was built with, whole (JSON; RunConfig's detector part).
+            config=json.dumps(asdict(c), sort_keys=True),
         )
         st.put("scorer", self.scorer.state())
         st.arrays["place_frame"] = self._place_frame.copy()
@@ -544,7 +507,8 @@ class LoopClosureDetector:
         self._pending = deque(
             (int(s), pwords[pptr[i]:pptr[i + 1]], pkps[i]) for i, s in enumerate(pseq.tolist())
         )
-        self._sequence, self._track_seq, self._track_frame = seq, track_seq, track_frame
+        self._sequence = seq
+        self.policy.track.seq, self.policy.track.frame = track_seq, track_frame
         self._last_scores = None
 
     def map_bytes(self) -> int:
@@ -597,51 +561,32 @@ class LoopClosureDetector:
         return evicted
 
 
-def _top_places(ranking: np.ndarray, k: int) -> np.ndarray:
-    """Ids of the k best places of `ranking` (n,), best first, stable among ties; removed places
-    (-inf) sort last and are included only when fewer than k places remain."""
-    k = min(k, ranking.size)
-    if k <= 0:
-        return np.zeros(0, np.int64)
-    top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
-    return top[np.argsort(-ranking[top], kind="stable")]
-
-
 @dataclass
-class _Check:
-    """Outcome of verifying one query (internal)."""
+class _Verdict:
+    """Verification of one query (internal): the policy's search, then the temporal check."""
 
-    best: GeometryResult | None = None
-    best_place: int | None = None
-    place: int | None = None
-    tried: int = 0
-    bruteforce: int = 0  # candidates given the brute-force retry
-    source: str | None = None
+    search: Search = field(default_factory=Search)
     geometry_ok: bool = False
     temporal_ok: bool | None = None
     verified: bool = False
+    place: int | None = None
     timing_ms: float = 0.0
     reason: str | None = None
-    attempts: list = field(default_factory=list)  # (place id, source, GeometryResult) in order
 
-    def fill(self, res: FrameResult, place_frame: np.ndarray) -> None:
-        res.verified = bool(self.verified)
-        res.geometry_ok = bool(self.geometry_ok)
-        res.temporal_ok = self.temporal_ok
-        res.candidates_tried = self.tried
-        res.timings_ms["verification"] = self.timing_ms
-        res.geometry_reason = self.reason
-        if self.best is not None:
-            res.inliers, res.matches = int(self.best.inliers), int(self.best.matches)
-            res.geometry_model = self.best.model
-            res.nfa = float(self.best.nfa) if np.isfinite(self.best.nfa) else None
-            res.geometry_reason = self.best.reason if not self.verified else ""
-            if self.best.verified and not self.verified:
-                res.geometry_reason = "temporal"
-        if self.verified and self.place is not None:
-            res.verified_place = int(self.place)
-            res.verified_frame = int(place_frame[self.place])
-            res.geometry = [[float(x) for x in row] for row in self.best.matrix]
-            if self.best.rotation is not None and self.best.translation is not None:
-                res.relative_rotation = [[float(x) for x in row] for row in self.best.rotation]
-                res.relative_translation = [float(x) for x in self.best.translation]
+
+def _verdict_fields(verdict: _Verdict, place_frame: np.ndarray) -> dict:
+    """FrameResult's verification fields."""
+    best = verdict.search.best
+    out = dict(verified=bool(verdict.verified), geometry_ok=bool(verdict.geometry_ok), temporal_ok=verdict.temporal_ok,
+               candidates_tried=verdict.search.tried, geometry_reason=verdict.reason)
+    if best is not None:
+        out.update(inliers=int(best.inliers), matches=int(best.matches), geometry_model=best.model,
+                   nfa=float(best.nfa) if np.isfinite(best.nfa) else None,
+                   geometry_reason="" if verdict.verified else ("temporal" if best.verified else best.reason))
+    if verdict.verified and verdict.place is not None:
+        out.update(verified_place=int(verdict.place), verified_frame=int(place_frame[verdict.place]),
+                   geometry=[[float(x) for x in row] for row in best.matrix])
+        if best.rotation is not None and best.translation is not None:
+            out.update(relative_rotation=[[float(x) for x in row] for row in best.rotation],
+                       relative_translation=[float(x) for x in best.translation])
+    return out

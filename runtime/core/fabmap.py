@@ -18,8 +18,8 @@ from aefabmap.runtime.core.tree import ChowLiuTree
 
 
 @dataclass(frozen=True)
-class DetectorModel:
-    """Feature detector model: P(z=1 | e=1) and P(z=1 | e=0)."""
+class WordDetectionModel:
+    """FAB-MAP's detector model: how reliably a word is detected, P(z=1 | e=1) and P(z=1 | e=0)."""
 
     pzge: float = 0.39
     pzgne: float = 0.0
@@ -29,7 +29,7 @@ class DetectorModel:
             raise InputError(f"detector model needs 0 <= pzgne < pzge <= 1, got pzge={self.pzge}, pzgne={self.pzgne}")
 
 
-def observation_term(tree: ChowLiuTree, det: DetectorModel, z: int, zp: int, l: int, naive_bayes: bool = False) -> np.ndarray:
+def observation_term(tree: ChowLiuTree, det: WordDetectionModel, z: int, zp: int, l: int, naive_bayes: bool = False) -> np.ndarray:
     """G(z, zp, l) = P(z_q = z | z_pq = zp, place observation l) for every word, shape (V,).
 
     The detector and Chow-Liu terms combine as openFABMAP's PzqGL does (which is what the
@@ -71,7 +71,7 @@ class FabMapTables:
     child_idx: np.ndarray  # children of word q are child_idx[child_ptr[q]:child_ptr[q+1]]
 
     @classmethod
-    def build(cls, tree: ChowLiuTree, det: DetectorModel, naive_bayes: bool = False) -> "FabMapTables":
+    def build(cls, tree: ChowLiuTree, det: WordDetectionModel, naive_bayes: bool = False) -> "FabMapTables":
         def ratio(z: int, zp: int) -> np.ndarray:
             return np.log(observation_term(tree, det, z, zp, 1, naive_bayes) / observation_term(tree, det, z, zp, 0, naive_bayes))
 
@@ -274,13 +274,13 @@ class FabMap2:
         if not (0.0 < smoothing <= 1.0):
             raise InputError(f"smoothing must lie in (0, 1], got {smoothing}")
         self.tree = tree
-        self.detector = DetectorModel(pzge, pzgne)
+        self.detection = WordDetectionModel(pzge, pzgne)
         self.smoothing = smoothing
         self.naive_bayes = naive_bayes
         self.motion_model = motion_model
         self.p_new_prior = p_new_prior
         self.motion_bias = motion_bias
-        self.tables = FabMapTables.build(tree, self.detector, naive_bayes)
+        self.tables = FabMapTables.build(tree, self.detection, naive_bayes)
         self.vocabulary_size = tree.size
         self.places = InvertedIndex(tree.size)
         training = [as_word_set(obs, tree.size) for obs in training_observations]

@@ -245,7 +245,7 @@ class FrameResult(_Message):
         "model), chance, degenerate, collinear, clustered, cheirality, temporal, ...; null: nothing verified"),
         since="1.3")
     candidates: list[Candidate] = field(default_factory=list, metadata=_meta(
-        "the top places of the ranking (VerificationConfig.top_k) and every other place checked (track, "
+        "the top places of the ranking (CandidateConfig.top_k) and every other place checked (track, "
         "island)", since="1.3"))
     score_kind: str | None = _f(None, "what score holds (null: not told, logs before format 1.1)",
                                 enum=SCORE_KINDS, since="1.1")

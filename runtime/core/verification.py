@@ -61,8 +61,6 @@ from aefabmap.runtime.core.word_matches import match_same_word
 NO_WORD = -1
 
 GEOMETRY_METHODS = ("magsac", "lo-ransac", "ransac")
-#: Largest `track_reach` accepted: each frame of the reach may cost a brute-force retry.
-MAX_TRACK_REACH = 100
 # OpenCV flag of each method for F, H and E; "ransac": plain RANSAC (cv2.FM_RANSAC for F).
 _USAC_FLAGS = {"lo-ransac": cv2.USAC_DEFAULT, "magsac": cv2.USAC_MAGSAC}
 MODELS = ("F", "E", "H")
@@ -74,17 +72,6 @@ class VerificationConfig:
     """Settings of geometric verification (all distances in reference units, see below).
 
     enabled: run verification at all (the detector then reports `verified`).
-    top_k: FAB-MAP candidates (best log-likelihood first) tried per frame; the first that
-        passes is taken, so a true loop usually costs one candidate.
-    bruteforce_fallback: the best `bruteforce_fallback` FAB-MAP candidates get a second try
-        with all-pairs descriptor matching (`match_all`, its own ratio and inlier bars) when
-        same-word matching did not pass: true matches split across words by quantisation.
-        Default 1: on training street pairs 2 s apart it raised acceptance from 64% to 77%
-        (same rate of unrelated pairs: none), paid on frames whose top candidate fails (~1.6 ms
-        for 500 x 500 ORB descriptors, ~6 ms for 1000 x 1000).
-    bruteforce_track: the same retry for every tracked place (see `track`): on the training
-        revisit sequences (camvid, see the README) it raised verified recall of revisits 2 s
-        from the first pass from 80% to 86% (240 px: 79% to 86%), no false loop.
     keypoints: keypoints per frame extracted, stored and matched for verification (strongest
         first); None: the bundle's budget (`FeatureConfig.max_features`). Only the bundle's
         budget is quantised: FAB-MAP observes those words, as in training, and same-word
@@ -171,43 +158,11 @@ class VerificationConfig:
         one; on training street pairs 300 gave the same inlier counts as 1000 on positives
         and cut the time on negatives (which run to the cap) from ~1.2 to ~0.5 ms.
     confidence: RANSAC confidence.
-    track: temporal prior (iBoW-LCD / SeqSLAM style): when the previous query frame was
-        verified to stored frame f, the stored frames f+1, ..., f+`track`, then f, are tried
-        first, before FAB-MAP's candidates (a revisit continues where the last frame matched;
-        it recovers frames whose place FAB-MAP ranks low). Every such candidate must pass the
-        same geometric test as any other, so a wrong prior costs time, not precision. 0 disables.
-    track_memory: the prior lasts this many query frames after the last verified match
-        (frame i - lag verified to f: frames f+lag, ..., f+lag+track-1, f+lag-1 are tried), so one
-        frame that fails (motion blur, an occluding bus) does not end the track.
-    track_reach: when the track window and every FAB-MAP candidate failed, the other stored
-        frames within track_reach of the expected frame f+lag are tried, nearest first (ahead
-        before behind), each with the brute-force retry (`bruteforce_track`). The last verified
-        match places the robot only roughly: a view a few frames back or ahead still verifies, so
-        the revisit's true frame may lie outside the window. 3: the largest frame gap at which
-        training pairs of either kind verify more often than not (ORB 52 %, SIFT 80 % at 3 frames
-        apart; 32 % / 52 % at 5, `ratio_bruteforce`). Only frames of an active track pay it. On
-        the training revisit sequences (CamVid drives played twice at equal, double and half
-        speed) it found 1-3 more of 699 revisits (ORB 1k / 2k, SIFT 2k) and no loop to another
-        street. 0 disables.
-    island: each of the best `island_candidates` FAB-MAP candidates that fails is followed by
-        its stored temporal neighbours within +-`island` frames (nearest first; only places
-        still in the store). 0 (default) disables it: on training street pairs (same-word
-        matching) best-of-island raised acceptance of 1-s pairs from 91% to 96%, but on the
-        training revisit sequences, with the track prior and brute-force retry on, it added
-        0-1 point for +30% trials per frame (non-loop frames pay 2 * island extra trials).
-    island_candidates: how many of the FAB-MAP candidates (best first) get island neighbours.
-    max_trials: cap on candidates verified per frame (track + FAB-MAP + island), bounding the
-        worst-case cost; None: no cap.
-    max_bruteforce: cap on candidates per frame given the brute-force retry (tracked places
-        first, then FAB-MAP's), bounding the worst-case cost; None: no cap.
     keep_inlier_points: return the inlier point pairs (`GeometryResult.inlier_points`), for
         evaluation evidence (match images); off in the runtime, where nothing reads them.
     """
 
     enabled: bool = True
-    top_k: int = 5
-    bruteforce_fallback: int = 1
-    bruteforce_track: bool = True
     keypoints: int | None = 1000
     ratio: float = 0.9
     ratio_bruteforce: float = 0.8
@@ -233,30 +188,9 @@ class VerificationConfig:
     max_iters: int = 1000
     f_max_iters: int = 300
     confidence: float = 0.999
-    track: int = 2
-    track_memory: int = 3
-    track_reach: int = 3
-    island: int = 0
-    island_candidates: int = 1
-    max_trials: int | None = None
-    max_bruteforce: int | None = None
     keep_inlier_points: bool = False
 
     def __post_init__(self) -> None:
-        if self.track_memory < 1:
-            raise ConfigError(f"verification track_memory must be >= 1, got {self.track_memory}")
-        if self.track < 0 or self.island < 0 or self.island_candidates < 0:
-            raise ConfigError(f"verification track and island must be >= 0, got {self.track}, {self.island}")
-        if not (0 <= self.track_reach <= MAX_TRACK_REACH):
-            raise ConfigError(f"verification track_reach must lie in [0, {MAX_TRACK_REACH}], got {self.track_reach}")
-        if self.max_bruteforce is not None and self.max_bruteforce < 0:
-            raise ConfigError(f"verification max_bruteforce must be None or >= 0, got {self.max_bruteforce}")
-        if self.max_trials is not None and self.max_trials < 1:
-            raise ConfigError(f"verification max_trials must be None or >= 1, got {self.max_trials}")
-        if self.bruteforce_fallback < 0:
-            raise ConfigError(f"verification bruteforce_fallback must be >= 0, got {self.bruteforce_fallback}")
-        if self.top_k < 1:
-            raise ConfigError(f"verification top_k must be >= 1, got {self.top_k}")
         if self.keypoints is not None and not (8 <= self.keypoints <= MAX_FEATURES):
             raise ConfigError(f"verification keypoints must be None or in [8, {MAX_FEATURES}], got {self.keypoints}")
         if not (0.0 < self.ratio <= 1.0):

@@ -280,8 +280,10 @@ def test_cli_run_stops_on_sigint_with_a_finished_log(tmp_path, monkeypatch):
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
     listen, connect = session_pair()
     log_path = tmp_path / "cli.mcap"
-    args = argparse.Namespace(model="fake", key=KEY, connect=[], listen=list(listen.listen), config=None,
-                              mcap=str(log_path), max_places=None, memory_mb=None, queue=4, image_every=1)
+    from aefabmap.cli.main import build_parser
+
+    args = build_parser().parse_args(["run", "--model", "fake", "--key", KEY, "--mcap", str(log_path), "--queue", "4",
+                                      *(f"--listen={ep}" for ep in listen.listen)])
     got = threading.Event()
     errors = []
 
@@ -336,3 +338,32 @@ def test_cli_processes_run_publish_replay_with_a_real_bundle(tmp_path):
                                 str(tmp_path / "re.mcap")], capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr
     assert json.loads(rep.stdout.strip().splitlines()[-1])["check"]["compared"] == 16
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_replay_check_reproduces_a_run_with_non_default_settings(tmp_path):
+    """The whole run configuration goes into the log: a replay with the camera, exclusion window and
+    candidate count of the run decides every frame as the run did (a replay with the defaults differs)."""
+    import json
+    import subprocess
+
+    from aefabmap.runtime.adapters.mcap_log import RUN_CONFIG_METADATA, read_log_metadata
+    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from tests.conftest import make_synthetic_bundle
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    make_demo_sequence(tmp_path / "seq", n_frames=40, seed=3, size=(320, 240))
+    log_path = tmp_path / "run.mcap"
+    options = ["--exclude", "5", "--camera", "250,250,160,120", "--verify-top-k", "3", "--memory-mb", "32"]
+    node = run_node_process(["--model", str(bundle), "--mcap", str(log_path), "--queue", "64", *options],
+                            tmp_path / "seq", 39, rate=40, timeout_s=120)
+    assert node.returncode == 0, node.stderr
+    logged = read_log_metadata(log_path)[RUN_CONFIG_METADATA]["run"]
+    assert logged["detector"]["exclude"] == 5 and logged["detector"]["verification"]["camera"] == [250, 250, 160, 120]
+    assert logged["detector"]["candidates"]["top_k"] == 3
+    rep = subprocess.run(CLI + ["replay", str(log_path), "--model", str(bundle), "--check"],
+                         capture_output=True, text=True, timeout=120)
+    assert rep.returncode == 0, rep.stderr
+    check = json.loads(rep.stdout.strip().splitlines()[-1])["check"]
+    assert check["compared"] == 40 and check["matched"] == 40 and check["ok"]

@@ -7,6 +7,7 @@ import json
 import cv2
 import numpy as np
 
+from aefabmap.runtime.core.candidates import CandidateConfig
 from aefabmap.runtime.core.verification import VerificationConfig
 from tests.runtime.core.test_verification import PERSPECTIVE, _detector, texture
 
@@ -23,7 +24,7 @@ def test_candidates_rank_places_and_mark_the_checked_ones(tmp_path):
     r = results[-1]
     assert r.verified and r.verified_frame == 1
     ranks = [c.rank for c in r.candidates if c.source in (None, "fabmap")]
-    assert ranks == sorted(ranks) and len(r.candidates) <= VerificationConfig().top_k + r.candidates_tried
+    assert ranks == sorted(ranks) and len(r.candidates) <= CandidateConfig().top_k + r.candidates_tried
     llrs = [c.llr for c in r.candidates]
     assert llrs == sorted(llrs, reverse=True) and r.candidates[0].llr == r.llr
     chosen = [c for c in r.candidates if c.verified]

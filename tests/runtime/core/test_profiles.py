@@ -7,7 +7,7 @@ import argparse
 import pytest
 
 from aefabmap.cli.main import build_parser
-from aefabmap.cli.run import run_settings
+from aefabmap.cli.run_config import build_run_config
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.profiles import PROFILES, get_profile
 
@@ -43,11 +43,16 @@ def _run_args(*extra: str) -> argparse.Namespace:
 
 
 def test_run_selects_the_profile_and_explicit_options_win():
-    plain = run_settings(_run_args())
+    def settings(config):
+        d = config.detector
+        return {"profile": config.profile, "memory_mb": d.memory_mb, "queue": config.queue, "threads": d.threads,
+                "quantizer_variant": d.quantizer_variant}
+
+    plain = settings(build_run_config(_run_args()))
     assert plain == {"profile": None, "memory_mb": None, "queue": 2, "threads": 1, "quantizer_variant": "fp32"}
-    board = run_settings(_run_args("--profile", "board"))
+    board = settings(build_run_config(_run_args("--profile", "board")))
     assert board == {"profile": "board", "memory_mb": 64.0, "queue": 2, "threads": 1, "quantizer_variant": "flat"}
-    mine = run_settings(_run_args("--profile", "board", "--memory-mb", "32", "--queue", "4"))
+    mine = settings(build_run_config(_run_args("--profile", "board", "--memory-mb", "32", "--queue", "4")))
     assert (mine["memory_mb"], mine["queue"]) == (32.0, 4)
 
 

@@ -11,6 +11,7 @@ import pytest
 from aefabmap import ConfigError
 from aefabmap.errors import StateError
 from aefabmap.runtime.adapters.frames import load_image
+from aefabmap.runtime.core.candidates import CandidateConfig
 from aefabmap.runtime.core.feature_kinds import get_kind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.keypoint_store import PLACE_OVERHEAD_BYTES, KeypointStore
@@ -129,7 +130,7 @@ def test_too_few_matches_and_empty_inputs_do_not_verify():
 
 def test_config_is_validated():
     with pytest.raises(ConfigError):
-        VerificationConfig(top_k=0)
+        CandidateConfig(top_k=0)
     with pytest.raises(ConfigError):
         VerificationConfig(method="lmeds")
     with pytest.raises(ConfigError):
@@ -340,13 +341,13 @@ def test_memory_cap_counts_the_keypoint_store(tmp_path):
 # --- candidate generation: track prior, island, trial cap ----------------------------------------
 
 
-def _one_word_run(tmp_path, images, **verification):
+def _one_word_run(tmp_path, images, **candidates):
     """Run images through a detector where every keypoint has word 0: FAB-MAP then ties every
     place (top_k=1 picks place 0, the first frame) and same-word matching is brute force, so
     only the track prior / island can find any other place."""
-    from aefabmap.runtime.core.verification import VerificationConfig as VC
+    from aefabmap.runtime.core.candidates import CandidateConfig
 
-    det = _detector(tmp_path, verification=VC(**{"top_k": 1, **verification}))
+    det = _detector(tmp_path, candidates=CandidateConfig(**{"top_k": 1, **candidates}))
     ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=500, long_side=None))
     out = []
     for img in images:
@@ -474,7 +475,7 @@ def test_bruteforce_retries_per_frame_are_capped(tmp_path, monkeypatch):
     seq = _revisit_sequence()
     for cap, most in ((None, None), (1, 1), (0, 0)):
         flags.clear()
-        det = _detector(tmp_path / str(cap), verification=VerificationConfig(max_bruteforce=cap))
+        det = _detector(tmp_path / str(cap), candidates=CandidateConfig(max_bruteforce=cap))
         for img in seq:
             flags.append([])
             det.process(img)
@@ -504,9 +505,8 @@ def test_bruteforce_retry_uses_the_same_acontrario_criterion(extractor):
     assert not strict.verified and strict.reason == "chance"
 
 
-def test_candidate_generation_config_is_validated():
-    for kw in ({"track": -1}, {"island": -1}, {"max_trials": 0}, {"max_bruteforce": -1}, {"track_memory": 0}, {"ratio_bruteforce": 0.0},
-               {"min_inliers_h": 3}, {"island_candidates": -1}, {"min_f_sigma_ratio": 1.0},
+def test_verification_config_is_validated():
+    for kw in ({"ratio_bruteforce": 0.0}, {"min_inliers_h": 3}, {"min_f_sigma_ratio": 1.0},
                {"h_max_scale": 0.5}, {"min_extent": 1.0}, {"max_log10_nfa": float("nan")},
                {"camera": "1,2,3"}, {"camera": (0.0, 1.0, 2.0, 3.0)}, {"camera": "a,b,c,d"}):
         with pytest.raises(ConfigError):
