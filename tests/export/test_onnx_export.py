@@ -174,7 +174,12 @@ def test_graph_arg_max_is_the_first_maximum_across_blocks_and_padding(tmp_path):
     assert got[: len(pairs)].tolist() == [first for first, _ in pairs]
     scores = model.encode(x) @ codebook.T - 0.5 * np.einsum("kd,kd->k", codebook, codebook)
     flat = np.argmax(scores, axis=1)
-    assert np.all(tie_gap(scores, got, flat) <= 1e-5) and np.mean(got == flat) >= 0.99
+    # Duplicated codewords tie exactly in the graph but may differ in the last bit of numpy's
+    # float32 product (which BLAS kernel runs depends on the CPU): the reference is the first
+    # index within rounding of the row's maximum, not numpy's arg-max.
+    scale = np.abs(scores).max(axis=1, keepdims=True) + 1.0
+    first = np.argmax(scores >= scores.max(axis=1, keepdims=True) - 1e-6 * scale, axis=1)
+    assert np.all(tie_gap(scores, got, flat) <= 1e-5) and np.mean(got == first) >= 0.99
 
 
 @pytest.mark.parametrize("which", ["fp32", "int8"])
