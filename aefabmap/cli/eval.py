@@ -65,11 +65,19 @@ def run(args) -> int:
         raw_score = run_config.detector.fabmap_score if scorer == "fabmap" else "cosine"
         table[f"{scorer} raw ({raw_score})"] = rows[scorer]
     print(format_table(table))
+    from aefabmap.runtime.tools.frame_evidence import format_revisit_split, revisit_split
+
+    records = evidence_records(args, runs[scorers[0]], verification)
+    split = revisit_split(records) if verification.enabled else None
+    if split is not None:
+        print(format_revisit_split(split))
     if args.frames or args.failures:
-        write_evidence(args, runs[scorers[0]], verification)
+        write_evidence(args, runs[scorers[0]], records)
     main = rows[scorers[0]]
     if args.json:
         doc = public(main)
+        if split is not None:
+            doc["revisits"] = split
         doc["methods"] = {k: public(v) for k, v in rows.items()}
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=2) + "\n")
@@ -101,19 +109,20 @@ def _state_saver(path):
     return save
 
 
-def write_evidence(args, run, verification: VerificationConfig) -> None:
+def evidence_records(args, run, verification: VerificationConfig) -> list[dict]:
+    """Per-frame evidence records of the first scorer's run (runtime/tools/frame_evidence.py)."""
+    from aefabmap.runtime.tools.frame_evidence import frame_records, min_evidence_keypoints
+
+    return list(frame_records(run.results, run.ground_truth, args.tolerance, min_evidence_keypoints(verification),
+                              verification.max_log10_nfa))
+
+
+def write_evidence(args, run, records: list[dict]) -> None:
     """--frames / --failures of the first scorer's run."""
-    from aefabmap.runtime.tools.frame_evidence import (
-        failure_cases,
-        frame_records,
-        min_evidence_keypoints,
-        write_failure_images,
-        write_frames_jsonl,
-    )
-    images, gt = run.images, run.ground_truth
-    records = list(frame_records(run.results, gt, args.tolerance, min_evidence_keypoints(verification)))
+    from aefabmap.runtime.tools.frame_evidence import failure_cases, write_failure_images, write_frames_jsonl
+
     if args.frames:
         write_frames_jsonl(args.frames, records)
     if args.failures:
-        written = write_failure_images(args.failures, images, failure_cases(run.results, records, args.tolerance))
+        written = write_failure_images(args.failures, run.images, failure_cases(run.results, records, args.tolerance))
         print(f"{len(written)} failure images in {args.failures}")

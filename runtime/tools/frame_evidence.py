@@ -27,6 +27,11 @@ from aefabmap.runtime.tools.pr_metrics import correct_predictions
 EVIDENCE = ("none", "unchecked", "rejected", "verified")
 #: verified outcome of a frame against ground truth (tolerant).
 OUTCOMES = ("true_positive", "false_positive", "miss", "true_negative")
+#: why a missed revisit was not verified, from the most significant check of its true place:
+#: no true place among the candidates / one was a candidate but not checked / checked, no model
+#: fitted / log10 NFA >= 0 (no geometric evidence) / between the bar and 0 / below the bar but
+#: rejected for another reason (conditioning, cheirality, temporal check).
+MISS_REASONS = ("not_a_candidate", "unchecked", "no_model", "nfa_at_least_0", "nfa_below_0", "rejected_other")
 
 
 def min_evidence_keypoints(config: VerificationConfig) -> int:
@@ -74,13 +79,32 @@ def _true_candidate(res: FrameResult, true_frames: np.ndarray, tolerance: int) -
     return max(hits, key=lambda c: (c.checked, c.inliers, -c.rank))
 
 
+def miss_reason(res: FrameResult, true_frames: np.ndarray, tolerance: int, max_log10_nfa: float) -> str:
+    """One of MISS_REASONS for a revisit frame that was not verified to a true place."""
+    hits = [c for c in res.candidates if np.any(np.abs(true_frames - c.frame) <= tolerance)]
+    if not hits:
+        return "not_a_candidate"
+    checked = [c for c in hits if c.checked]
+    if not checked:
+        return "unchecked"
+    nfas = [c.nfa for c in checked if c.nfa is not None]
+    if not nfas:
+        return "no_model"
+    best = min(nfas)
+    if best >= 0:
+        return "nfa_at_least_0"
+    return "nfa_below_0" if best >= max_log10_nfa else "rejected_other"
+
+
 def frame_records(
     results: Sequence[FrameResult],
     gt: np.ndarray | None,
     tolerance: int,
     min_keypoints: int,
+    max_log10_nfa: float = VerificationConfig.max_log10_nfa,
 ) -> Iterator[dict]:
-    """One JSON-able dict per frame (see the module docstring); gt: (N, N) bool or None."""
+    """One JSON-able dict per frame (see the module docstring); gt: (N, N) bool or None;
+    max_log10_nfa: the run's acceptance bar (the NFA bands of `miss_reason`)."""
     n = len(results)
     correct = {}
     if gt is not None:
@@ -120,7 +144,33 @@ def frame_records(
             doc["correct"] = {k: bool(v[i]) if predicted[k.split("_")[0]] else None for k, v in correct.items()}
             doc["true_place_candidate"] = _true_candidate(r, true_frames, tolerance) is not None
             doc["outcome"] = _outcome(r.verified, bool(correct["verified_tolerant"][i]), bool(true_frames.size))
+            if doc["outcome"] == "miss":
+                doc["miss_reason"] = miss_reason(r, true_frames, tolerance, max_log10_nfa)
         yield doc
+
+
+def revisit_split(records: Sequence[dict]) -> dict:
+    """Where recall is lost, over the revisit frames (ground truth has a true place) of
+    `frame_records`: verified to a true place, to a wrong one, true place among the checked
+    candidates, and each miss by MISS_REASONS."""
+    revisits = [d for d in records if d.get("true_loop")]
+    misses = [d for d in revisits if d.get("outcome") == "miss"]
+    return {
+        "revisits": len(revisits),
+        "verified": sum(d["outcome"] == "true_positive" for d in revisits),
+        "wrong_place": sum(d["outcome"] == "false_positive" for d in revisits),
+        "true_place_checked": sum(bool(d.get("true_place_candidate")) and d.get("miss_reason") != "unchecked"
+                                  for d in revisits),
+        "misses": {reason: sum(d.get("miss_reason") == reason for d in misses) for reason in MISS_REASONS},
+    }
+
+
+def format_revisit_split(split: dict) -> str:
+    """One line for the printed evaluation."""
+    n = split["revisits"]
+    misses = ", ".join(f"{k} {v}" for k, v in split["misses"].items() if v)
+    return (f"revisit frames {n}: verified {split['verified']}, wrong place {split['wrong_place']}, "
+            f"true place among the checked candidates {split['true_place_checked']}; misses: {misses or 'none'}")
 
 
 def _outcome(verified: bool, right: bool, true_loop: bool) -> str:

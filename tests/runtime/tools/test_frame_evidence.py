@@ -134,3 +134,32 @@ def test_failures_need_verification(tmp_path):
     code = main(["eval", "--model", str(REPO / "aefabmap" / "data" / "default_bundle"), "--images", str(tmp_path),
                  "--gt", str(tmp_path / "gt.npy"), "--no-verify", "--failures", str(tmp_path / "f")])
     assert code == 2 and not (tmp_path / "f").exists()
+
+
+def test_revisit_split_says_where_each_missed_revisit_was_lost():
+    from aefabmap.runtime.tools.frame_evidence import format_revisit_split, revisit_split
+
+    def checked(frame, nfa):
+        c = cand(frame, 0, checked=True, inliers=5)
+        c.nfa = nfa
+        return c
+
+    results = [
+        result(0), result(1), result(2), result(3),
+        result(4, best=0, verified_frame=0, candidates=[cand(0, 0, checked=True, verified=True, inliers=40)]),
+        result(5, best=3, candidates=[cand(3, 0)]),  # true place 1 is not a candidate
+        result(6, best=2, candidates=[checked(2, None)]),  # checked, nothing fitted
+        result(7, best=3, candidates=[checked(3, 1.5)]),  # no geometric evidence
+        result(8, best=3, candidates=[checked(3, -2.0)]),  # some, below 0 but above the bar
+        result(9, best=2, verified_frame=0, candidates=[cand(0, 0, checked=True, verified=True, inliers=30)]),
+    ]
+    gt = np.zeros((10, 10), bool)
+    for q, p in ((4, 0), (5, 1), (6, 2), (7, 3), (8, 3), (9, 2)):
+        gt[q, p] = gt[p, q] = True
+    records = list(frame_records(results, gt, tolerance=0, min_keypoints=8))
+    assert [r.get("miss_reason") for r in records[5:9]] == ["not_a_candidate", "no_model", "nfa_at_least_0",
+                                                            "nfa_below_0"]
+    split = revisit_split(records)
+    assert (split["revisits"], split["verified"], split["wrong_place"], split["true_place_checked"]) == (6, 1, 1, 4)
+    assert sum(split["misses"].values()) == 4
+    assert "revisit frames 6: verified 1, wrong place 1" in format_revisit_split(split)
