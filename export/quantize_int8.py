@@ -5,19 +5,17 @@ activations, calibrated on training descriptors). The codebook part (MatMul, Sub
 Cast) stays fp32 and the encoder output `codes` is not fake-quantised: an 8-bit code would
 move many descriptors across Voronoi borders of a 2000-word codebook, whereas the
 conv stack tolerates 8 bits well (see int8 agreement in the manifest). Dynamic int8 is
-deliberately not offered: ConvInteger ran 3-4x slower than fp32 on these CPUs.
+deliberately not offered: ConvInteger ran slower than fp32 on these CPUs.
 
 Weights use 7 bits ([-64, 64], onnxruntime's reduce_range). On x86 CPUs without VNNI
 (e.g. AVX2 only) onnxruntime's u8 x s8 kernels add products pairwise in int16 with
 saturation: 2 * 255 * 127 = 64770 overflows 32767, while 2 * 255 * 64 = 32640 cannot.
 With full 8-bit weights the fused int8 kernels silently disagree with the graph's own
 QDQ arithmetic wherever two neighbouring activations are large -- always so for ORB,
-whose 0/1 bits quantise to 0/255 (measured on an AVX2 machine: latent codes off by 11 %,
-only 59 % of ORB words equal to fp32; 97.6 % for SIFT). 7-bit weights moved agreement in
-exact QDQ arithmetic by 0.25 points either way (ORB up, SIFT down, 3-epoch test models)
-and make the int8 kernels compute what the graph says, on every CPU. On K=2000 models
-(2 epochs, 20k descriptors) words equal to fp32 on held-out scene15 descriptors went from
-85.8 to 98.9 % (ORB) and 96.1 to 98.0 % (SIFT), at the same speed.
+whose 0/1 bits quantise to 0/255 (on an AVX2 machine most ORB words then differed from
+fp32). 7-bit weights barely move agreement in exact QDQ arithmetic and make the int8 kernels
+compute what the graph says, on every CPU: words equal to fp32 on held-out descriptors rose
+for both kinds, at the same speed (docs/results.md, "Autoencoder vs k-means").
 """
 
 from __future__ import annotations

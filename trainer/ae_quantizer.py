@@ -106,8 +106,8 @@ def build_ae_quantizer(
     # Agreement of int8 with fp32 words on a sample of the training vectors (drawn with
     # seed + 7; calibration draws with `seed`, so the two overlap when N is small). An
     # optimistic figure: k-means fitted the codebook to these very vectors, so they sit
-    # nearer to word centres than unseen descriptors do (SIFT, K=2000: 99.8 % here vs
-    # 98.0 % on held-out scene15 descriptors, same encoder and int8 graph).
+    # nearer to word centres than unseen descriptors do (both figures: CHANGELOG.md, "AE-FABMAP vs
+    # FABMAP2 (issue 3)").
     d = vectors.shape[1]
     rng = np.random.default_rng(seed + 7)
     sample = vectors if vectors.shape[0] <= AGREEMENT_SAMPLE else vectors[

@@ -40,8 +40,8 @@ from aefabmap.runtime.core.feature_kinds import get_kind
 SCALINGS = ("minmax", "none")
 ARCHS = ("paper", "light")
 DEFAULT_WIDTHS = {"paper": (32, 64, 128), "light": (256,)}
-# Light arch: a 32-D code keeps the fp32 codebook arg-min of a 2000-word vocabulary near 1 ms
-# per 500 descriptors on one core (64-D: ~1.7 ms), the int8 budget of the whole quantiser.
+# Light arch: a 32-D code keeps the fp32 codebook arg-min of a 2000-word vocabulary within the
+# int8 budget of the whole quantiser; 64-D did not (docs/results.md, "Quantiser").
 DEFAULT_LIGHT_LATENT = 32
 
 

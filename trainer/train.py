@@ -35,15 +35,17 @@ class TrainConfig:
         compared by popcount unless float_centers) or "ae".
     index_buckets: quantizer "kmeans" only: 0 (default) searches the flat vocabulary exhaustively;
         S > 0 adds an inverted index of S buckets (IndexedCentroidQuantizer: the flat words, a
-        descriptor compared only with its bucket's list; on ORB 3000 words with S = 32 a list
-        holds 38 % of the words and the search is not faster, docs/results.md).
+        descriptor compared only with its bucket's list; on ORB 3000 words with S = 32 the search
+        is not faster: docs/results.md, "Quantisation in O(log K): flat search, vocabulary tree,
+        inverted index").
     vocabulary_from: quantizer "kmeans" only: take the centroids of this k-means bundle (same
         feature settings) instead of clustering again (e.g. to add an index to it).
     ae_epochs / ae_descriptors: autoencoder training budget (quantizer "ae" only).
     ae_arch / ae_latent: "paper" conv stack or "light" MLP; latent size (None: the arch's default).
     ae_patience / ae_budget_s: early-stopping patience (epochs) and wall-clock training budget.
     ae_threads: torch and onnxruntime threads of the AE stages (on a loaded machine 1 thread
-        trains an order of magnitude faster than 2 that keep waiting for each other).
+        trains far faster than 2 that keep waiting for each other; docs/results.md,
+        "Autoencoder vs k-means").
     ae_match_weight: weight of the matching term on latent codes (0: reconstruction only).
     ae_warp_images / ae_frame_pairs: sources of matching pairs (synthetic homography warps of
         training images; consecutive frames of the drives among them), built whenever either is

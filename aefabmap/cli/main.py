@@ -11,8 +11,9 @@ from aefabmap import __version__
 from aefabmap.errors import AefabmapError
 
 # Per-frame work runs on one BLAS thread: a multi-threaded BLAS on a small matrix product
-# per frame costs more in thread wake-ups than it saves (quantise went from 2 ms to 10-22 ms
-# with one thread per core), and the other cores belong to the camera and the SLAM back-end.
+# per frame costs more in thread wake-ups than it saves (quantise was several times slower
+# with one thread per core: docs/streaming.md, "Results: two processes over loopback Zenoh
+# (`bench stream`)"), and the other cores belong to the camera and the SLAM back-end.
 SINGLE_BLAS_THREAD_COMMANDS = ("run", "replay", "eval", "demo", "bench")
 
 # Each module exposes register(subparsers) and sets `func` (args -> exit code) on its parser.

@@ -19,13 +19,33 @@ def add_state_options(p: argparse.ArgumentParser, *, snapshots: bool = False) ->
 
 
 def open_state(path, detector, logger: logging.Logger):
-    """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present."""
-    from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id, load_into
+    """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present.
+    A map built with other detector settings loads (it continues with this run's), with a warning
+    naming them."""
+    import dataclasses
+    import json
+
+    from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id
+    from aefabmap.runtime.core.run_config import settings_differences
 
     directory = MapStateDir(path, bundle_id(detector.manifest)).open()
     try:
-        if load_into(detector, directory):
+        state = directory.load()
+        if state is not None:
+            detector.load_state(state)
             logger.info("map state %s loaded: %d places, next frame %d", path, detector.n_places, detector.next_sequence)
+            stored = state.scalars.get("config")
+            if isinstance(stored, str):
+                try:
+                    differ = settings_differences(json.loads(stored), json.loads(json.dumps(
+                        dataclasses.asdict(detector.config))))
+                except (ValueError, RecursionError):
+                    differ = ["(unreadable record)"]
+                # Kept inlier points change what is drawn, never a decision.
+                differ = [d for d in differ if not d.endswith("keep_inlier_points")]
+                if differ:
+                    logger.warning("map state %s was built with other detector settings (%s); this run continues "
+                                   "it with its own", path, ", ".join(differ))
     except BaseException:
         directory.close()
         raise

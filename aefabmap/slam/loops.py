@@ -4,19 +4,20 @@ The detector (runtime/core/detector.py) verifies a loop with a two-view model (H
 keeps the inlier point pairs (VerificationConfig.keep_inlier_points). With depth, the place
 frame's inlier points become 3-D points in its camera; PnP RANSAC (odometry.pnp_pose) on the
 query frame's inlier pixels gives T_query_place, hence the edge T_place_query with metric scale,
-which a two-view model alone cannot give. On texture-poor frames a verified loop may rest on
-6-10 inliers: that PnP then only seeds guided matching between the two frames' odometry
-features (odometry.guided_pose, same settings as the odometry), and the edge is the PnP on those
-matches, kept when it has the odometry's min_inliers.
+which a two-view model alone cannot give. On texture-poor frames a verified loop may rest on a
+handful of inliers (docs/slam.md, "Results: TUM fr3 cabinet, 58-frame subsample"): that PnP
+then only seeds guided matching between the two frames' odometry features (odometry.guided_pose,
+same settings as the odometry), and the edge is the PnP on those matches, kept when it has the
+odometry's min_inliers.
 
 A frame the two-view test verified nothing for may still hold a revisit: on texture-poor frames
-the detector's ~100 keypoints leave too few independent matches for it. `proposal_edge` checks
-such a frame against the detector's FAB-MAP candidates in 3-D instead, as ORB-SLAM checks its
-bag-of-words candidates: the two frames' odometry features (4000 per frame) are matched, the
-place's depth gives 3-D points, and a PnP pose is kept only when its inliers are very unlikely by
-chance (the same a-contrario test and bar as the two-view models, `acontrario.py` model "P":
-reprojection errors in the query image). It then goes through the same guided matching and
-inlier floor as a verified loop.
+the detector's few keypoints (docs/results.md, "SLAM") leave too few independent matches for it.
+`proposal_edge` checks such a frame against the detector's FAB-MAP candidates in 3-D instead, as
+ORB-SLAM checks its bag-of-words candidates: the two frames' odometry features (4000 per frame)
+are matched, the place's depth gives 3-D points, and a PnP pose is kept only when its inliers are
+very unlikely by chance (the same a-contrario test and bar as the two-view models, `acontrario.py`
+model "P": reprojection errors in the query image). It then goes through the same guided matching
+and inlier floor as a verified loop.
 """
 
 from __future__ import annotations

@@ -37,8 +37,8 @@ class OdometryConfig:
     min_inliers: a PnP result with fewer inliers is not trusted.
     iterations: RANSAC iterations.
     guided_radius_px: search radius of guided matching around the predicted position, pixels
-        (0 disables it); the prediction (constant velocity) is off by up to ~100 px when the
-        rotation between frames changes by ~10 degrees.
+        (0 disables it); the radius covers how far the prediction (constant velocity) lands off
+        when the rotation between frames changes abruptly (docs/results.md, "SLAM").
     """
 
     max_features: int = 4000

@@ -39,11 +39,12 @@ class SlamConfig:
     sigma_rot / sigma_trans: 1-sigma noise of a PnP edge with `reference_inliers` inliers
         (rad, m per axis); an edge with n inliers gets sigma * sqrt(reference_inliers / n) (a PnP
         estimate's covariance falls as 1/n). Order of magnitude of the odometry's per-step error
-        on the TUM cabinet subsample (median ~1.5 cm, ~0.7 deg against the ground truth, ~50
-        inliers), rounded up; not fitted.
+        on the TUM cabinet subsample, rounded up; not fitted (docs/slam.md, "Results: TUM fr3
+        cabinet, 58-frame subsample").
     guess_sigma_rot / guess_sigma_trans: noise of a step the odometry could only guess (constant velocity).
     wrong_trans_m / wrong_rot_deg: a loop edge whose relative pose differs from the ground truth's
-        by more than either is counted wrong: about one frame step of this data (0.15 m, 7 deg).
+        by more than either is counted wrong: about one frame step of this data (docs/results.md,
+        "SLAM").
     camera_verification: verify loops with the camera's essential matrix (else a fundamental matrix).
     min_inliers_h: the detector's floor on homography inliers (VerificationConfig.min_inliers_h,
         runtime default 8: a minimum support for a pose known only from two images). Here every

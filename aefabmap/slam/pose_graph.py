@@ -9,10 +9,10 @@ trajectory. Frame 0 is fixed where the initial estimate puts it.
 Kernels: "cauchy" (default), "huber", "none". They are M-estimators run by Levenberg-Marquardt
 from the odometry, so a loop edge is weighed by its residual at the drifted start: at scale 1 a
 Cauchy kernel mutes a TRUE loop that closes 0.4 m of drift (~13 sigma of the edge), at scale 3
-it keeps it (weight ~0.98) and still mutes an alias on the far side of the loop (weight ~0);
-Huber lets that alias pull with bounded but steady force (tests/slam/test_pose_graph.py).
+it keeps it (near full weight) and still mutes an alias on the far side of the loop (weight
+near zero); Huber lets that alias pull with bounded but steady force (tests/slam/test_pose_graph.py).
 (gtsam's graduated non-convexity, GncLMOptimizer with TLS, rejected the alias too but returned
-poses 0.3 m off the plain solution in the same test; not used.)
+poses well off the plain solution in the same test; not used. Figures: docs/results.md, "SLAM".)
 """
 
 from __future__ import annotations

@@ -14,9 +14,9 @@ VerificationConfig.keep_inlier_points is on, and a text line), ``/lcd/result`` a
 
 The detector keeps no images: :class:`PlaceThumbnails` keeps one small JPEG per place
 (longest side ``thumb_px``), following the map through ``inserted_place`` / ``evicted_place``
-and bounded by ``max_bytes`` (oldest dropped first). Its memory cost is its bytes (about 3-6 KB
-a place at 160 px, so the default 4 MB holds ~1000 places) plus ``pending`` recent frames'
-thumbnails waiting for their (delayed) insertion.
+and bounded by ``max_bytes`` (oldest dropped first). Its memory cost is its bytes (a thumbnail's
+size: docs/results.md, "Memory") plus ``pending`` recent frames' thumbnails waiting for their
+(delayed) insertion.
 """
 
 from __future__ import annotations

@@ -37,7 +37,8 @@ STATUS_PREFIX = "aefabmap/status"
 #: Frames whose timings_ms make the per-stage medians of a status.
 RECENT_FRAMES = 100
 #: An answer is reused for this long (s): a flood of queries costs at most one status build per
-#: period (~0.5 ms of CPU each), so it cannot starve the frame loop.
+#: period (a small fraction of a frame's CPU; docs/results.md, "Streaming"), so it cannot starve
+#: the frame loop.
 ANSWER_REUSE_S = 0.05
 
 

@@ -20,8 +20,8 @@ word (the norm term's rounding is known exactly). The best word b has z_b + hi_b
 Rows with one such candidate take it; the others are re-ranked with exact float64 products.
 The result is the exact arg-min (ties to the lowest id), whatever the centroids; centroids far
 from [0, 1] only widen the intervals and cost time (`flat_quantizer` then keeps the float search).
-Bounds per word, rather than one band of the worst word's width, halve the rows re-ranked (31 ->
-15 % of ORB descriptors with 3000 CamVid words).
+Bounds per word, rather than one band of the worst word's width, halve the rows re-ranked
+(CHANGELOG.md, "The AE's arg-max in blocks; the flat int8 search's intervals").
 
 The int8 product cannot saturate on x86 without VNNI (pairs of products are summed in int16):
 one operand is 0 or 1, so a pair sums to at most 2 * 127.
@@ -40,8 +40,8 @@ from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, check_vect
 
 _LEVELS = 127  # int8 steps on each side of 1/2
 #: Bytes of int32 products per int8 product call. The selection then reads the block while it is
-#: still in cache: on a Zen 4 core (1 MiB L2) 128-row chunks took 2.7 ms per 500 descriptors at
-#: 3000 words and 4.6 at 5000, against 3.0 and 5.5 with 512 rows; 32 rows were slower again.
+#: still in cache: on a Zen 4 core (1 MiB L2) 128-row chunks were faster than 512 rows and than
+#: 32 rows (docs/results.md, "Quantiser").
 BLOCK_BYTES = 2 << 20
 _SAFETY = 1.0  # z units (1/254 of a score unit) around each word's interval: float64 rounding
 
@@ -163,7 +163,7 @@ def select_kernel():
     """Per row of int8 products (overwritten with z + hi): the candidates (module doc), and the
     exact re-rank where there is more than one; compiled (runtime/core/compiled.py). The rows'
     two passes come first and the re-ranks after, in a second loop: kept apart, both passes
-    vectorise (together they ran 1.4x slower)."""
+    vectorise (together they ran slower; docs/results.md, "Quantiser")."""
     def select(products, upper_offset, width, bits, centroids, half_sq_norms, best):
         n, k = products.shape
         d = bits.shape[1]

@@ -23,8 +23,8 @@ def popcount_rows(x: np.ndarray, use_table: bool = False) -> np.ndarray:
 
     np.bitwise_count (numpy >= 2) on 64-bit words when W % 8 == 0, else on bytes; use_table
     (or numpy < 2): the 256-entry table. The last axis is summed by adding its columns: numpy's
-    reduction over a short last axis costs more than the popcount itself (34 000 ORB pairs:
-    0.3 ms, against 3.7 ms for a table gather summed along the bytes).
+    reduction over a short last axis costs more than the popcount itself, and a table gather
+    summed along the bytes costs far more (docs/results.md, "Per frame").
     """
     if x.dtype != np.uint8:
         raise InputError(f"popcount_rows needs uint8 bytes, got {x.dtype}")
@@ -64,10 +64,10 @@ def nearest_two_kernel():
 
     a (N, W) holds the query rows; bt (W, M) the searched rows transposed, one array per 64-bit
     word, so that the loop over rows reads each word array in sequence and compiles to vector
-    popcounts (the row-major (M, W) layout read 4 words per row with strides: ~7x slower on an
-    AVX-512 core here). Each row's distance d and index j are packed into one key d * 2^32 + j,
-    so the nearest is a branch-free minimum and a tie goes to the lower index (as in OpenCV's
-    batchDistance); the second nearest is the minimum once the first's key is masked. (A scan
+    popcounts (the row-major (M, W) layout read 4 words per row with strides: several times
+    slower; docs/results.md, "Per frame"). Each row's distance d and index j are packed into one
+    key d * 2^32 + j, so the nearest is a branch-free minimum and a tie goes to the lower index
+    (as in OpenCV's batchDistance); the second nearest is the minimum once the first's key is masked. (A scan
     that tracked the two smallest with branches took longer than the distances themselves.)
     """
     def nearest_two(a, bt, dist, index):
@@ -126,7 +126,7 @@ def nearest_two(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     distance 2^31 - 1.
 
     Compiled kernel when in use (runtime/core/compiled.py), else OpenCV's batchDistance: the same
-    distances and indices (1000 x 1000 ORB rows, one Zen 4 core: ~0.45 ms against ~8 ms).
+    distances and indices; the kernel is much faster (docs/results.md, "Per frame").
     """
     a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
     if a.dtype != np.uint8 or b.dtype != np.uint8 or a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:

@@ -67,8 +67,9 @@ def kernel(build: Callable[[], Callable]) -> Callable[[], Callable]:
 
 
 def prepare(*kernels: Callable[[], Callable]) -> None:
-    """Compile the given kernels (`kernel` getters) now if compiled kernels are in use (0.5-1 s
-    each, once per process), so that the first frame does not pay for it. A JIT that imports
+    """Compile the given kernels (`kernel` getters) now if compiled kernels are in use (far
+    longer than a frame, once per process; docs/results.md, "Per frame"), so that the first frame
+    does not pay for it. A JIT that imports
     but cannot compile here switches the process to the fallbacks."""
     global numba, _use, _unavailable
     if not _use:

@@ -190,8 +190,8 @@ class StaticPostings:
 
     Holds the new-place model's training observations: scored like the places, by the same
     scatter. The compiled scatter reads each word's postings in place (their offsets into the
-    packed array: 0.47 -> 0.20 ms per query with ORB 3k's 3 454 observations, one core); the
-    numpy one gathers them with one vectorised index, no per-word loop.
+    packed array, which made the query faster: CHANGELOG.md, "Per-frame cost on an AVX-512
+    core"); the numpy one gathers them with one vectorised index, no per-word loop.
     """
 
     def __init__(self, observations: list[np.ndarray], defaults: np.ndarray, vocabulary_size: int) -> None:

@@ -217,8 +217,9 @@ class FeatureExtractor:
                 (int(shape[0]), int(shape[1])),
             )
         # Strongest first, ties broken by position: a fixed order for fixed input. (KeyPoint_convert
-        # and fromiter read the attributes at C speed where a list per attribute costs ~0.6 ms; each
-        # fromiter still costs ~0.07 ms per 1000 keypoints, so only the attributes used are read.)
+        # and fromiter read the attributes at C speed where a list per attribute costs far more;
+        # each fromiter still has a cost, so only the attributes used are read: docs/results.md,
+        # "Per frame".)
         pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
         resp = np.fromiter((k.response for k in kps), np.float32, n)
         order = np.lexsort((pts[:, 0], pts[:, 1], -resp))

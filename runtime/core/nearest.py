@@ -3,8 +3,8 @@ verification's brute-force retry.
 
 Binary kinds: Hamming distance (`bits.nearest_two`: a compiled popcount kernel, or OpenCV).
 Float kinds: L2 distance of unit rows from one matrix product, |q - p| = sqrt(2 - 2 q.p): BLAS
-does the 1000 x 1000 x 128 SIFT product in ~4.5 ms on one core here, where OpenCV's batchDistance
-took ~25 ms for the same neighbours (distances agree to float rounding, ~1e-6).
+does the 1000 x 1000 x 128 SIFT product several times faster than OpenCV's batchDistance finds
+the same neighbours (distances agree to float rounding; docs/results.md, "Per frame").
 """
 
 from __future__ import annotations

@@ -20,8 +20,8 @@ from aefabmap.runtime.core.map_state import MapState, check_ptr, pack_ragged
 
 
 def grown(n: int) -> int:
-    """Next capacity of a full posting buffer of n entries: +25 % keeps the mean slack near 11 %
-    (doubling leaves ~28 %), at the price of more (memcpy-cheap) regrowths."""
+    """Next capacity of a full posting buffer of n entries: +25 % keeps the mean slack far below
+    doubling's (docs/results.md, "Memory"), at the price of more (memcpy-cheap) regrowths."""
     return n + max(4, n >> 2)
 
 
@@ -99,7 +99,8 @@ class PostingLists:
         stored = words.astype(self._word_dtype)
         if not self.weighted and compiled.active() == "compiled":
             # Words whose buffer has room take the posting in one compiled pass; the loop below
-            # then only allocates and grows buffers (~1 word in 10 of a place at steady state).
+            # then only allocates and grows buffers (a small share of a place's words at steady
+            # state: docs/results.md, "Memory").
             room = self._cap[words] > self._len[words]
             fast = words[room]
             scatter.append_kernel()(self.addresses(fast), self._len[fast], np.int32(pid))

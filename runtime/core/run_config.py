@@ -137,3 +137,14 @@ def _value(tp, v, where: str):
     else:
         raise ConfigError(f"{where}: settings of type {tp} cannot be read back")
     raise ConfigError(f"{where} must be {getattr(tp, '__name__', tp)}, got {str(v)[:40]!r}")
+
+
+def settings_differences(stored: object, current: object, prefix: str = "") -> list[str]:
+    """Dotted names of the settings that differ between two plain dicts (e.g. a map state's
+    recorded detector settings and this run's), at most the first 20."""
+    if isinstance(stored, dict) and isinstance(current, dict):
+        out: list[str] = []
+        for key in sorted(set(stored) | set(current), key=str):
+            out += settings_differences(stored.get(key), current.get(key), f"{prefix}{key}.")
+        return out[:20]
+    return [] if stored == current else [prefix.rstrip(".")]

@@ -30,7 +30,8 @@ a coincidence:
 
 Remaining settings were checked on training data only (camvid frames 1-10 s apart in one
 drive and synthetic warps/lighting changes of training images are positives; frames of
-different drives, Scene-15 images and camvid-vs-Scene-15 pairs are negatives), see the README.
+different drives, Scene-15 images and camvid-vs-Scene-15 pairs are negatives), see
+docs/results.md, "Set on training pairs".
 """
 
 from __future__ import annotations
@@ -76,19 +77,18 @@ class VerificationConfig:
         first); None: the bundle's budget (`FeatureConfig.max_features`). Only the bundle's
         budget is quantised: FAB-MAP observes those words, as in training, and same-word
         matching uses them; the keypoints beyond it (NO_WORD) are matched by the brute-force
-        retry. Set by measurement on training pairs (README, "Keypoint budget"): 1000 ORB
-        keypoints raised acceptance of CamVid pairs 1-3 frames apart by 4-6 points over 500,
-        2000 did no better than 1000; no unrelated pair was accepted with any.
+        retry. Set by measurement on training pairs (docs/results.md, "Keypoint budget"): 1000
+        ORB keypoints verified more CamVid pairs a few frames apart than 500, 2000 did no better
+        than 1000, and no unrelated pair was accepted with any.
     ratio: Lowe ratio test, nearest / second-nearest descriptor distance of the same word.
     ratio_bruteforce: ratio test of brute-force matching (nearest / second-nearest of all
         place keypoints: a stricter test than within one word, where the second-nearest is
         rarer and farther). Brute-force matching returns more matches, chance ones included;
         the a-contrario test accounts for that through n, so it needs no bars of its own.
         0.8 (Lowe's value) was the best of 0.7-1.0 on training pairs (CamVid pairs of one drive
-        1/2/3/5/10 frames apart, brute-force matching of 1000 keypoints, 162 pairs per gap):
-        ORB acceptance 98/72/52/32/20 % against 94/65/44/28/20 % at 0.9, SIFT 100/90/80/52/25 %
-        against 99/87/67/44/22 %; none of 244 unrelated pairs accepted with either (their best
-        log10 NFA -0.1 for ORB and 1.2 for SIFT, against the -4 bar).
+        1/2/3/5/10 frames apart, brute-force matching of 1000 keypoints), for ORB and SIFT alike,
+        with no unrelated pair accepted at any value (docs/results.md, "The brute-force retry's
+        ratio test").
     max_hamming: binary kinds: largest Hamming distance of a match, in bits per 256 (ORB's
         length; a binary kind of B bits gets max_hamming * B / 256).
     max_l2: float kinds (SIFT): largest L2 distance of (unit-norm) descriptors of a match.
@@ -99,12 +99,12 @@ class VerificationConfig:
         (cv2.FM_RANSAC / cv2.RANSAC). Acceptance is the same a-contrario test whichever found
         the model; a better estimator finds more true models, and also more chance ones where
         the test's background (matches at random over the image) does not hold. On training pairs
-        (`scripts/calibrate_verification.py --method`, 1000 keypoints, 162 CamVid pairs per gap
-        of 1/2/3/5/10 frames) "lo-ransac" accepted more: ORB 98/77/55/35/20 % against MAGSAC's
-        98/72/52/32/20 %, SIFT 100/93/80/52/25 % against 100/90/80/52/25 %, none of 244 unrelated
-        pairs either way. It stays an option, not the default: on the corridor validation
-        sequence it published one wrong SIFT loop (an H on 8 of 15 matches, most of them on the
-        fisheye's black lens rim, which sits at the same pixels in every frame; docs/results.md).
+        (`scripts/calibrate_verification.py --method`, 1000 keypoints, CamVid pairs 1/2/3/5/10
+        frames apart) "lo-ransac" accepted more true pairs than MAGSAC++ and no unrelated pair.
+        It stays an option, not the default: on the corridor validation sequence it published
+        one wrong SIFT loop (an H most of whose matches lie on the fisheye's black lens rim,
+        which sits at the same pixels in every frame; docs/results.md, "Estimator: MAGSAC++,
+        not LO-RANSAC").
     f_threshold: fundamental/essential-matrix noise scale: the estimator's threshold and the
         largest point-to-epipolar-line distance (units, in both images) an inlier may have.
     h_threshold: the same for the homography (larger of forward and backward transfer error).
@@ -113,15 +113,15 @@ class VerificationConfig:
         below this. NFA bounds the expected number of chance acceptances per verified pair; a
         run of ~1000 frames verifies up to ~10^4 pairs (track + top-k + retries), so -4 keeps
         the expected number of chance loop closures of a whole run below one. (NFA < 1, the
-        textbook default, let 2 of ~1500 unrelated training pairs through, at log10 NFA -0.5
-        and -1.9; none came below -2.6, and 0 -> -4 cost ~1 of 140 training positives.)
+        textbook default, let unrelated training pairs through, and moving the bar to -4 cost
+        almost no training positives: docs/results.md, "Set on training pairs".)
     duplicate_radius: matches that share a duplicate_radius x duplicate_radius cell (ORIGINAL
         pixels) in either image count once (see `distinct_matches`). ORB finds one corner at
         several pyramid levels, and an image upsampled to the 640-px detection scale yields
         several keypoints per native corner; FAST's test circle has a radius of 3 pixels, so
         corners closer than that share their evidence. The a-contrario count assumes
-        independent matches: on training pairs 3 s apart a third to two thirds of the inliers
-        were such copies. 0 disables.
+        independent matches, and on training pairs many inliers were such copies
+        (docs/results.md, "The criterion"). 0 disables.
     independence: matches whose query keypoints lie closer than `independence` times the
         typical (median) descriptor window radius of the query's keypoints
         (`FeatureKind.window_radius`) count once as well, when that is more than
@@ -130,8 +130,9 @@ class VerificationConfig:
         on one object (a ceiling light, a sign) found again on a similar object elsewhere are
         one coincidence, not several. It matters where windows are large against the image
         (SIFT windows span ~5 keypoint sizes; small images upsampled for detection): on the
-        corridor validation sequence (160 x 120) the wrong SIFT loops were 8-9 inliers of which
-        4-5 lay within 5 pixels on one ceiling fixture. 0 disables.
+        corridor validation sequence (160 x 120) the wrong SIFT loops it removed rested on a few
+        keypoints of one ceiling fixture (docs/results.md, "Evidence counted once per descriptor
+        window"). 0 disables.
     min_inliers / min_inliers_h: floors on the a-contrario inliers of F/E and H (a model with
         fewer is not used as a loop closure whatever its NFA: too few points to trust it).
     min_f_sigma_ratio: F/E must be well conditioned: sigma2 / sigma1 of the Hartley-normalised
@@ -149,14 +150,13 @@ class VerificationConfig:
         mostly (`min_cheirality`) lie in front of both cameras (recoverPose). None: F.
     min_cheirality: fraction of E inliers that must triangulate in front of both cameras.
     The conditioning limits are loose by design (they reject impossible models, not weak
-    ones): on training positives the smallest normalised sigma2 / sigma1 of a fitted F was
-    0.018 (the rank-1 F of Lip6 233 -> 41: 7e-4), and of ~165 training positives per run at
-    most one significant model was rejected as degenerate or collinear.
+    ones): training positives stay well clear of them, and they reject almost no significant
+    model there (docs/results.md, "The criterion").
     grid: cells per side of the spread grid.
-    max_iters: homography RANSAC iterations cap (an H iteration is cheap: 1000 cost ~0.2 ms).
-    f_max_iters: fundamental-matrix iterations cap: a 7-point MAGSAC iteration costs ~5x an H
-        one; on training street pairs 300 gave the same inlier counts as 1000 on positives
-        and cut the time on negatives (which run to the cap) from ~1.2 to ~0.5 ms.
+    max_iters: homography RANSAC iterations cap (an H iteration is cheap).
+    f_max_iters: fundamental-matrix iterations cap: a 7-point MAGSAC iteration costs several H
+        ones; on training street pairs 300 gave the same inlier counts as 1000 on positives
+        and cut the time on negatives, which run to the cap (docs/results.md, "Per frame").
     confidence: RANSAC confidence.
     keep_inlier_points: return the inlier point pairs (`GeometryResult.inlier_points`), for
         evaluation evidence (match images); off in the runtime, where nothing reads them.
@@ -450,9 +450,9 @@ def estimate_geometry(
 
     A model is accepted when it is well conditioned (`conditioning.py`), its inliers are not
     explained by a line in either image, and its a-contrario significance (`acontrario.py`)
-    is below `max_log10_nfa`. Staged for speed (full=False): the homography (~0.2 ms) is tried
-    first and accepted at once; the epipolar model (~1 ms) only when H failed. full=True fits
-    both (calibration and diagnostics); acceptance is the same.
+    is below `max_log10_nfa`. Staged for speed (full=False): the cheaper homography is tried
+    first and accepted at once; the epipolar model only when H failed (costs: docs/results.md,
+    "Per frame"). full=True fits both (calibration and diagnostics); acceptance is the same.
     """
     c = config or VerificationConfig()
     sq = c.reference_long_side / max(shape_q)

@@ -1,8 +1,9 @@
 """Same-word matching of binary descriptors, compiled (runtime/core/compiled.py).
 
 `verification.match_keypoints` compares only keypoints that share a visual word. Its numpy
-form builds every same-word pair, sorts them twice and gathers their descriptors: ~0.1 ms of
-array calls per candidate place, paid five times on a frame that is not a revisit. This kernel
+form builds every same-word pair, sorts them twice and gathers their descriptors: array-call
+overhead per candidate place (docs/results.md, "Per frame"), paid for each of FAB-MAP's top
+candidates on a frame that is not a revisit. This kernel
 walks each query keypoint's word run among the place keypoints once and keeps the two smallest
 Hamming distances as it goes. It returns the same matches, in the same order, ties broken the
 same way (the numpy form is the reference the tests compare it with).

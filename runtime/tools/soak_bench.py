@@ -231,7 +231,7 @@ def _soak_pipeline(cfg: SoakConfig, workdir: Path) -> dict:
 
     logdir = workdir / "log"
     logdir.mkdir(parents=True, exist_ok=True)
-    views = random_views(cfg.seed, cfg.size)  # renders the world first (~1 s at 640x480)
+    views = random_views(cfg.seed, cfg.size)  # renders the world first (docs/results.md, "Streaming")
     key = f"aefabmap/soak/{uuid.uuid4().hex[:8]}/image"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     extra = ["--max-places", str(cfg.max_places), "--queue", str(cfg.queue), "--image-every", str(cfg.image_every),

@@ -237,7 +237,8 @@ def random_views(
     """An endless stream of (H, W) uint8 views of the world of (seed, size) from random poses
     (centre uniform over the route's bounding box, rotation within +-180 deg, zoom within
     max_zoom, gain/offset jittered) without sensor noise: every frame differs from the
-    others (a soak source that does not repeat; ~1-2 ms per 640x480 view). Revisits happen
+    others (a soak source that does not repeat; its cost per view: docs/results.md,
+    "Streaming"). Revisits happen
     by chance when two poses fall close. Deterministic in (seed, size)."""
     cfg = config or SyntheticConfig()
     w, h = _check_size(size)
