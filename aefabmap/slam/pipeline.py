@@ -98,6 +98,7 @@ class SlamRun:
     loop_weights: list[float]
     metrics: dict = field(default_factory=dict)
     edge_checks: list[dict] = field(default_factory=list)
+    run_config: dict | None = None  # the detector's RunConfig, whole (RunConfig.to_dict())
     proposals_tested: int = 0
 
 
@@ -110,13 +111,15 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     """Odometry, loop edges from the bundle's detector, pose graph; no files written."""
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap.runtime.core.run_config import RunConfig
     from aefabmap.runtime.core.verification import VerificationConfig
 
     c = config or SlamConfig()
     exclude = exclusion_frames(seq.stamps, c.min_gap_s)
     verification = VerificationConfig(keep_inlier_points=True, camera=seq.camera if c.camera_verification else None,
                                       min_inliers_h=c.min_inliers_h, independence=0.0)
-    detector = load_detector(bundle, DetectorConfig(exclude=exclude, verification=verification))
+    run_config = RunConfig(model=str(bundle), detector=DetectorConfig(exclude=exclude, verification=verification))
+    detector = load_detector(bundle, run_config.detector)
     K = seq.K
     results, det_ms = [], []
 
@@ -190,7 +193,7 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
         "total_per_frame": (wall + loop_ms + graph_ms) / n,
     }
     return SlamRun(odo.poses, graph.poses, edges, verified, exclude, odo.failed, timings, graph.loop_weights,
-                   proposals_tested=tested)
+                   proposals_tested=tested, run_config=run_config.to_dict())
 
 
 def check_edges(run: SlamRun, gt: np.ndarray, config: SlamConfig) -> list[dict]:
@@ -231,6 +234,7 @@ def write_outputs(seq: RgbdSequence, run: SlamRun, out: str | Path, config: Slam
         "loop_edges_from_proposals": sum(e.T_place_query is not None and e.source == "proposal" for e in run.loop_edges),
         "timings_ms": run.timings_ms, "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "config": dataclasses.asdict(config),
+        "run_config": run.run_config,
     }
     gt = seq.groundtruth
     if gt is not None and np.isfinite(gt).all(axis=(1, 2)).sum() >= 3:
