@@ -84,7 +84,14 @@ def decode_image(payload: bytes | bytearray | memoryview) -> np.ndarray:
     if buf.size == 0:
         raise ImageDecodeError("empty image payload (0 bytes)")
     # Read the header first: refuse huge or unusable images before allocating their pixels.
-    size = _png_size(bytes(buf[:24])) or _jpeg_size(bytes(buf[:65536]))
+    # A JPEG's frame header may sit behind any number of APP segments: walk them all, and decode
+    # no JPEG whose size is unknown (the decoder would allocate whatever its header claims).
+    if buf[:2].tobytes() == b"\xff\xd8":
+        size = _jpeg_size(memoryview(buf))
+        if size is None:
+            raise FrameError("corrupt", f"JPEG payload of {buf.size} bytes has no frame header before its image data")
+    else:
+        size = _png_size(buf[:24].tobytes())
     if size is not None and min(size) > 0:  # a zero side is a corrupt header: imdecode refuses it
         check_frame_size(*size)
     image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
@@ -112,23 +119,31 @@ def _png_size(head: bytes) -> tuple[int, int] | None:
     return None
 
 
-def _jpeg_size(head: bytes) -> tuple[int, int] | None:
-    if len(head) < 4 or head[:2] != b"\xff\xd8":
-        return None
-    i = 2
-    while i + 9 < len(head):
-        if head[i] != 0xFF:
+def _jpeg_size(data: memoryview) -> tuple[int, int] | None:
+    """(width, height) from the JPEG frame header (SOF), walking the marker segments from the
+    start of the payload; None when the image data (SOS) or the end comes first, or a segment is
+    malformed. Costs one step per segment, whatever the segments' sizes."""
+    n, i = len(data), 2
+    while i + 1 < n:
+        if data[i] != 0xFF:
             return None
-        marker = head[i + 1]
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte before a marker
+            i += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length: SOI, TEM, RSTn
             i += 2
             continue
-        seg_len = int.from_bytes(head[i + 2 : i + 4], "big")
+        if marker in (0xDA, 0xD9) or i + 4 > n:  # image data or end before any frame header
+            return None
+        seg_len = int.from_bytes(data[i + 2:i + 4], "big")
+        if seg_len < 2:
+            return None
         # SOF0..SOF15 except DHT(C4), JPG(C8), DAC(CC) carry the frame size.
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            h = int.from_bytes(head[i + 5 : i + 7], "big")
-            w = int.from_bytes(head[i + 7 : i + 9], "big")
-            return w, h
+            if i + 9 > n:
+                return None
+            return int.from_bytes(data[i + 7:i + 9], "big"), int.from_bytes(data[i + 5:i + 7], "big")
         i += 2 + seg_len
     return None
 

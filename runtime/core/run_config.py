@@ -20,6 +20,8 @@ from aefabmap.runtime.core.detector import DetectorConfig
 
 #: Version of RunConfig's dict form.
 RUN_CONFIG_FORMAT = 1
+#: Most frames a node may buffer: a queue is for bursts, not for hours of backlog.
+MAX_QUEUE = 10_000
 
 
 @dataclass(frozen=True)
@@ -41,8 +43,8 @@ class RunConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.detector, DetectorConfig):
             raise ConfigError(f"detector must be a DetectorConfig, got {type(self.detector).__name__}")
-        if not isinstance(self.queue, int) or isinstance(self.queue, bool) or self.queue < 1:
-            raise ConfigError(f"queue must be an integer >= 1, got {str(self.queue)[:40]}")
+        if not isinstance(self.queue, int) or isinstance(self.queue, bool) or not 1 <= self.queue <= MAX_QUEUE:
+            raise ConfigError(f"queue must be an integer in [1, {MAX_QUEUE}], got {str(self.queue)[:40]}")
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict (tuples become lists), with the format version."""

@@ -174,7 +174,13 @@ def test_cli_replay_counts_a_bad_shape_and_exits_cleanly(tmp_path):
 
 
 @pytest.mark.parametrize("run_config", [{"max_places": "abc"}, {"memory_mb": [1]}, {"max_places": True},
-                                        {"memory_mb": float("nan")}])
+                                        {"memory_mb": float("nan")}, {"run": "x"}, {"run": {"format": 9}},
+                                        {"run": {"format": 1, "detector": {"exclude": -1}}},
+                                        {"run": {"format": 1, "detector": {"candidates": {"top_k": 0}}}},
+                                        {"run": {"format": 1, "detector": {"verification": {"camera": [0, 1, 2, 3]}}}},
+                                        {"run": {"format": 1, "detector": {"verification": {"camera": [1e400] * 4}}}},
+                                        {"run": {"format": 1, "detector": {"unknown": 1}}},
+                                        {"run": {"format": 1, "queue": 10**30}}])
 def test_cli_replay_of_a_log_with_hostile_run_config_exits_2_in_one_line(tmp_path, run_config):
     from tests.conftest import make_synthetic_bundle
 
@@ -188,3 +194,55 @@ def test_cli_replay_of_a_log_with_hostile_run_config_exits_2_in_one_line(tmp_pat
     )
     assert proc.returncode == 2, proc.stderr
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def _jpeg_with_size_behind_app_segments(width: int, height: int, app_bytes: int) -> bytes:
+    """A real small JPEG whose frame header (SOF) claims width x height and sits behind APP15
+    segments of app_bytes in all: the size is not in the payload's first 64 KiB."""
+    jpeg = cv2.imencode(".jpg", np.full((64, 64), 128, np.uint8))[1].tobytes()
+    apps = b""
+    while app_bytes > 0:
+        n = min(app_bytes, 65533)
+        apps += b"\xff\xef" + (n + 2).to_bytes(2, "big") + b"\x00" * n
+        app_bytes -= n
+    out = bytearray(jpeg[:2] + apps + jpeg[2:])
+    i = 2
+    while True:  # patch the SOF's height and width
+        marker, seg_len = out[i + 1], int.from_bytes(out[i + 2:i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            out[i + 5:i + 7], out[i + 7:i + 9] = height.to_bytes(2, "big"), width.to_bytes(2, "big")
+            return bytes(out)
+        i += 2 + seg_len
+
+
+@pytest.mark.parametrize("app_bytes", [0, 70_000, 300_000])
+def test_a_huge_jpeg_is_refused_from_its_header_wherever_the_header_sits(monkeypatch, app_bytes):
+    import aefabmap.runtime.adapters.frames as frames
+
+    def no_decode(*_a, **_k):
+        raise AssertionError("the pixels were decoded before the size was checked")
+
+    payload = _jpeg_with_size_behind_app_segments(20000, 20000, app_bytes)
+    monkeypatch.setattr(frames.cv2, "imdecode", no_decode)
+    with pytest.raises(FrameError) as err:
+        decode_frame(payload, "image/jpeg")
+    assert err.value.reason == "too_large"
+
+
+def test_a_jpeg_without_a_frame_header_is_refused_without_decoding(monkeypatch):
+    import aefabmap.runtime.adapters.frames as frames
+
+    jpeg = cv2.imencode(".jpg", np.full((64, 64), 128, np.uint8))[1].tobytes()
+    sos = jpeg.index(b"\xff\xda")
+    sof = next(i for i in range(2, sos) if jpeg[i] == 0xFF and jpeg[i + 1] in (0xC0, 0xC1, 0xC2))
+    seg = int.from_bytes(jpeg[sof + 2:sof + 4], "big")
+    no_sof = jpeg[:sof] + jpeg[sof + 2 + seg:]  # the same JPEG with its frame header cut out
+    monkeypatch.setattr(frames.cv2, "imdecode", lambda *_a, **_k: pytest.fail("decoded a JPEG of unknown size"))
+    with pytest.raises(FrameError) as err:
+        decode_frame(no_sof, "image/jpeg")
+    assert err.value.reason == "corrupt"
+
+
+def test_a_normal_jpeg_with_a_large_exif_block_still_decodes():
+    payload = _jpeg_with_size_behind_app_segments(64, 64, 200_000)
+    assert decode_frame(payload, "image/jpeg").shape == (64, 64)
