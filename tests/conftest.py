@@ -138,3 +138,10 @@ def make_synthetic_tree_bundle(out: Path, vocabulary_size: int = 40, kind: str =
                          TREE_FILE_NAMES["leaf_words"]: a.leaf_words},
         training_summary={"synthetic": True},
     )
+
+
+def cli_args(*argv: str):
+    """The Namespace the CLI's own parser makes of `argv` (e.g. "replay", LOG, "--model", B)."""
+    from aefabmap.cli.main import build_parser
+
+    return build_parser().parse_args([str(a) for a in argv])

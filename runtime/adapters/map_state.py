@@ -25,6 +25,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import threading
 import time
 from dataclasses import dataclass
@@ -59,6 +60,22 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def _open_regular(path: Path) -> int:
+    """A read-only descriptor of the regular file at `path` (not followed if a symlink). OSError
+    as open() raises it; StateError for a FIFO, device, socket or directory, refused without
+    blocking (a FIFO with no writer would hang a plain open, a device read never ends)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise StateError(f"{path} is not a regular file")
+        os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
 
 
 def _write_file(path: Path, data: bytes) -> None:
@@ -130,7 +147,7 @@ class MapStateDir:
         if not p.exists() and not p.is_symlink():
             return None
         try:
-            fd = os.open(p, os.O_RDONLY | os.O_NOFOLLOW)
+            fd = _open_regular(p)
             with os.fdopen(fd, "rb") as fh:
                 text = fh.read(64).decode("ascii", "replace").strip()
         except OSError as exc:
@@ -161,7 +178,7 @@ class MapStateDir:
     def _read_manifest(self, snap: Path) -> dict:
         p = snap / MANIFEST_NAME
         try:
-            fd = os.open(p, os.O_RDONLY | os.O_NOFOLLOW)
+            fd = _open_regular(p)
             with os.fdopen(fd, "rb") as fh:
                 raw = fh.read(_MAX_MANIFEST_BYTES + 1)
             if len(raw) > _MAX_MANIFEST_BYTES:
@@ -199,7 +216,7 @@ class MapStateDir:
         p = snap / f"{key}.npy"
         label = f"{snap.name}/{key}.npy"
         try:
-            fd = os.open(p, os.O_RDONLY | os.O_NOFOLLOW)  # a symlink leaving DIR is refused here
+            fd = _open_regular(p)  # a symlink leaving DIR is refused here
         except OSError as exc:
             raise StateError(f"{label}: cannot open: {exc.strerror or exc}") from None
         with os.fdopen(fd, "rb") as fh:

@@ -232,10 +232,9 @@ def test_live_node_with_view_serves_a_client_and_logs_the_view(tmp_path):
 
 def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, monkeypatch, capsys):
     pytest.importorskip("foxglove")
-    import argparse
 
     from aefabmap.cli import replay as cli_replay
-    from tests.conftest import make_synthetic_bundle
+    from tests.conftest import cli_args, make_synthetic_bundle
 
     from .stream_fakes import sample_images
 
@@ -252,8 +251,7 @@ def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, mon
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda path, config: configs.append(config)
                         or real_load(path, config))
     out = tmp_path / "out.mcap"
-    args = argparse.Namespace(log=[str(src)], model=str(bundle), out=str(out), check=False, foxglove=0,
-                              foxglove_host="127.0.0.1")
+    args = cli_args("replay", src, "--model", bundle, "--out", out, "--foxglove", "0")
     assert cli_replay.main(args) == 0
     assert configs[0].verification.keep_inlier_points  # the view draws them
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_processed"] == 12

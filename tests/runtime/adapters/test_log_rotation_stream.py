@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -17,6 +16,8 @@ from aefabmap.runtime.adapters.replay import replay
 from aefabmap.runtime.adapters.rotating_log import MB, LogRotationConfig
 from aefabmap.runtime.adapters.zenoh_transport import open_session
 from aefabmap.runtime.tools.publisher import array_source, publish_frames
+
+from tests.conftest import cli_args
 
 from .stream_fakes import (
     KEY,
@@ -70,7 +71,7 @@ def test_a_rotated_log_replays_as_one_run_and_checks_ok(tmp_path, monkeypatch):
     assert result.check.compared == 60 and len(result.status.files) == len(summary.log_files)
     # the command line takes a glob (or a directory, or several files) the same way
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
-    args = argparse.Namespace(log=[str(logs / "lcd-*.mcap")], model="fake", out=None, check=True)
+    args = cli_args("replay", logs / "lcd-*.mcap", "--model", "fake", "--check")
     assert cli_replay.main(args) == 0
 
 

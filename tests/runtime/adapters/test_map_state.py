@@ -21,7 +21,7 @@ from aefabmap.runtime.adapters.map_state import (
     load_into,
 )
 from aefabmap.runtime.core.detector import DetectorConfig
-from tests.conftest import make_synthetic_bundle
+from tests.conftest import cli_args, make_synthetic_bundle
 
 CONFIG = DetectorConfig(scorer="fabmap", exclude=3, max_places=30, verification=DetectorConfig().verification)
 
@@ -278,7 +278,6 @@ def _write_log(path, images, first_seq: int) -> None:
 def test_replay_builds_a_map_offline_and_continues_it(bundle, tmp_path, capsys):
     """`replay --state`: a map built from one log is loaded by the replay of the next log; the
     results are those of one replay over both."""
-    import argparse
 
     from aefabmap.cli import replay as cli_replay
     from aefabmap.runtime.adapters.replay import replay
@@ -291,8 +290,8 @@ def test_replay_builds_a_map_offline_and_continues_it(bundle, tmp_path, capsys):
     whole = replay(load_detector(bundle, DetectorConfig()), tmp_path / "all.mcap", out_path=tmp_path / "all_out.mcap")
     assert whole.frames_processed == 70
     for name in ("a", "b"):
-        args = argparse.Namespace(log=str(tmp_path / f"{name}.mcap"), model=str(bundle), out=str(tmp_path / f"{name}_out.mcap"),
-                                  check=False, state=str(tmp_path / "state"))
+        args = cli_args("replay", tmp_path / f"{name}.mcap", "--model", bundle, "--out", tmp_path / f"{name}_out.mcap",
+                        "--state", tmp_path / "state")
         assert cli_replay.main(args) == 0
     capsys.readouterr()
     from aefabmap.runtime.adapters.mcap_log import McapLogReader
@@ -368,3 +367,30 @@ def test_malformed_manifest_and_missing_array_are_refused(bundle, tmp_path):
     _saved(bundle, tmp_path / "u")
     (_snap(tmp_path / "u") / "scorer.places.alive.npy").unlink()
     assert "scorer.places.alive" in _refused(bundle, tmp_path / "u")
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("what", ["fifo-current", "fifo-array", "device-array", "directory-array",
+                                  "fifo-manifest"])
+def test_special_files_in_a_state_are_refused_in_one_line_without_hanging(bundle, tmp_path, what):
+    """A FIFO (no writer: a plain open blocks forever), a character device (a read never ends) or
+    a directory where the state has a file."""
+    import stat as stat_module
+
+    path = tmp_path / "s"
+    _saved(bundle, path)
+    snap = _snap(path)
+    target = {"fifo-current": path / CURRENT_NAME, "fifo-array": snap / "last_used.npy",
+              "device-array": snap / "place_frame.npy", "directory-array": snap / "last_used.npy",
+              "fifo-manifest": snap / "manifest.json"}[what]
+    target.unlink()
+    if what.startswith("fifo"):
+        os.mkfifo(target)
+    elif what == "device-array":
+        try:
+            os.mknod(target, 0o644 | stat_module.S_IFCHR, os.makedev(1, 5))  # like /dev/zero
+        except PermissionError:
+            pytest.skip("creating a device node needs root")
+    else:
+        target.mkdir()
+    assert "not a regular file" in _refused(bundle, path)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
@@ -32,6 +31,7 @@ from .stream_fakes import (
     session_pair,
     write_ros2_bag,
 )
+from tests.conftest import cli_args
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -167,13 +167,13 @@ def test_cli_replay_main(live_log, tmp_path, monkeypatch, capsys):
     from aefabmap.cli import replay as cli_replay
 
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
-    args = argparse.Namespace(log=[str(live_log)], model="fake", out=str(tmp_path / "o.mcap"), check=True)
+    args = cli_args("replay", live_log, "--model", "fake", "--out", tmp_path / "o.mcap", "--check")
     assert cli_replay.main(args) == 0
     doc = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert doc["check"]["ok"] and doc["frames_processed"] == 16
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector(threshold=0.5))
     assert cli_replay.main(args) == 1
-    args = argparse.Namespace(log=[str(tmp_path / "missing.mcap")], model="fake", out=None, check=False)
+    args = cli_args("replay", tmp_path / "missing.mcap", "--model", "fake")
     assert cli_replay.main(args) == 6  # LogError exit code
 
 

@@ -30,6 +30,7 @@ from aefabmap.runtime.adapters.ros_cdr import decode_compressed_cdr, decode_imag
 from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
 
 from .stream_fakes import FakeDetector, NodeThread, free_tcp_port, sample_images
+from tests.conftest import cli_args
 
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
 pytestmark = pytest.mark.timeout(90)
@@ -257,7 +258,6 @@ def test_graph_names_and_string_type_hash(typestore):
 
 def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, capsys):
     """`aefabmap run --ros-topic ... --connect <router> --results-key robot/lcd` end to end."""
-    import argparse
     import os
     import signal
 
@@ -270,9 +270,8 @@ def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, ca
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
     router = Router()
     log_path = tmp_path / "cli_ros.mcap"
-    args = argparse.Namespace(model="fake", key=None, ros_topic=TOPIC, ros_domain=0, ros_distro="humble",
-                              results_key="robot/lcd", connect=[router.endpoint], listen=[], config=None,
-                              mcap=str(log_path), max_places=None, memory_mb=None, queue=4, image_every=1)
+    args = cli_args("run", "--model", "fake", "--ros-topic", TOPIC, "--results-key", "robot/lcd",
+                    "--connect", router.endpoint, "--mcap", log_path, "--queue", "4")
     errors: list[BaseException] = []
     got = threading.Event()
 

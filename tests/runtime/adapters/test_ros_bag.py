@@ -7,7 +7,6 @@ the same frames run through the image-folder path.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
@@ -31,6 +30,7 @@ pytest.importorskip("rosbags.rosbag2")
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
+from tests.conftest import cli_args
 
 STAMP0 = 1_700_000_000_000_000_000
 COLOUR = "/camera/color/image_raw"
@@ -167,9 +167,8 @@ def test_unusable_bags_fail_with_a_reason(tmp_path, monkeypatch, capsys):
     bag = write_ros2(tmp_path / "cli_bag", "sqlite3", [("bgr8", c) for c in colour],
                      [STAMP0 + i for i in range(4)])
 
-    def run(**kw) -> int:
-        args = argparse.Namespace(**{"model": "fake", "out": None, "check": False, "topic": None, **kw})
-        return cli_replay.main(args)
+    def run(log, topic=None) -> int:
+        return cli_replay.main(cli_args("replay", *log, "--model", "fake", *(("--topic", topic) if topic else ())))
 
     assert run(log=[str(bag)], topic=COLOUR) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["frames_processed"] == 4
