@@ -48,6 +48,10 @@ TREE_FILES = {"parent": "tree_parent.npy", "p": "tree_p.npy", "a": "tree_a.npy",
 OBS_FILES = {"indptr": "train_obs_indptr.npy", "indices": "train_obs_indices.npy"}
 QUANTIZER_TYPES = ("kmeans", "kmeans-tree", "ae")
 TREE_QUANTIZER_FILES = ("centers", "children", "leaf_words")
+#: Files each quantiser type must name in the manifest (role -> file name).
+REQUIRED_QUANTIZER_FILES = {"kmeans": ("centroids",), "kmeans-tree": TREE_QUANTIZER_FILES, "ae": ("fp32",)}
+#: FAB-MAP's detector model when a manifest has none.
+DEFAULT_WORD_DETECTION = {"pzge": 0.39, "pzgne": 0.0}
 INDEX_QUANTIZER_FILES = ("index_centers", "index_indptr", "index_words")
 #: Bounds of a vocabulary tree's branching factor (children per node).
 MAX_TREE_BRANCHING = 256
@@ -93,7 +97,7 @@ class ModelBundle:
     @property
     def word_detection(self) -> dict:
         """FAB-MAP's detector model of the manifest: {"pzge": P(z=1 | e=1), "pzgne": P(z=1 | e=0)}."""
-        return dict(self.manifest.get("detector", {"pzge": 0.39, "pzgne": 0.0}))
+        return dict(self.manifest.get("detector", DEFAULT_WORD_DETECTION))
 
     def quantizer(self, variant: str = "fp32", threads: int = 1):
         """Build the bundle's quantiser (Quantizer protocol).
@@ -295,7 +299,23 @@ def read_manifest(path: Path) -> dict:
             raise BundleError(f"{path}: manifest has no checksum for {name}")
     if not isinstance(manifest["vocabulary_size"], int) or manifest["vocabulary_size"] < 2:
         raise BundleError(f"{path}: vocabulary_size must be an integer >= 2")
+    missing = [role for role in REQUIRED_QUANTIZER_FILES[q["type"]] if role not in q["files"]]
+    if missing:
+        raise BundleError(f"{path}: a {q['type']} quantizer names the files {REQUIRED_QUANTIZER_FILES[q['type']]}; "
+                          f"the manifest lacks {', '.join(missing)}")
+    _check_word_detection(path, manifest.get("detector", DEFAULT_WORD_DETECTION))
     return manifest
+
+
+def _check_word_detection(path: Path, det: object) -> None:
+    """FAB-MAP's detector model of the manifest: {"pzge": p, "pzgne": q}, 0 <= q < p <= 1."""
+    if not isinstance(det, dict) or set(det) != {"pzge", "pzgne"}:
+        raise BundleError(f"{path}: manifest 'detector' must be an object with exactly pzge and pzgne")
+    p, q = det["pzge"], det["pzgne"]
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (p, q)) \
+            or not (0.0 <= q < p <= 1.0):  # NaN fails the comparison too
+        raise BundleError(f"{path}: manifest 'detector' needs numbers 0 <= pzgne < pzge <= 1, "
+                          f"got pzge={str(p)[:20]}, pzgne={str(q)[:20]}")
 
 
 #: A manifest is a few kB; refuse to parse anything much larger.

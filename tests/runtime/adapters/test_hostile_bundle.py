@@ -251,3 +251,27 @@ def test_cli_eval_with_a_lying_ground_truth_header_exits_4_in_one_line(synthetic
     assert proc.returncode == 4, proc.stderr
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     assert "gt.npy" in proc.stderr
+
+
+@pytest.mark.parametrize("edit", [
+    lambda m: m.update(detector={}),
+    lambda m: m.update(detector="abc"),
+    lambda m: m.update(detector={"pzge": "x", "pzgne": 0.0}),
+    lambda m: m.update(detector={"pzge": 0.39, "pzgne": float("nan")}),
+    lambda m: m.update(detector={"pzge": 0.1, "pzgne": 0.5}),
+    lambda m: m.update(detector={"pzge": True, "pzgne": 0.0}),
+    lambda m: m["quantizer"].update(files={}),
+    lambda m: m["features"].update(max_features="many"),
+], ids=["detector-empty", "detector-string", "pzge-string", "pzgne-nan", "pzgne-above-pzge", "pzge-bool",
+        "quantizer-files-empty", "features-bad"])
+def test_malformed_manifest_fields_are_one_line_errors_before_any_frame(synthetic_bundle, edit):
+    """A bundle whose manifest fields have the wrong type or range is refused when it is loaded,
+    as a BundleError (CLI exit 3), never a traceback and never on the first frame."""
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+
+    m = _manifest(synthetic_bundle)
+    edit(m)
+    _write_manifest(synthetic_bundle, m)
+    with pytest.raises(BundleError) as info:
+        load_detector(synthetic_bundle)
+    assert "\n" not in str(info.value)
