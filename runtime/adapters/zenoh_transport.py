@@ -294,13 +294,17 @@ class DropCounter:
     """Counts sequence gaps per source.
 
     dropped: frames skipped (gaps in seq, counted from the first frame received from a
-    source: frames published before the subscriber saw that source are not drops); restarts: seq went backwards (publisher restart);
+    source: frames published before the subscriber saw that source are not drops); restarts: seq
+    went backwards (publisher restart) or jumped ahead by more than MAX_GAP (no publisher skips
+    that many frames: a reset or a forged seq, which must not swell `dropped`);
     unsequenced: frames without a seq (their drops cannot be counted).
     At most MAX_SOURCES sources are tracked (the least recently seen is forgotten), so a
     peer inventing source ids cannot grow the table without bound.
     """
 
     MAX_SOURCES = 256
+    #: Largest gap counted as drops: a day of frames at 100 Hz.
+    MAX_GAP = 100 * 86_400
 
     dropped: int = 0
     restarts: int = 0
@@ -318,7 +322,7 @@ class DropCounter:
             del self._last[next(iter(self._last))]
         if last is None:
             return 0
-        if meta.seq <= last:
+        if meta.seq <= last or meta.seq - last > self.MAX_GAP:
             self.restarts += 1
             return 0
         gap = meta.seq - last - 1

@@ -88,6 +88,17 @@ def test_drop_counter_tracks_a_bounded_number_of_sources():
     assert c.dropped == 0 and c.restarts == 0
 
 
+def test_a_sequence_jump_no_publisher_could_make_is_not_counted_as_drops():
+    """One attachment with seq 2^63-1 after 0 must not set `dropped` to 9.2e18 for the rest of
+    the run: it is counted as a jump (like a restart) and counting goes on from it."""
+    c = DropCounter()
+    for seq in (0, 1, 2**63 - 1, 2**63, 2**63 + 3):
+        c.update(FrameMeta(seq=seq, src="cam"))
+    assert c.dropped == 2 and c.restarts == 1
+    c.update(FrameMeta(seq=2**63 + 3 + DropCounter.MAX_GAP, src="cam"))  # the largest gap still counted
+    assert c.dropped == 2 + DropCounter.MAX_GAP - 1
+
+
 @pytest.mark.parametrize("stamp", [-5, 2**64, 2**70])
 def test_mcap_writer_refuses_out_of_range_times_and_the_log_stays_readable(tmp_path, stamp):
     path = tmp_path / "t.mcap"
