@@ -95,9 +95,9 @@ def register(subparsers) -> argparse.ArgumentParser:
                    "rmw_zenoh, e.g. /camera/image_raw; results also go to the ROS 2 topic /lcd/result "
                    "(std_msgs/String JSON). Connects to the rmw_zenoh router tcp/127.0.0.1:7447 by default")
     p.add_argument("--ros-domain", type=int, default=0, metavar="ID", help="ROS 2 domain id (default 0)")
-    p.add_argument("--ros-distro", choices=("humble", "jazzy"), default="humble",
-                   help="type hashes of the published ROS 2 topics: humble (none) or jazzy (RIHS01; also iron, "
-                   "kilted, rolling). Default humble")
+    p.add_argument("--ros-distro", choices=("auto", "humble", "jazzy"), default="auto",
+                   help="type hashes of the published ROS 2 topics: auto (default: the camera's, read from its "
+                   "first image sample), humble (none) or jazzy (RIHS01; also iron, kilted, rolling)")
     p.add_argument("--results-key", default=None, metavar="KEYEXPR",
                    help="zenoh key of the JSON results (stats on <key>/stats); default: the sibling 'lcd' of "
                    "the image key or topic")

@@ -223,7 +223,9 @@ class _Transport:
             if options.ros is not None:  # the one place where ROS 2 (rmw_zenoh) replaces plain keys
                 self.sub = RosFrameSubscriber(self.session, options.ros.domain, options.ros.topic,
                                               queue_size=options.queue_size)
-                self.pub = RosResultPublisher(self.session, options.results_key, options.ros)
+                sub = self.sub
+                self.pub = RosResultPublisher(self.session, options.results_key, options.ros,
+                                              wire_distro=lambda: sub.distro)
             else:
                 self.sub = FrameSubscriber(self.session, options.key, queue_size=options.queue_size,
                                            ignore_keys=(options.results_key, options.stats_key))

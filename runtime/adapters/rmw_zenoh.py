@@ -29,6 +29,7 @@ import hashlib
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import zenoh
@@ -62,9 +63,20 @@ DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
 #: RMW_GID_STORAGE_SIZE of each distribution (the gid length in the attachment).
 GID_STORAGE_BYTES = {"humble": 24, "jazzy": 16}
+#: ``auto``: the distribution the camera's samples carry (their key's type-hash chunk).
+DISTROS = ("auto", "humble", "jazzy")
 RESULT_TOPIC = "/lcd/result"
 STATS_TOPIC = "/lcd/stats"
 _INT64_MAX = 2**63 - 1
+
+
+def distro_of_key(key: str) -> str | None:
+    """The distribution a data key's type-hash chunk (its last) says: ``humble`` for
+    TypeHashNotSupported, ``jazzy`` for an RIHS01 hash (Iron and later), None otherwise."""
+    chunk = key.rsplit("/", 1)[-1]
+    if chunk == HUMBLE_TYPE_HASH:
+        return "humble"
+    return "jazzy" if chunk.startswith("RIHS01_") else None
 
 
 def mangle_type(ros_type: str) -> str:
@@ -219,6 +231,7 @@ class RosFrameSubscriber:
         self.ignored = 0
         self.bad_attachments = 0
         self.last_bad_attachment = ""
+        self.distro: str | None = None  # the first image sample's, see distro_of_key
         self._types = {mangle_type(t): t for t in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)}
         self._wake = threading.Event()
         try:
@@ -247,6 +260,8 @@ class RosFrameSubscriber:
         if ros_type is None:
             error = FrameError("wrong_encoding", f"{key}: not a sensor_msgs Image or CompressedImage")
         else:
+            if self.distro is None:
+                self.distro = distro_of_key(key)
             try:
                 image = DECODERS[ros_type](data)
                 payload, encoding = image.payload, image.encoding
@@ -304,19 +319,20 @@ class RosStringPublisher:
 class RosOptions:
     """The ROS 2 side of a run: image topic, domain id, node name, and the distribution whose
     type hash the result topics carry (``humble``: TypeHashNotSupported; ``jazzy``: RIHS01,
-    also Iron, Kilted and Rolling)."""
+    also Iron, Kilted and Rolling; ``auto``, the default: the camera's, from its first image
+    sample, the ROS result topics being declared then)."""
 
     topic: str
     domain: int = 0
     node: str = "aefabmap"
-    distro: str = "humble"
+    distro: str = "auto"
 
     def __post_init__(self) -> None:
         check_topic(self.topic)
         check_domain(self.domain)
         check_topic(self.node)
-        if self.distro not in ("humble", "jazzy"):
-            raise ConfigError(f"ROS distribution must be humble or jazzy, got {self.distro!r}")
+        if self.distro not in DISTROS:
+            raise ConfigError(f"ROS distribution must be one of {DISTROS}, got {self.distro!r}")
 
     @property
     def image_key(self) -> str:
@@ -327,29 +343,32 @@ class RosOptions:
         """Plain-Zenoh JSON results key: the ``lcd`` sibling of the topic (``camera/lcd``)."""
         return result_key_for(check_topic(self.topic))
 
-    @property
-    def string_hash(self) -> str:
-        return HUMBLE_TYPE_HASH if self.distro == "humble" else STRING_RIHS01
-
     def to_dict(self) -> dict:
         return {"topic": self.topic, "domain": self.domain, "node": self.node, "distro": self.distro}
 
 
 class RosGraph:
-    """This run's presence in the ROS 2 graph: the node token and the image subscription token."""
+    """This run's presence in the ROS 2 graph: the node token, and the image subscription token
+    once the distribution is known (its type hash is part of the token)."""
 
     def __init__(self, session: zenoh.Session, options: RosOptions) -> None:
+        self.session = session
         self.zid = str(session.info.zid())
         self.options = options
-        o = options
-        image_hash = HUMBLE_TYPE_HASH if o.distro == "humble" else IMAGE_RIHS01
-        # The subscription is listed as sensor_msgs/msg/Image; it takes CompressedImage too.
-        tokens = [liveliness_token(o.domain, self.zid, 0, 0, "NN", o.node),
-                  liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, IMAGE_TYPE, image_hash)]
+        self._tokens = [self._declare(liveliness_token(options.domain, self.zid, 0, 0, "NN", options.node))]
+
+    def _declare(self, token: str):
         try:
-            self._tokens = [session.liveliness().declare_token(t) for t in tokens]
+            return self.session.liveliness().declare_token(token)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare ROS liveliness tokens: {exc}") from exc
+
+    def declare_subscription(self, distro: str) -> None:
+        """The image subscription token (listed as sensor_msgs/msg/Image; it takes CompressedImage too)."""
+        o = self.options
+        image_hash = HUMBLE_TYPE_HASH if distro == "humble" else IMAGE_RIHS01
+        self._tokens.append(self._declare(
+            liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, IMAGE_TYPE, image_hash)))
 
     def close(self) -> None:
         for token in self._tokens:
@@ -362,38 +381,67 @@ class RosGraph:
 class RosResultPublisher:
     """ResultPublisher's interface, for a ROS 2 run: the JSON results and stats on their
     plain Zenoh keys (as without ROS), and also as std_msgs/String on ``/lcd/result`` and
-    ``/lcd/stats`` for ROS 2 nodes."""
+    ``/lcd/stats`` for ROS 2 nodes, with the type hash of the run's distribution.
 
-    def __init__(self, session: zenoh.Session, result_key: str, options: RosOptions) -> None:
+    wire_distro: with distribution ``auto``, returns the camera's once known (the frame
+    subscriber's ``distro``); the ROS topics are declared then, and only the plain keys carry
+    what is published before.
+    """
+
+    def __init__(self, session: zenoh.Session, result_key: str, options: RosOptions,
+                 wire_distro: Callable[[], str | None] | None = None) -> None:
         from aefabmap.runtime.adapters.zenoh_transport import ResultPublisher
 
+        self.session, self.options, self.wire_distro = session, options, wire_distro
+        self.distro: str | None = None
+        self.ros_results = self.ros_stats = None
         self.graph = RosGraph(session, options)
-        self.plain = ResultPublisher(session, result_key)
-        self.result_key, self.stats_key = self.plain.result_key, self.plain.stats_key
-        o = options
         try:
-            gid_bytes = GID_STORAGE_BYTES[o.distro]
-            self.ros_results = RosStringPublisher(session, o.domain, RESULT_TOPIC, o.string_hash, self.graph.zid,
-                                                  0, 2, o.node, gid_bytes)
-            self.ros_stats = RosStringPublisher(session, o.domain, STATS_TOPIC, o.string_hash, self.graph.zid,
-                                                0, 3, o.node, gid_bytes)
+            self.plain = ResultPublisher(session, result_key)
         except BaseException:
-            self.plain.close()
             self.graph.close()
             raise
+        self.result_key, self.stats_key = self.plain.result_key, self.plain.stats_key
+        if options.distro != "auto":
+            self._adopt(options.distro)
+
+    def _adopt(self, distro: str) -> None:
+        o = self.options
+        string_hash = HUMBLE_TYPE_HASH if distro == "humble" else STRING_RIHS01
+        gid_bytes = GID_STORAGE_BYTES[distro]
+        try:
+            self.graph.declare_subscription(distro)
+            self.ros_results = RosStringPublisher(self.session, o.domain, RESULT_TOPIC, string_hash, self.graph.zid,
+                                                  0, 2, o.node, gid_bytes)
+            self.ros_stats = RosStringPublisher(self.session, o.domain, STATS_TOPIC, string_hash, self.graph.zid,
+                                                0, 3, o.node, gid_bytes)
+        except BaseException:
+            self.close()
+            raise
+        self.distro = distro
+
+    def _ready(self) -> bool:
+        if self.distro is None and self.wire_distro is not None:
+            seen = self.wire_distro()
+            if seen is not None:
+                self._adopt(seen)
+        return self.distro is not None
 
     def publish_result(self, result: dict | bytes) -> None:
         self.plain.publish_result(result)
-        self.ros_results.put(_text(result))
+        if self._ready():
+            self.ros_results.put(_text(result))
 
     def publish_stats(self, stats: dict | bytes) -> None:
         self.plain.publish_stats(stats)
-        self.ros_stats.put(_text(stats))
+        if self._ready():
+            self.ros_stats.put(_text(stats))
 
     def close(self) -> None:
-        self.ros_results.close()
-        self.ros_stats.close()
-        self.plain.close()
+        for pub in (self.ros_results, self.ros_stats, getattr(self, "plain", None)):
+            if pub is not None:
+                pub.close()
+        self.ros_results = self.ros_stats = None
         self.graph.close()
 
 

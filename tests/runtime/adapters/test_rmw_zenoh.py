@@ -100,7 +100,7 @@ class Router:
 class RosResults:
     """Collects /lcd/result std_msgs/String messages, decoded by rosbags."""
 
-    def __init__(self, session, ts) -> None:
+    def __init__(self, session, ts, key: str = RESULT_KEY) -> None:
         self.docs: list[dict] = []
         self.attachments: list[bytes] = []
         self.cond = threading.Condition()
@@ -112,7 +112,7 @@ class RosResults:
                 self.attachments.append(sample.attachment.to_bytes())
                 self.cond.notify_all()
 
-        self.sub = session.declare_subscriber(RESULT_KEY, on_sample)
+        self.sub = session.declare_subscriber(key, on_sample)
 
     def wait_for(self, n: int, timeout_s: float) -> list[dict]:
         with self.cond:
@@ -120,18 +120,19 @@ class RosResults:
             return list(self.docs)
 
 
-def _publish_and_collect(tmp_path, typestore, frames, expect: int):
-    """frames: (key, payload, seq) tuples; returns (summary, results, graph tokens, ros results)."""
+def _publish_and_collect(tmp_path, typestore, frames, expect: int, distro: str = "humble",
+                         result_key: str = RESULT_KEY):
+    """frames: (key, payload, seq) tuples; returns (summary, results, graph tokens, ros results);
+    graph tokens as listed once every result arrived."""
     router = Router()
     try:
         with (
             NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
                        mcap_path=tmp_path / "ros.mcap", queue_size=16, stats_period_s=0.2,
-                       ros=RosOptions(topic=TOPIC)) as node,
+                       ros=RosOptions(topic=TOPIC, distro=distro)) as node,
             zenoh.open(build_zenoh_config(router.ros_peer())) as camera,
         ):
-            results = RosResults(camera, typestore)
-            tokens = [str(r.result.key_expr) for r in camera.liveliness().get("@ros2_lv/0/**") if r.ok is not None]
+            results = RosResults(camera, typestore, result_key)
             pubs = {key: camera.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
                     for key in {k for k, _, _ in frames}}
             pause = threading.Event()
@@ -144,6 +145,7 @@ def _publish_and_collect(tmp_path, typestore, frames, expect: int):
             for key, payload, seq in frames:
                 pubs[key].put(payload, attachment=rmw_attachment(seq, STAMP0 + seq))
             docs = results.wait_for(expect, timeout_s=20)
+            tokens = [str(r.result.key_expr) for r in camera.liveliness().get("@ros2_lv/0/**") if r.ok is not None]
             summary = node.finish()
             results.sub.undeclare()
             return summary, docs, tokens, results.attachments
@@ -171,6 +173,25 @@ def test_rmw_zenoh_image_samples_give_one_result_each(tmp_path, typestore):
     assert any(t.endswith("/MP/%/%/aefabmap/%lcd%result/std_msgs::msg::dds_::String_/TypeHashNotSupported/::,:,:,:,,")
                for t in tokens)
     assert any("/MS/%/%/aefabmap/%camera%image_raw/sensor_msgs::msg::dds_::Image_/" in t for t in tokens)
+
+
+def test_a_jazzy_camera_with_default_options_gets_its_results_under_rihs01(tmp_path, typestore):
+    """The distribution comes from the wire: a camera publishing under RIHS01 hashes (Jazzy and
+    later) gets results on the String topic with the RIHS01 hash and 16-byte gids, and the graph
+    lists the node's topics with that hash."""
+    images = sample_images(3, size=(160, 120))
+    key = f"0/camera/image_raw/sensor_msgs::msg::dds_::Image_/{IMAGE_RIHS01}"
+    frames = [(key, ros_image(typestore, img, "mono8", STAMP0 + i), i + 1) for i, img in enumerate(images)]
+    result_key = f"0/lcd/result/std_msgs::msg::dds_::String_/{STRING_RIHS01}"
+    summary, docs, tokens, atts = _publish_and_collect(tmp_path, typestore, frames, expect=3, distro="auto",
+                                                       result_key=result_key)
+    assert summary.frames_processed == 3 and [d["sequence"] for d in docs] == [0, 1, 2]
+    assert all(len(parse_attachment(a).gid) == 16 for a in atts)
+    assert any(t.endswith(f"/MP/%/%/aefabmap/%lcd%result/std_msgs::msg::dds_::String_/{STRING_RIHS01}/"
+                          "::,:,:,:,,") for t in tokens)
+    assert any(f"/MS/%/%/aefabmap/%camera%image_raw/sensor_msgs::msg::dds_::Image_/{IMAGE_RIHS01}" in t
+               for t in tokens)
+    assert not any("TypeHashNotSupported" in t for t in tokens if "/aefabmap/" in t)
 
 
 def test_rmw_zenoh_dropped_sequence_number_and_hostile_samples_are_counted(tmp_path, typestore):
