@@ -17,11 +17,14 @@ import numpy as np
 import onnxruntime as ort
 
 from aefabmap.errors import BundleError, ConfigError, InputError
+from aefabmap.runtime.core.onnx_external import has_external_data
 from aefabmap.runtime.core.quantizer import check_vectors
 
 INPUT_NAME = "descriptors"
 WORDS_NAME = "words"
 CODES_NAME = "codes"
+#: Largest quantiser model read (bytes): the exported graphs are a few MB.
+MAX_MODEL_BYTES = 256 * 2**20
 _FLOAT = "tensor(float)"
 _INTS = ("tensor(int32)", "tensor(int64)")
 
@@ -67,8 +70,24 @@ class OnnxQuantizer:
         # Graphs from export/quantize_int8.py have 7-bit weights, which cannot saturate and
         # run as fast with it; int8 graphs exported before that change are made exact by it.
         opts.add_session_config_entry("session.x64quantprecision", "1")
+        # Loaded from the bytes read here, checked to hold every tensor themselves: onnxruntime
+        # given a path would also read (and stat) external-data files no checksum covers.
         try:
-            self._session = ort.InferenceSession(str(self.model_path), sess_options=opts, providers=["CPUExecutionProvider"])
+            with open(self.model_path, "rb") as fh:
+                model = fh.read(MAX_MODEL_BYTES + 1)
+        except OSError as exc:
+            raise BundleError(f"cannot read quantiser model {self.model_path}: {exc.strerror or exc}") from exc
+        if len(model) > MAX_MODEL_BYTES:
+            raise BundleError(f"quantiser model {self.model_path} is larger than {MAX_MODEL_BYTES} bytes")
+        try:
+            external = has_external_data(model)
+        except BundleError as exc:
+            raise BundleError(f"cannot load quantiser model {self.model_path}: {exc}") from exc
+        if external:
+            raise BundleError(f"quantiser model {self.model_path} keeps tensor data in other files (external data): "
+                              "a bundle's model must hold all its weights")
+        try:
+            self._session = ort.InferenceSession(model, sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own (non-exported) exception types
             raise BundleError(f"cannot load quantiser model {self.model_path}: {exc}") from exc
         self.latent_dim = self._validate()

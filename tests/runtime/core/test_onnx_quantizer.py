@@ -226,3 +226,45 @@ def test_int8_graph_runs_its_qdq_arithmetic_even_with_full_range_weights(model, 
     fused = OnnxQuantizer(int8, vocabulary_size=WORDS, descriptor_length=128, threads=1).encode(bits)
     # Saturating kernels were off by > 1 % here (on AVX2 without VNNI); rounding alone is ~1e-4.
     assert np.linalg.norm(fused - emulated) <= 1e-3 * np.linalg.norm(emulated)
+
+
+@pytest.mark.parametrize("where", ["inside", "outside"])
+def test_a_model_whose_weights_live_in_an_external_file_is_refused_without_reading_it(model, tmp_path, where):
+    """External data (onnx's own format) is never loaded: inside the bundle it is not covered by
+    the manifest's checksums; outside it is a read outside the bundle. Nothing of it is opened."""
+    onnx = pytest.importorskip("onnx")
+    from onnx.external_data_helper import convert_model_to_external_data
+
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    proto = onnx.load(str(model))
+    convert_model_to_external_data(proto, all_tensors_to_one_file=True, location="weights.bin", size_threshold=0)
+    onnx.save_model(proto, str(bundle / "q.onnx"))
+    weights = bundle / "weights.bin"
+    weights.write_bytes(b"\0" * weights.stat().st_size)  # zeroed weights: the tampering
+    if where == "outside":  # onnx refuses to write such a location; a hostile bundle need not ask it
+        weights.rename(tmp_path / "outside_weights.bin")
+        for t in proto.graph.initializer:
+            for entry in t.external_data:
+                if entry.key == "location":
+                    entry.value = "../outside_weights.bin"
+        (bundle / "q.onnx").write_bytes(proto.SerializeToString())
+    with pytest.raises(BundleError, match="external data"):
+        OnnxQuantizer(bundle / "q.onnx", vocabulary_size=WORDS, descriptor_length=128)
+
+
+def test_external_data_scan_finds_tensors_in_attributes_and_refuses_malformed_bytes(model):
+    onnx = pytest.importorskip("onnx")
+    from onnx import helper, numpy_helper
+
+    from aefabmap.runtime.core.onnx_external import has_external_data
+
+    assert not has_external_data(model.read_bytes())
+    tensor = numpy_helper.from_array(np.ones(4, np.float32), "c")
+    tensor.data_location = onnx.TensorProto.EXTERNAL
+    node = helper.make_node("Constant", [], ["y"], value=tensor)
+    graph = helper.make_graph([node], "g", [], [helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [4])])
+    assert has_external_data(helper.make_model(graph).SerializeToString())
+    for bad in (b"\xff", b"\x0a\x05ab", b"\x0f"):
+        with pytest.raises(BundleError):
+            has_external_data(bad)
