@@ -103,6 +103,10 @@ def _split_endpoints(values, what: str) -> tuple[str, ...]:
     return tuple(out)
 
 
+#: listen/endpoints of a zenoh config that does not set them (zenoh's own default).
+_ZENOH_DEFAULT_LISTEN = json.loads(zenoh.Config().get_json("listen/endpoints"))
+
+
 def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
     """Build a zenoh.Config from a SessionConfig; raises ConfigError on bad values."""
     try:
@@ -123,13 +127,30 @@ def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
         if sc.listen or not sc.config_file:
             conf.insert_json5("listen/endpoints", json.dumps(list(sc.listen)))
         scouting = sc.multicast_scouting
-        if scouting is None and (sc.connect or sc.listen or not sc.config_file):
-            scouting = False
+        if scouting is None and (sc.connect or sc.listen or not sc.config_file
+                                 or json.loads(conf.get_json("scouting/multicast/enabled")) is None):
+            scouting = False  # a file that does not turn multicast scouting on leaves it off
         if scouting is not None:
             conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
+        if sc.config_file and not sc.listen:
+            _no_default_listen(conf, sc.config_file)
     except zenoh.ZError as exc:
         raise ConfigError(f"invalid zenoh configuration: {_short(exc)}") from exc
     return conf
+
+
+def _no_default_listen(conf: zenoh.Config, config_file: str) -> None:
+    """A config file that leaves the listen endpoints at zenoh's own default (every interface)
+    does not get it: a peer or router that connects somewhere listens nowhere; one that neither
+    connects nor chooses where to listen is a ConfigError naming the file."""
+    mode = json.loads(conf.get_json("mode")) or "peer"
+    if mode == "client" or json.loads(conf.get_json("listen/endpoints")) != _ZENOH_DEFAULT_LISTEN:
+        return
+    if json.loads(conf.get_json("connect/endpoints")) not in ([], {}, None):
+        conf.insert_json5("listen/endpoints", "[]")
+        return
+    raise ConfigError(f"zenoh config {config_file} chooses no listen or connect endpoints (zenoh's default would "
+                      "listen on every interface): set listen/endpoints in the file, or give --listen / --connect")
 
 
 def cli_session_config(

@@ -176,3 +176,27 @@ def test_config_file_mode_is_kept_unless_given(tmp_path):
     assert json.loads(build_zenoh_config(SessionConfig(config_file=str(cfg))).get_json("mode")) == "client"
     assert json.loads(build_zenoh_config(SessionConfig(config_file=str(cfg), mode="peer")).get_json("mode")) == "peer"
     assert json.loads(build_zenoh_config(SessionConfig()).get_json("mode")) == "peer"
+
+
+def test_a_config_file_never_falls_back_to_listening_everywhere_or_multicast_scouting(tmp_path):
+    """An empty --config ({}) used to listen on every interface and join multicast scouting."""
+    import json
+
+    from aefabmap.errors import ConfigError
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
+
+    empty = tmp_path / "empty.json5"
+    empty.write_text("{}")
+    with pytest.raises(ConfigError, match="chooses no listen or connect endpoints"):
+        build_zenoh_config(SessionConfig(config_file=str(empty)))
+    conf = build_zenoh_config(SessionConfig(config_file=str(empty), connect=("tcp/127.0.0.1:7447",)))
+    assert json.loads(conf.get_json("listen/endpoints")) == []
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    conf = build_zenoh_config(SessionConfig(config_file=str(empty), listen=("tcp/127.0.0.1:0",)))
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    chosen = tmp_path / "chosen.json5"
+    chosen.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:0"] }, scouting: { multicast: { enabled: true } } }')
+    conf = build_zenoh_config(SessionConfig(config_file=str(chosen)))  # what a file says explicitly, it gets
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is True
