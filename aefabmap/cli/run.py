@@ -24,15 +24,17 @@ from aefabmap.runtime.core.profiles import get_profile
 log = logging.getLogger("aefabmap.run")
 
 
-def add_zenoh_options(p: argparse.ArgumentParser, *, config: bool = True) -> None:
-    """--connect / --listen (repeatable or comma-separated) and --config (zenoh JSON5 file)."""
-    p.add_argument("--connect", action="append", metavar="EP", default=[],
+def add_zenoh_options(p: argparse.ArgumentParser, group=None, *, config: bool = True) -> None:
+    """--connect / --listen (repeatable or comma-separated) and --config (zenoh JSON5 file), in
+    `group` (an argument group of p) when given; the network note goes to p's epilog."""
+    g = group if group is not None else p
+    g.add_argument("--connect", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
-    p.add_argument("--listen", action="append", metavar="EP", default=[],
+    g.add_argument("--listen", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; exposes the node "
                    "to that network)")
     if config:
-        p.add_argument("--config", metavar="zenoh.json5", default=None,
+        g.add_argument("--config", metavar="zenoh.json5", default=None,
                        help="zenoh JSON5 configuration file (--connect/--listen override it)")
     p.epilog = ("Network: with none of --connect/--listen/--config, `run` listens on tcp/127.0.0.1:7447 only and "
                 "`publish` connects there; no multicast scouting.")
@@ -89,26 +91,28 @@ def register(subparsers) -> argparse.ArgumentParser:
         "on the sibling key 'lcd' and log images, results and stats to MCAP. Stop with Ctrl-C/SIGTERM.",
     )
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
-    p.add_argument("--key", default=None, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
-    p.add_argument("--ros-topic", default=None, metavar="TOPIC",
+    inp = p.add_argument_group("input and output (Zenoh or ROS 2)")
+    inp.add_argument("--key", default=None, metavar="KEYEXPR", help="zenoh image key, e.g. robot/camera/image")
+    inp.add_argument("--ros-topic", default=None, metavar="TOPIC",
                    help="instead of --key: ROS 2 image topic (sensor_msgs Image or CompressedImage) read over "
                    "rmw_zenoh, e.g. /camera/image_raw; results also go to the ROS 2 topic /lcd/result "
                    "(std_msgs/String JSON). Connects to the rmw_zenoh router tcp/127.0.0.1:7447 by default")
-    p.add_argument("--ros-domain", type=int, default=0, metavar="ID", help="ROS 2 domain id (default 0)")
-    p.add_argument("--ros-distro", choices=("auto", "humble", "jazzy"), default="auto",
+    inp.add_argument("--ros-domain", type=int, default=0, metavar="ID", help="ROS 2 domain id (default 0)")
+    inp.add_argument("--ros-distro", choices=("auto", "humble", "jazzy"), default="auto",
                    help="type hashes of the published ROS 2 topics: auto (default: the camera's, read from its "
                    "first image sample), humble (none) or jazzy (RIHS01; also iron, kilted, rolling)")
-    p.add_argument("--results-key", default=None, metavar="KEYEXPR",
+    inp.add_argument("--results-key", default=None, metavar="KEYEXPR",
                    help="zenoh key of the JSON results (stats on <key>/stats); default: the sibling 'lcd' of "
                    "the image key or topic")
-    add_zenoh_options(p)
-    p.add_argument("--mcap", required=True, metavar="LOG.mcap|DIR/|PATTERN",
+    add_zenoh_options(p, inp)
+    logs = p.add_argument_group("logging")
+    logs.add_argument("--mcap", required=True, metavar="LOG.mcap|DIR/|PATTERN",
                    help="MCAP log to write: a file (an existing one is never overwritten: the next is LOG-0001.mcap), "
                    "a directory (files lcd-YYYYmmdd-HHMMSS-0001.mcap) or a pattern with {n} (run-{n}.mcap)")
-    add_log_rotation_options(p)
-    p.add_argument("--queue", type=int, default=None, metavar="N",
+    add_log_rotation_options(logs)
+    inp.add_argument("--queue", type=int, default=None, metavar="N",
                    help="frames kept while busy; older ones are dropped (default 2, or the profile's)")
-    p.add_argument("--image-every", type=int, default=1, metavar="N",
+    logs.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
     add_detector_options(p, profile=True)
     from aefabmap.cli.state_options import add_state_options
