@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import os
 import threading
 
 from aefabmap.cli.run_config import (
@@ -97,7 +98,8 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="instead of --key: ROS 2 image topic (sensor_msgs Image or CompressedImage) read over "
                    "rmw_zenoh, e.g. /camera/image_raw; results also go to the ROS 2 topic /lcd/result "
                    "(std_msgs/String JSON). Connects to the rmw_zenoh router tcp/127.0.0.1:7447 by default")
-    inp.add_argument("--ros-domain", type=int, default=0, metavar="ID", help="ROS 2 domain id (default 0)")
+    inp.add_argument("--ros-domain", type=int, default=None, metavar="ID",
+                     help="ROS 2 domain id (default: $ROS_DOMAIN_ID, as ROS 2 tools read it, else 0)")
     inp.add_argument("--ros-distro", choices=("auto", "humble", "jazzy"), default="auto",
                    help="type hashes of the published ROS 2 topics: auto (default: the camera's, read from its "
                    "first image sample), humble (none) or jazzy (RIHS01; also iron, kilted, rolling)")
@@ -128,7 +130,7 @@ def main(args: argparse.Namespace) -> int:
 
     from aefabmap.runtime.adapters.bundle_reader import load_detector, read_manifest
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
-    from aefabmap.runtime.adapters.rmw_zenoh import RosOptions
+    from aefabmap.runtime.adapters.rmw_zenoh import RosOptions, domain_from_env
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
 
     stop = threading.Event()
@@ -139,7 +141,8 @@ def main(args: argparse.Namespace) -> int:
             raise ConfigError("give exactly one of --key (zenoh image key) and --ros-topic (ROS 2 image topic)")
         ros = None
         if ros_topic is not None:
-            ros = RosOptions(topic=ros_topic, domain=args.ros_domain, distro=args.ros_distro)
+            domain = args.ros_domain if args.ros_domain is not None else domain_from_env(os.environ)
+            ros = RosOptions(topic=ros_topic, domain=domain, distro=args.ros_distro)
         rotation = log_rotation_config(args)
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,

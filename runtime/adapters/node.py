@@ -225,7 +225,7 @@ class _Transport:
                                               queue_size=options.queue_size)
                 sub = self.sub
                 self.pub = RosResultPublisher(self.session, options.results_key, options.ros,
-                                              wire_distro=lambda: sub.distro)
+                                              wire_distro=lambda: (sub.distro, sub.ros_type))
             else:
                 self.sub = FrameSubscriber(self.session, options.key, queue_size=options.queue_size,
                                            ignore_keys=(options.results_key, options.stats_key))

@@ -58,6 +58,9 @@ HUMBLE_TYPE_HASH = "TypeHashNotSupported"
 STRING_RIHS01 = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 #: RIHS01 hash of sensor_msgs/msg/Image (for this node's subscription token on Iron and later).
 IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
+#: RIHS01 hash of sensor_msgs/msg/CompressedImage (checked against rosbags in the tests).
+COMPRESSED_IMAGE_RIHS01 = "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a"
+RIHS01_OF = {IMAGE_TYPE: IMAGE_RIHS01, COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_RIHS01}
 #: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
 DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
@@ -102,6 +105,17 @@ def check_domain(domain: int) -> int:
     if not isinstance(domain, int) or isinstance(domain, bool) or not 0 <= domain <= 232:
         raise ConfigError(f"ROS domain id must be an integer in 0..232, got {domain!r}")
     return domain
+
+
+def domain_from_env(environ) -> int:
+    """The domain id ROS 2 tools use: ROS_DOMAIN_ID when set (ConfigError unless an integer in
+    0..232), else 0."""
+    text = environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return 0
+    if not text.isdigit():
+        raise ConfigError(f"ROS_DOMAIN_ID must be an integer in 0..232, got {text[:20]!r}")
+    return check_domain(int(text))
 
 
 def data_key(domain: int, topic: str, ros_type: str, type_hash: str = "*") -> str:
@@ -232,6 +246,7 @@ class RosFrameSubscriber:
         self.bad_attachments = 0
         self.last_bad_attachment = ""
         self.distro: str | None = None  # the first image sample's, see distro_of_key
+        self.ros_type: str | None = None  # and its message type (Image or CompressedImage)
         self._types = {mangle_type(t): t for t in (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)}
         self._wake = threading.Event()
         try:
@@ -261,7 +276,7 @@ class RosFrameSubscriber:
             error = FrameError("wrong_encoding", f"{key}: not a sensor_msgs Image or CompressedImage")
         else:
             if self.distro is None:
-                self.distro = distro_of_key(key)
+                self.distro, self.ros_type = distro_of_key(key), ros_type
             try:
                 image = DECODERS[ros_type](data)
                 payload, encoding = image.payload, image.encoding
@@ -363,12 +378,15 @@ class RosGraph:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare ROS liveliness tokens: {exc}") from exc
 
-    def declare_subscription(self, distro: str) -> None:
-        """The image subscription token (listed as sensor_msgs/msg/Image; it takes CompressedImage too)."""
+    def declare_subscription(self, distro: str, ros_type: str | None = None) -> None:
+        """The image subscription token, of the camera's message type when known (else
+        sensor_msgs/msg/Image; the subscription takes CompressedImage too), so the graph lists
+        one type on the camera topic."""
         o = self.options
-        image_hash = HUMBLE_TYPE_HASH if distro == "humble" else IMAGE_RIHS01
+        ros_type = ros_type or IMAGE_TYPE
+        type_hash = HUMBLE_TYPE_HASH if distro == "humble" else RIHS01_OF[ros_type]
         self._tokens.append(self._declare(
-            liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, IMAGE_TYPE, image_hash)))
+            liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, ros_type, type_hash)))
 
     def close(self) -> None:
         for token in self._tokens:
@@ -383,13 +401,13 @@ class RosResultPublisher:
     plain Zenoh keys (as without ROS), and also as std_msgs/String on ``/lcd/result`` and
     ``/lcd/stats`` for ROS 2 nodes, with the type hash of the run's distribution.
 
-    wire_distro: with distribution ``auto``, returns the camera's once known (the frame
-    subscriber's ``distro``); the ROS topics are declared then, and only the plain keys carry
-    what is published before.
+    wire_distro: with distribution ``auto``, returns the camera's (distribution, message type)
+    once known (the frame subscriber's ``distro`` and ``ros_type``); the ROS topics and the
+    subscription token are declared then, and only the plain keys carry what is published before.
     """
 
     def __init__(self, session: zenoh.Session, result_key: str, options: RosOptions,
-                 wire_distro: Callable[[], str | None] | None = None) -> None:
+                 wire_distro: Callable[[], tuple[str | None, str | None]] | None = None) -> None:
         from aefabmap.runtime.adapters.zenoh_transport import ResultPublisher
 
         self.session, self.options, self.wire_distro = session, options, wire_distro
@@ -405,12 +423,12 @@ class RosResultPublisher:
         if options.distro != "auto":
             self._adopt(options.distro)
 
-    def _adopt(self, distro: str) -> None:
+    def _adopt(self, distro: str, camera_type: str | None = None) -> None:
         o = self.options
         string_hash = HUMBLE_TYPE_HASH if distro == "humble" else STRING_RIHS01
         gid_bytes = GID_STORAGE_BYTES[distro]
         try:
-            self.graph.declare_subscription(distro)
+            self.graph.declare_subscription(distro, camera_type)
             self.ros_results = RosStringPublisher(self.session, o.domain, RESULT_TOPIC, string_hash, self.graph.zid,
                                                   0, 2, o.node, gid_bytes)
             self.ros_stats = RosStringPublisher(self.session, o.domain, STATS_TOPIC, string_hash, self.graph.zid,
@@ -422,9 +440,9 @@ class RosResultPublisher:
 
     def _ready(self) -> bool:
         if self.distro is None and self.wire_distro is not None:
-            seen = self.wire_distro()
+            seen, camera_type = self.wire_distro()
             if seen is not None:
-                self._adopt(seen)
+                self._adopt(seen, camera_type)
         return self.distro is not None
 
     def publish_result(self, result: dict | bytes) -> None:

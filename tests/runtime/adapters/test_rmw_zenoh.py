@@ -19,6 +19,7 @@ from zenoh.ext import Int64, z_serialize
 
 from aefabmap.runtime.adapters.frames import FrameError, decode_frame
 from aefabmap.runtime.adapters.rmw_zenoh import (
+    COMPRESSED_IMAGE_RIHS01,
     IMAGE_RIHS01,
     STRING_RIHS01,
     RosOptions,
@@ -194,6 +195,29 @@ def test_a_jazzy_camera_with_default_options_gets_its_results_under_rihs01(tmp_p
     assert not any("TypeHashNotSupported" in t for t in tokens if "/aefabmap/" in t)
 
 
+def test_a_compressed_image_camera_sees_one_type_on_its_topic(tmp_path, typestore):
+    """The subscription token claims the camera's own type and hash (CompressedImage here), so
+    `ros2 topic list -t` shows one type on the camera topic."""
+    images = sample_images(2, size=(160, 120))
+    key = f"0/camera/image_raw/sensor_msgs::msg::dds_::CompressedImage_/{COMPRESSED_IMAGE_RIHS01}"
+    frames = [(key, ros_compressed(typestore, img, STAMP0 + i), i + 1) for i, img in enumerate(images)]
+    result_key = f"0/lcd/result/std_msgs::msg::dds_::String_/{STRING_RIHS01}"
+    _, _, tokens, _ = _publish_and_collect(tmp_path, typestore, frames, expect=2, distro="auto",
+                                           result_key=result_key)
+    ours = [t for t in tokens if "/MS/" in t and "/aefabmap/" in t]
+    assert len(ours) == 1 and f"sensor_msgs::msg::dds_::CompressedImage_/{COMPRESSED_IMAGE_RIHS01}" in ours[0]
+
+
+def test_ros_domain_id_from_the_environment_and_refused_when_malformed():
+    from aefabmap.errors import ConfigError
+    from aefabmap.runtime.adapters.rmw_zenoh import domain_from_env
+
+    assert domain_from_env({}) == 0 and domain_from_env({"ROS_DOMAIN_ID": " 3 "}) == 3
+    for bad in ("x", "-1", "233", "3.5"):
+        with pytest.raises(ConfigError):
+            domain_from_env({"ROS_DOMAIN_ID": bad})
+
+
 def test_rmw_zenoh_dropped_sequence_number_and_hostile_samples_are_counted(tmp_path, typestore):
     images = sample_images(3, size=(160, 120))
     good = [ros_image(typestore, img, "mono8", STAMP0 + i + 1) for i, img in enumerate(images)]
@@ -269,6 +293,7 @@ def test_graph_names_and_string_type_hash(typestore):
     jazzy = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
     assert jazzy.hash_rihs01("std_msgs/msg/String") == STRING_RIHS01
     assert jazzy.hash_rihs01("sensor_msgs/msg/Image") == IMAGE_RIHS01
+    assert jazzy.hash_rihs01("sensor_msgs/msg/CompressedImage") == COMPRESSED_IMAGE_RIHS01
     token = liveliness_token(0, "abc", 0, 2, "MP", "aefabmap", "/lcd/result", "std_msgs/msg/String",
                              "TypeHashNotSupported")
     assert token == ("@ros2_lv/0/abc/0/2/MP/%/%/aefabmap/%lcd%result/std_msgs::msg::dds_::String_/"
