@@ -23,6 +23,8 @@ from aefabmap.runtime.core.quantizer import check_vectors
 INPUT_NAME = "descriptors"
 WORDS_NAME = "words"
 CODES_NAME = "codes"
+#: Synthetic descriptors of each form the load-time probe quantises.
+PROBE_ROWS = 64
 #: Largest quantiser model read (bytes): the exported graphs are a few MB.
 MAX_MODEL_BYTES = 256 * 2**20
 _FLOAT = "tensor(float)"
@@ -92,6 +94,17 @@ class OnnxQuantizer:
             raise BundleError(f"cannot load quantiser model {self.model_path}: {exc}") from exc
         self.latent_dim = self._validate()
         self._empty_codes = np.zeros((0, self.latent_dim), np.float32)
+        self._probe()
+
+    def _probe(self) -> None:
+        """Run the graph once on synthetic descriptors (binary-like bit vectors and unit float
+        vectors): a model whose word ids fall outside the vocabulary is refused at load
+        (BundleError), not on a running node's first frame."""
+        rng = np.random.default_rng(0)
+        bits = rng.integers(0, 2, (PROBE_ROWS, self.descriptor_length)).astype(np.float32)
+        floats = rng.random((PROBE_ROWS, self.descriptor_length)).astype(np.float32)
+        floats /= np.linalg.norm(floats, axis=1, keepdims=True)
+        self.quantize(np.vstack([bits, floats]))
 
     def _validate(self) -> int:
         """Check names, dtypes and static shapes of the graph; returns the latent size."""

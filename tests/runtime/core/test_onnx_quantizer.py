@@ -175,8 +175,13 @@ def _hostile_model(path: Path, offset: int) -> Path:
 
 
 @pytest.mark.parametrize("offset", [-100, 100])
-def test_word_ids_outside_the_vocabulary_are_a_bundle_error(tmp_path, offset):
-    q = OnnxQuantizer(_hostile_model(tmp_path / "h.onnx", offset), vocabulary_size=WORDS, descriptor_length=128)
+def test_word_ids_outside_the_vocabulary_are_a_bundle_error(tmp_path, offset, monkeypatch):
+    path = _hostile_model(tmp_path / "h.onnx", offset)
+    with pytest.raises(BundleError, match="outside"):  # refused at load by the probe
+        OnnxQuantizer(path, vocabulary_size=WORDS, descriptor_length=128)
+    # and, should a model pass the probe, on every call
+    monkeypatch.setattr(OnnxQuantizer, "_probe", lambda self: None)
+    q = OnnxQuantizer(path, vocabulary_size=WORDS, descriptor_length=128)
     with pytest.raises(BundleError, match="outside"):
         q.quantize(_vectors(5))
     with pytest.raises(BundleError, match="outside"):
