@@ -60,6 +60,25 @@ def rss_mb() -> float | None:
         return None
 
 
+def peak_rss_mb() -> float | None:
+    """Largest resident set size this process has had, in MB, as the kernel kept it (VmHWM of
+    /proc/self/status, else getrusage's ru_maxrss); None where neither is available. Sampling
+    rss_mb() misses peaks between samples."""
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"VmHWM:"):
+                    return int(line.split()[1]) / 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB on Linux
+    except (ImportError, OSError):
+        return None
+
+
 def _log_usage(log) -> tuple[int, int]:
     """(files still on disk, their bytes) of a RotatingLog's run; stat only, no lock needed."""
     files, size = 0, 0

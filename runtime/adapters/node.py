@@ -36,7 +36,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome
-from aefabmap.runtime.adapters.health import HealthEndpoint, StatusBoard, rss_mb
+from aefabmap.runtime.adapters.health import HealthEndpoint, StatusBoard, peak_rss_mb, rss_mb
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
 from aefabmap.runtime.adapters.rmw_zenoh import (
     RosFrameSubscriber,
@@ -141,8 +141,10 @@ class RunStats:
 
     def snapshot(self, loop: FrameLoop, uptime_s: float, fps: float) -> StatsMessage:
         rss = rss_mb()
-        if rss is not None:
-            self.peak_rss_mb = max(self.peak_rss_mb, rss)
+        peak = peak_rss_mb()  # the kernel's high-water mark: a peak between samples counts too
+        for value in (rss, peak):
+            if value is not None:
+                self.peak_rss_mb = max(self.peak_rss_mb, value)
         return loop.stats_message(
             uptime_s=uptime_s, dropped=self.dropped, publisher_restarts=self.publisher_restarts,
             rss_mb=None if rss is None else round(rss, 1), latency_ms=self.latency(), fps=round(fps, 2),
@@ -301,7 +303,7 @@ def run_node(
     return RunSummary(
         frames_received=loop.frames_in, frames_processed=loop.processed, dropped=stats.dropped,
         bad=dict(loop.bad.counts), loops=loop.loops, duration_s=time.monotonic() - t0,
-        latency_ms_p50=latency.p50, latency_ms_p95=latency.p95, peak_rss_mb=stats.peak_rss_mb,
+        latency_ms_p50=latency.p50, latency_ms_p95=latency.p95, peak_rss_mb=round(max(stats.peak_rss_mb, peak_rss_mb() or 0.0), 1),
         mcap_path=str(log.files[0] if log.files else options.mcap_path), images_logged=log.images_written,
         result_key=options.results_key, stats_key=options.stats_key,
         log_files=[str(p) for p in log.files], log_files_deleted=log.deleted_count, log_errors=log.errors,

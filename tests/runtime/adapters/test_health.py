@@ -142,3 +142,18 @@ def test_status_does_not_wait_for_a_slow_frame(tmp_path):
         node.finish()
     assert not isinstance(status, str) and status.frames_processed == 0  # the frame was in the detector (or not yet taken)
     assert elapsed_s < 0.5
+
+
+def test_peak_rss_is_the_kernels_high_water_mark_not_a_sample():
+    """A short allocation between two samples is still in the peak (it was missed when the
+    peak was the largest 5-s sample)."""
+    import numpy as np
+
+    from aefabmap.runtime.adapters.health import peak_rss_mb, rss_mb
+
+    before = rss_mb()
+    block = np.ones(300 * 2**20 // 8)  # 300 MB touched, then freed
+    del block
+    peak = peak_rss_mb()
+    assert peak is not None and before is not None
+    assert peak >= before + 250 and rss_mb() < peak
