@@ -89,7 +89,8 @@ def decode_image(payload: bytes | bytearray | memoryview) -> np.ndarray:
     if buf[:2].tobytes() == b"\xff\xd8":
         size = _jpeg_size(memoryview(buf))
         if size is None:
-            raise FrameError("corrupt", f"JPEG payload of {buf.size} bytes has no frame header before its image data")
+            raise FrameError("corrupt", f"payload of {buf.size} bytes is not a decodable JPEG: no frame header "
+                             "before its image data")
     else:
         size = _png_size(buf[:24].tobytes())
     if size is not None and min(size) > 0:  # a zero side is a corrupt header: imdecode refuses it
