@@ -17,7 +17,7 @@ from aefabmap.errors import AefabmapError
 SINGLE_BLAS_THREAD_COMMANDS = ("run", "replay", "eval", "demo", "bench")
 
 # Each module exposes register(subparsers) and sets `func` (args -> exit code) on its parser.
-SUBCOMMAND_MODULES = ("train", "eval", "bench", "run", "publish", "replay", "demo", "status", "slam")
+SUBCOMMAND_MODULES = ("train", "eval", "bench", "run", "publish", "replay", "log", "demo", "status", "slam")
 
 log = logging.getLogger("aefabmap")
 
