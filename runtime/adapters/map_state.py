@@ -18,6 +18,7 @@ sha256 of every array file; arrays are plain .npy (no pickles), read with the ch
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import io
@@ -232,7 +233,29 @@ class MapStateDir:
 
     def save(self, state: MapState) -> SnapshotInfo:
         """Write ``state`` as the new current snapshot (see the module doc); on any failure the
-        previous snapshot stays current and StateError is raised."""
+        previous snapshot stays current and StateError is raised. When the disk is full, the
+        snapshots older than the current one are removed and the write is tried once more: the
+        newest complete map matters more than the one before it."""
+        try:
+            return self._save(state)
+        except _DiskFull:
+            current = self.current_or_none()
+            self._prune(keep=(current,))
+            try:
+                return self._save(state)
+            except _DiskFull as exc:
+                kept = self._places_in(current)
+                raise StateError(f"cannot write map state to {self.path}: {exc.strerror}; the current snapshot "
+                                 f"({kept} places) stays, {state.scalars.get('n_alive')} places in the map now "
+                                 "were not saved") from None
+
+    def _places_in(self, name: str | None) -> int | None:
+        try:
+            return None if name is None else self._read_manifest(self.path / name).get("n_places")
+        except StateError:
+            return None
+
+    def _save(self, state: MapState) -> SnapshotInfo:
         t0 = time.perf_counter()
         state.resolve()  # deferred parts (keypoints) are packed here, by the writing thread
         current = self.current_or_none()
@@ -269,6 +292,9 @@ class MapStateDir:
             _fsync_dir(self.path)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
+            (self.path / f".{CURRENT_NAME}.tmp").unlink(missing_ok=True)
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise _DiskFull(exc.errno, exc.strerror) from None
             raise StateError(f"cannot write map state to {self.path}: {exc.strerror or exc}") from None
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -292,6 +318,10 @@ class MapStateDir:
                 p.unlink(missing_ok=True)
             else:
                 shutil.rmtree(p, ignore_errors=True)
+
+
+class _DiskFull(OSError):
+    """A snapshot write ran out of space (internal: save() retries once after pruning)."""
 
 
 def load_into(detector, directory: MapStateDir) -> bool:

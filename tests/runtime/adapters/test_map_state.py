@@ -394,3 +394,35 @@ def test_special_files_in_a_state_are_refused_in_one_line_without_hanging(bundle
     else:
         target.mkdir()
     assert "not a regular file" in _refused(bundle, path)
+
+
+def _snapshot_bytes(path) -> int:
+    """Bytes a snapshot directory takes on a tmpfs (4 KiB pages per file)."""
+    return sum(-(-p.stat().st_size // 4096) * 4096 for p in path.iterdir()) + 4096
+
+
+def test_a_full_disk_drops_the_older_snapshot_before_the_newest_map(bundle, tmp_path):
+    """State on a small real tmpfs: two snapshots fit, a third does not. The third save used to
+    fail, leaving the map of the older current snapshot; now the snapshot before the current one
+    is dropped and the newest map is written."""
+    from .stream_fakes import mounted_tmpfs
+
+    det = load_detector(bundle, CONFIG)
+    _run(det, words_stream(40)[:20])
+    probe = tmp_path / "probe"
+    with MapStateDir(probe, bundle_id(det.manifest)) as d:
+        size = _snapshot_bytes(d.save(det.state()).path)
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    with mounted_tmpfs(disk, size=f"{(5 * size // 2) // 1024}k"):
+        with MapStateDir(disk, bundle_id(det.manifest)) as d:
+            d.save(det.state())
+            d.save(det.state())
+            _run(det, words_stream(40, seed=1)[:5])  # the map grew since
+            info = d.save(det.state())
+            assert info.n_places == det.n_places and d.current() == info.path.name
+            snaps = sorted(p.name for p in disk.iterdir() if p.name.startswith("snap-"))
+            assert snaps == ["snap-000002", info.path.name]  # the oldest gave way, the previous is kept
+        again = load_detector(bundle, CONFIG)
+        with MapStateDir(disk, bundle_id(det.manifest)) as d:
+            assert load_into(again, d) and again.n_places == det.n_places
