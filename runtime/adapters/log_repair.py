@@ -8,19 +8,15 @@ schema, channel, metadata record, attachment and message it read into a new, fin
 
 from __future__ import annotations
 
-import io
 import os
-import struct
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
-from mcap.exceptions import McapError
 from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from aefabmap.errors import LogError
+from aefabmap.runtime.adapters.mcap_log import complete_records
 
 
 @dataclass
@@ -58,19 +54,8 @@ def repair_log(source: str | Path, out: str | Path) -> RepairReport:
         writer = Writer(sink, compression=CompressionType.ZSTD)
         schema_ids: dict[int, int] = {}
         channel_ids: dict[int, int] = {}
-        records = StreamReader(io.BufferedReader(fh, 1 << 20), validate_crcs=True).records
         started = False
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                break
-            except (McapError, struct.error, ValueError, EOFError, zlib.error, MemoryError) as exc:
-                report.truncated, report.reason = True, f"{type(exc).__name__}: {exc}"[:200]
-                break
-            except Exception as exc:  # zstd errors have no common base class we can import
-                report.truncated, report.reason = True, f"{type(exc).__name__}: {exc}"[:200]
-                break
+        for record in complete_records(fh, report):
             if not started:
                 writer.start(profile=record.profile if isinstance(record, Header) else "",
                              library="aefabmap log repair")

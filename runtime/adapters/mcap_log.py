@@ -38,16 +38,13 @@ from __future__ import annotations
 import io
 import json
 import os
-import struct
 import time
-import zlib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from mcap.exceptions import McapError
 from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -465,6 +462,23 @@ class ReadStatus:
         return asdict(self)
 
 
+def complete_records(f, status) -> Iterator:
+    """The records of the open MCAP file `f` in file order (chunks decompressed, CRCs checked)
+    up to its last complete one; a cut-off or corrupt end sets `status.truncated` and
+    `status.reason` (why reading stopped) instead of raising."""
+    records = StreamReader(io.BufferedReader(f, 1 << 20), validate_crcs=True).records
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except Exception as exc:  # McapError, struct, zlib, zstd (no common base class), EOF, ...
+            status.truncated = True
+            status.reason = f"{type(exc).__name__}: {exc}"[:200]
+            return
+        yield record
+
+
 class McapLogReader:
     """Single-pass reader of an aefabmap log or a ROS 2 bag, robust to truncation.
 
@@ -524,20 +538,7 @@ class McapLogReader:
         ros_decoders: dict[int, object] = {}
         chosen: int | None = None
         with open(self.path, "rb") as f:
-            records = StreamReader(io.BufferedReader(f, 1 << 20), validate_crcs=True).records
-            while True:
-                try:
-                    record = next(records)
-                except StopIteration:
-                    break
-                except (McapError, struct.error, ValueError, EOFError, zlib.error, MemoryError) as exc:
-                    self.status.truncated = True
-                    self.status.reason = f"{type(exc).__name__}: {exc}"[:200]
-                    break
-                except Exception as exc:  # zstd errors have no common base class we can import
-                    self.status.truncated = True
-                    self.status.reason = f"{type(exc).__name__}: {exc}"[:200]
-                    break
+            for record in complete_records(f, self.status):
                 if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):

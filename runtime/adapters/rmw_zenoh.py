@@ -50,6 +50,7 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     poll_ring,
     result_key_for,
 )
+from aefabmap.runtime.core.varint import read_varint
 
 ADMIN_SPACE = "@ros2_lv"
 #: Hash chunk of Humble, which has no type hashes.
@@ -163,18 +164,6 @@ class RmwAttachment:
         return struct.pack("<qqB", self.sequence_number, self.source_timestamp, len(self.gid)) + self.gid
 
 
-def _varint(buf: bytes, pos: int) -> tuple[int, int]:
-    value, shift = 0, 0
-    while pos < len(buf) and shift <= 63:
-        b = buf[pos]
-        pos += 1
-        value |= (b & 0x7F) << shift
-        if not b & 0x80:
-            return value, pos
-        shift += 7
-    raise ValueError("truncated length")
-
-
 def parse_attachment(data: bytes) -> RmwAttachment:
     """Parse an rmw_zenoh attachment (current, keyed or with a trailing session id);
     ValueError when malformed."""
@@ -184,7 +173,7 @@ def parse_attachment(data: bytes) -> RmwAttachment:
     keyed = data[:1] == b"\x0f" and data[1:16] == b"sequence_number"
     for name, kind in (("sequence_number", "q"), ("source_timestamp", "q"), ("source_gid", "gid")):
         if keyed:
-            n, pos = _varint(data, pos)
+            n, pos = read_varint(data, pos)
             if data[pos : pos + n] != name.encode():
                 raise ValueError(f"attachment field {name} missing")
             pos += n
@@ -194,13 +183,13 @@ def parse_attachment(data: bytes) -> RmwAttachment:
             fields.append(struct.unpack_from("<q", data, pos)[0])
             pos += 8
         else:
-            n, pos = _varint(data, pos)
+            n, pos = read_varint(data, pos)
             if n not in GID_STORAGE_BYTES.values() or pos + n > len(data):
                 raise ValueError(f"attachment gid of {n} bytes (expected 16 or 24)")
             fields.append(bytes(data[pos : pos + n]))
             pos += n
     if pos < len(data):  # a trailing session id string, in some releases
-        n, after = _varint(data, pos)
+        n, after = read_varint(data, pos)
         if after + n != len(data):
             raise ValueError(f"{len(data) - pos} unexpected bytes after the attachment gid")
     return RmwAttachment(*fields)

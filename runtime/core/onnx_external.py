@@ -9,6 +9,7 @@ attributes -> tensors, subgraphs and sparse tensors.
 from __future__ import annotations
 
 from aefabmap.errors import BundleError
+from aefabmap.runtime.core.varint import read_varint
 
 # (message, field number) -> message type of that length-delimited field (onnx.proto).
 _CHILDREN = {
@@ -26,16 +27,10 @@ MAX_DEPTH = 64
 
 
 def _varint(buf: memoryview, pos: int) -> tuple[int, int]:
-    value = shift = 0
-    while True:
-        if pos >= len(buf) or shift > 63:
-            raise BundleError("ONNX model is truncated or malformed (varint)")
-        b = buf[pos]
-        pos += 1
-        value |= (b & 0x7F) << shift
-        if not b & 0x80:
-            return value, pos
-        shift += 7
+    try:
+        return read_varint(buf, pos)
+    except ValueError:
+        raise BundleError("ONNX model is truncated or malformed (varint)") from None
 
 
 def _walk(buf: memoryview, kind: str, depth: int) -> bool:
