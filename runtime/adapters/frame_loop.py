@@ -17,7 +17,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from aefabmap.errors import InputError
+from aefabmap.errors import BundleError, InputError
 from aefabmap.runtime.adapters.frames import (
     BAD_FRAME_REASONS,
     FrameError,
@@ -133,7 +133,7 @@ class FrameLoop:
     def _detect(self, gray: np.ndarray, stamp_ns: int, decode_ms: float) -> FrameOutcome:
         try:
             result = self.detector.process(gray, stamp_ns)
-        except InputError as exc:
+        except (InputError, BundleError) as exc:  # a model failing on one frame costs that frame
             out = self._refuse(exc, "rejected")
             out.gray, out.decode_ms = gray, decode_ms
             return out
@@ -141,7 +141,7 @@ class FrameLoop:
         self.loops += bool(result.loop)
         return FrameOutcome(result, gray, None, decode_ms)
 
-    def _refuse(self, exc: InputError, reason: str) -> FrameOutcome:
+    def _refuse(self, exc: InputError | BundleError, reason: str) -> FrameOutcome:
         if self.strict:
             raise exc
         self.bad.count(reason, str(exc))

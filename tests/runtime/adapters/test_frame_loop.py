@@ -47,3 +47,23 @@ def test_strict_loop_raises_instead_of_skipping(tmp_path):
     with pytest.raises(InputError):
         loop.step_image(np.zeros((4, 4), np.uint8), 0)
     assert loop.bad.total == 0 and loop.processed == 0
+
+
+def test_a_model_failing_on_one_frame_is_counted_not_fatal():
+    """A quantiser that passes the load-time probe but fails on some frame (BundleError from
+    the model) costs that frame, counted as rejected; the running node goes on."""
+    from aefabmap.errors import BundleError
+
+    class FailsOnce(FakeDetector):
+        def process(self, gray, stamp_ns):
+            if stamp_ns == 2:
+                raise BundleError("model returned word ids outside [0, 16)")
+            return super().process(gray, stamp_ns)
+
+    loop = FrameLoop(FailsOnce())
+    image = sample_images(1, size=(64, 48))[0]
+    outs = [loop.step_image(image, stamp) for stamp in (1, 2, 3)]
+    assert [o.result is not None for o in outs] == [True, False, True]
+    assert outs[1].bad_reason == "rejected" and "outside" in loop.bad.last
+    with pytest.raises(BundleError):
+        FrameLoop(FailsOnce(), strict=True).step_image(image, 2)
