@@ -103,6 +103,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     inp.add_argument("--ros-distro", choices=("auto", "humble", "jazzy"), default="auto",
                    help="type hashes of the published ROS 2 topics: auto (default: the camera's, read from its "
                    "first image sample), humble (none) or jazzy (RIHS01; also iron, kilted, rolling)")
+    inp.add_argument("--ros-namespace", default="/", metavar="NS",
+                     help="ROS 2 namespace of the node (default /): relative result/stats topics go under it")
+    inp.add_argument("--ros-node-name", default="aefabmap", metavar="NAME", help="ROS 2 node name (default aefabmap)")
+    inp.add_argument("--ros-result-topic", default="lcd/result", metavar="TOPIC",
+                     help="ROS 2 topic of the results (default lcd/result, in the namespace)")
+    inp.add_argument("--ros-stats-topic", default="lcd/stats", metavar="TOPIC",
+                     help="ROS 2 topic of the stats (default lcd/stats, in the namespace)")
     inp.add_argument("--results-key", default=None, metavar="KEYEXPR",
                    help="zenoh key of the JSON results (stats on <key>/stats); default: the sibling 'lcd' of "
                    "the image key or topic")
@@ -142,7 +149,9 @@ def main(args: argparse.Namespace) -> int:
         ros = None
         if ros_topic is not None:
             domain = args.ros_domain if args.ros_domain is not None else domain_from_env(os.environ)
-            ros = RosOptions(topic=ros_topic, domain=domain, distro=args.ros_distro)
+            ros = RosOptions(topic=ros_topic, domain=domain, distro=args.ros_distro, namespace=args.ros_namespace,
+                             node=args.ros_node_name, result_topic=args.ros_result_topic,
+                             stats_topic=args.ros_stats_topic)
         rotation = log_rotation_config(args)
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,

@@ -69,8 +69,9 @@ GID_BYTES = 16
 GID_STORAGE_BYTES = {"humble": 24, "jazzy": 16}
 #: ``auto``: the distribution the camera's samples carry (their key's type-hash chunk).
 DISTROS = ("auto", "humble", "jazzy")
-RESULT_TOPIC = "/lcd/result"
-STATS_TOPIC = "/lcd/stats"
+#: Result and stats topics, relative: resolved in the node's namespace (``/lcd/result`` in ``/``).
+RESULT_TOPIC = "lcd/result"
+STATS_TOPIC = "lcd/stats"
 _INT64_MAX = 2**63 - 1
 
 
@@ -291,9 +292,10 @@ class RosStringPublisher:
     its liveliness token (so ``ros2 topic list`` shows the topic)."""
 
     def __init__(self, session: zenoh.Session, domain: int, topic: str, type_hash: str, zid: str,
-                 node_id: int, entity_id: int, node: str, gid_bytes: int = GID_BYTES) -> None:
+                 node_id: int, entity_id: int, node: str, gid_bytes: int = GID_BYTES, namespace: str = "/") -> None:
         self.key = data_key(domain, topic, STRING_TYPE, type_hash)
-        token = liveliness_token(domain, zid, node_id, entity_id, "MP", node, topic, STRING_TYPE, type_hash)
+        token = liveliness_token(domain, zid, node_id, entity_id, "MP", node, topic, STRING_TYPE, type_hash,
+                                 namespace=namespace)
         # A hash of the token, as rmw_zenoh derives its gids; Humble's gid storage is zero-padded to 24 bytes.
         self.gid = hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest().ljust(gid_bytes, b"\x00")
         self.seq = 0
@@ -330,11 +332,22 @@ class RosOptions:
     domain: int = 0
     node: str = "aefabmap"
     distro: str = "auto"
+    namespace: str = "/"
+    result_topic: str = RESULT_TOPIC
+    stats_topic: str = STATS_TOPIC
 
     def __post_init__(self) -> None:
         check_topic(self.topic)
         check_domain(self.domain)
+        if "/" in self.node.strip("/") or self.node.startswith("/"):
+            raise ConfigError(f"ROS node name must be a plain name such as aefabmap, got {self.node!r}")
         check_topic(self.node)
+        if self.namespace.strip("/"):
+            check_topic(self.namespace)
+        elif self.namespace != "/":
+            raise ConfigError(f"ROS namespace must be / or a name such as /robot1, got {self.namespace!r}")
+        check_topic(self.result_topic)
+        check_topic(self.stats_topic)
         if self.distro not in DISTROS:
             raise ConfigError(f"ROS distribution must be one of {DISTROS}, got {self.distro!r}")
 
@@ -347,8 +360,23 @@ class RosOptions:
         """Plain-Zenoh JSON results key: the ``lcd`` sibling of the topic (``camera/lcd``)."""
         return result_key_for(check_topic(self.topic))
 
+    def resolve(self, name: str) -> str:
+        """A topic name as ROS resolves it in this node's namespace: absolute names stay, relative
+        ones (``lcd/result``) go under the namespace (``/robot1/lcd/result``)."""
+        if name.startswith("/"):
+            return "/" + check_topic(name)
+        ns = self.namespace.strip("/")
+        return "/" + (f"{ns}/" if ns else "") + check_topic(name)
+
+    @property
+    def fq_namespace(self) -> str:
+        """The namespace as a fully qualified name (``/`` or ``/robot1``)."""
+        return "/" + self.namespace.strip("/")
+
     def to_dict(self) -> dict:
-        return {"topic": self.topic, "domain": self.domain, "node": self.node, "distro": self.distro}
+        return {"topic": self.topic, "domain": self.domain, "node": self.node, "distro": self.distro,
+                "namespace": self.fq_namespace, "result_topic": self.resolve(self.result_topic),
+                "stats_topic": self.resolve(self.stats_topic)}
 
 
 class RosGraph:
@@ -359,7 +387,8 @@ class RosGraph:
         self.session = session
         self.zid = str(session.info.zid())
         self.options = options
-        self._tokens = [self._declare(liveliness_token(options.domain, self.zid, 0, 0, "NN", options.node))]
+        self._tokens = [self._declare(liveliness_token(options.domain, self.zid, 0, 0, "NN", options.node,
+                                                       namespace=options.fq_namespace))]
 
     def _declare(self, token: str):
         try:
@@ -375,7 +404,8 @@ class RosGraph:
         ros_type = ros_type or IMAGE_TYPE
         type_hash = HUMBLE_TYPE_HASH if distro == "humble" else RIHS01_OF[ros_type]
         self._tokens.append(self._declare(
-            liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, ros_type, type_hash)))
+            liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, ros_type, type_hash,
+                             namespace=o.fq_namespace)))
 
     def close(self) -> None:
         for token in self._tokens:
@@ -418,10 +448,10 @@ class RosResultPublisher:
         gid_bytes = GID_STORAGE_BYTES[distro]
         try:
             self.graph.declare_subscription(distro, camera_type)
-            self.ros_results = RosStringPublisher(self.session, o.domain, RESULT_TOPIC, string_hash, self.graph.zid,
-                                                  0, 2, o.node, gid_bytes)
-            self.ros_stats = RosStringPublisher(self.session, o.domain, STATS_TOPIC, string_hash, self.graph.zid,
-                                                0, 3, o.node, gid_bytes)
+            self.ros_results = RosStringPublisher(self.session, o.domain, o.resolve(o.result_topic), string_hash,
+                                                  self.graph.zid, 0, 2, o.node, gid_bytes, o.fq_namespace)
+            self.ros_stats = RosStringPublisher(self.session, o.domain, o.resolve(o.stats_topic), string_hash,
+                                                self.graph.zid, 0, 3, o.node, gid_bytes, o.fq_namespace)
         except BaseException:
             self.close()
             raise

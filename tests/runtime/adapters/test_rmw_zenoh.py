@@ -17,6 +17,7 @@ import pytest
 import zenoh
 from zenoh.ext import Int64, z_serialize
 
+from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frames import FrameError, decode_frame
 from aefabmap.runtime.adapters.rmw_zenoh import (
     COMPRESSED_IMAGE_RIHS01,
@@ -122,7 +123,7 @@ class RosResults:
 
 
 def _publish_and_collect(tmp_path, typestore, frames, expect: int, distro: str = "humble",
-                         result_key: str = RESULT_KEY):
+                         result_key: str = RESULT_KEY, **ros):
     """frames: (key, payload, seq) tuples; returns (summary, results, graph tokens, ros results);
     graph tokens as listed once every result arrived."""
     router = Router()
@@ -130,7 +131,7 @@ def _publish_and_collect(tmp_path, typestore, frames, expect: int, distro: str =
         with (
             NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
                        mcap_path=tmp_path / "ros.mcap", queue_size=16, stats_period_s=0.2,
-                       ros=RosOptions(topic=TOPIC, distro=distro)) as node,
+                       ros=RosOptions(topic=TOPIC, distro=distro, **ros)) as node,
             zenoh.open(build_zenoh_config(router.ros_peer())) as camera,
         ):
             results = RosResults(camera, typestore, result_key)
@@ -206,6 +207,21 @@ def test_a_compressed_image_camera_sees_one_type_on_its_topic(tmp_path, typestor
                                            result_key=result_key)
     ours = [t for t in tokens if "/MS/" in t and "/aefabmap/" in t]
     assert len(ours) == 1 and f"sensor_msgs::msg::dds_::CompressedImage_/{COMPRESSED_IMAGE_RIHS01}" in ours[0]
+
+
+def test_namespace_node_name_and_topics_are_the_users(tmp_path, typestore):
+    images = sample_images(2, size=(160, 120))
+    frames = [(IMAGE_KEY, ros_image(typestore, img, "mono8", STAMP0 + i), i + 1) for i, img in enumerate(images)]
+    key = "0/robot1/loops/std_msgs::msg::dds_::String_/TypeHashNotSupported"
+    _, docs, tokens, _ = _publish_and_collect(tmp_path, typestore, frames, expect=2, result_key=key,
+                                              namespace="/robot1", node="lcd", result_topic="loops")
+    assert [d["sequence"] for d in docs] == [0, 1]
+    assert any("/NN/%/%robot1/lcd" in t for t in tokens)
+    assert any("/MP/%/%robot1/lcd/%robot1%loops/std_msgs::msg::dds_::String_/" in t for t in tokens)
+    assert any("/MP/%/%robot1/lcd/%robot1%lcd%stats/" in t for t in tokens)
+    for bad in ({"namespace": "robot 1"}, {"node": "a/b"}, {"result_topic": "bad topic"}):
+        with pytest.raises(ConfigError):
+            RosOptions(topic=TOPIC, **bad)
 
 
 def test_ros_domain_id_from_the_environment_and_refused_when_malformed():
