@@ -22,7 +22,6 @@ def open_state(path, detector, logger: logging.Logger):
     """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present.
     A map built with other detector settings loads (it continues with this run's), with a warning
     naming them."""
-    import dataclasses
     import json
 
     from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id
@@ -37,8 +36,7 @@ def open_state(path, detector, logger: logging.Logger):
             stored = state.scalars.get("config")
             if isinstance(stored, str):
                 try:
-                    differ = settings_differences(json.loads(stored), json.loads(json.dumps(
-                        dataclasses.asdict(detector.config))))
+                    differ = settings_differences(json.loads(stored), detector.config.to_dict())
                 except (ValueError, RecursionError):
                     differ = ["(unreadable record)"]
                 # Kept inlier points change what is drawn, never a decision.

@@ -146,6 +146,11 @@ class DetectorConfig:
             raise ConfigError("temporal consistency works on verified matches: enable verification")
 
 
+    def to_dict(self) -> dict:
+        """Every setting as plain JSON types (nested configs as objects, tuples as lists): the
+        form the map state records and RunConfig carries."""
+        return json.loads(json.dumps(asdict(self)))
+
 class LoopClosureDetector:
     """Stateful per-frame detector for one model bundle (not thread-safe)."""
 
@@ -445,7 +450,7 @@ class LoopClosureDetector:
             sequence=self._sequence, track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
             n_places=self.scorer.n_places, n_alive=self.n_places,
             # The settings the map was built with, whole (JSON; RunConfig's detector part).
-            config=json.dumps(asdict(c), sort_keys=True),
+            config=json.dumps(c.to_dict(), sort_keys=True),
         )
         st.put("scorer", self.scorer.state())
         st.arrays["place_frame"] = self._place_frame.copy()

@@ -48,7 +48,7 @@ class RunConfig:
 
     def to_dict(self) -> dict:
         """Plain JSON-able dict (tuples become lists), with the format version."""
-        return {"format": RUN_CONFIG_FORMAT, **_to_plain(self)}
+        return {"format": RUN_CONFIG_FORMAT, **json.loads(json.dumps(dataclasses.asdict(self)))}
 
     @classmethod
     def from_dict(cls, doc: object) -> RunConfig:
@@ -71,14 +71,6 @@ class RunConfig:
         except (ValueError, RecursionError) as exc:
             raise ConfigError(f"run configuration is not JSON: {exc}") from exc
         return cls.from_dict(doc)
-
-
-def _to_plain(obj):
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, (tuple, list)):
-        return [_to_plain(x) for x in obj]
-    return obj
 
 
 def _from_plain(cls, doc: object, where: str):
