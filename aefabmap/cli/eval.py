@@ -67,7 +67,8 @@ def run(args) -> int:
     print(format_table(table))
     from aefabmap.runtime.tools.frame_evidence import format_revisit_split, revisit_split
 
-    records = evidence_records(args, runs[scorers[0]], verification)
+    wanted = verification.enabled or args.frames or args.failures
+    records = evidence_records(args, runs[scorers[0]], verification) if wanted else []
     split = revisit_split(records) if verification.enabled else None
     if split is not None:
         print(format_revisit_split(split))

@@ -69,19 +69,22 @@ def evidence_of(res: FrameResult, min_keypoints: int) -> str:
     return "rejected"
 
 
+def _true_candidates(res: FrameResult, true_frames: np.ndarray, tolerance: int) -> list[Candidate]:
+    """The candidates within `tolerance` frames of a true match."""
+    if true_frames.size == 0:
+        return []
+    return [c for c in res.candidates if np.any(np.abs(true_frames - c.frame) <= tolerance)]
+
+
 def _true_candidate(res: FrameResult, true_frames: np.ndarray, tolerance: int) -> Candidate | None:
     """The candidate within `tolerance` frames of a true match: the checked one with most inliers first."""
-    if true_frames.size == 0:
-        return None
-    hits = [c for c in res.candidates if np.any(np.abs(true_frames - c.frame) <= tolerance)]
-    if not hits:
-        return None
-    return max(hits, key=lambda c: (c.checked, c.inliers, -c.rank))
+    hits = _true_candidates(res, true_frames, tolerance)
+    return max(hits, key=lambda c: (c.checked, c.inliers, -c.rank)) if hits else None
 
 
 def miss_reason(res: FrameResult, true_frames: np.ndarray, tolerance: int, max_log10_nfa: float) -> str:
     """One of MISS_REASONS for a revisit frame that was not verified to a true place."""
-    hits = [c for c in res.candidates if np.any(np.abs(true_frames - c.frame) <= tolerance)]
+    hits = _true_candidates(res, true_frames, tolerance)
     if not hits:
         return "not_a_candidate"
     checked = [c for c in hits if c.checked]
