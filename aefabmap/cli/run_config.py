@@ -8,6 +8,7 @@ defaults in code.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 from aefabmap.runtime.core.candidates import CandidateConfig
 from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
@@ -50,6 +51,9 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
     g.add_argument("--naive-bayes", action="store_true", default=None, help="FAB-MAP without the Chow-Liu tree")
     g.add_argument("--fabmap-score", choices=FABMAP_SCORES, default=None,
                    help=f"raw FAB-MAP score: posterior probability or llr (default {d.fabmap_score})")
+    g.add_argument("--sequence-frames", type=int, default=None, metavar="N",
+                   help="evidence over consecutive frames: N query frames whose checked places line up with "
+                   f"stored frames may pass together when no single pair does (default {d.sequence.frames}; 0 = off)")
     g.add_argument("--temporal-frames", type=int, default=None, metavar="N",
                    help=f"temporal consistency: N preceding frames must agree (default {d.temporal_frames} = off)")
     g.add_argument("--temporal-tolerance", type=int, default=None, metavar="F",
@@ -104,6 +108,7 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
         memory_mb=pick("memory_mb", d.memory_mb, prof.memory_mb if prof else None),
         verification=verification,
         candidates=candidates,
+        sequence=dataclasses.replace(d.sequence, frames=pick("sequence_frames", d.sequence.frames)),
         temporal_frames=pick("temporal_frames", d.temporal_frames) if verification.enabled else 0,
         temporal_tolerance=pick("temporal_tolerance", d.temporal_tolerance),
     )
@@ -126,9 +131,17 @@ def logged_run_config(logged: dict) -> RunConfig:
     if not isinstance(logged, dict):
         raise ConfigError("the log's run configuration is not an object")
     if RUN_CONFIG_KEY in logged:
-        return RunConfig.from_dict(logged[RUN_CONFIG_KEY])
+        doc = logged[RUN_CONFIG_KEY]
+        detector = doc.get("detector") if isinstance(doc, dict) else None
+        if isinstance(detector, dict) and "sequence" not in detector:
+            doc = {**doc, "detector": {**detector, **_BEFORE_CHAINS}}
+        return RunConfig.from_dict(doc)
     legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
     camera = logged.get("camera")
     doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
-           "detector": {**legacy, "verification": {"camera": camera}}}
+           "detector": {**legacy, "verification": {"camera": camera}, **_BEFORE_CHAINS}}
     return RunConfig.from_dict(doc)
+
+
+#: Logs written before evidence over consecutive frames existed ran without it.
+_BEFORE_CHAINS = {"sequence": {"frames": 0}}

@@ -29,6 +29,7 @@ from aefabmap.runtime.core.messages import Candidate, FrameResult  # records liv
 from aefabmap.runtime.core.model_errors import epipolar_kernel, transfer_kernel
 from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.runtime.core.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Ranking, Scorer
+from aefabmap.runtime.core.sequence import Link, SequenceConfig, SequenceEvidence
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.tree import ChowLiuTree
 from aefabmap.runtime.core.verification import (
@@ -96,6 +97,9 @@ class DetectorConfig:
         (runtime/core/keypoint_store.py) inside memory_mb.
     candidates: which places a frame is verified against and in what order
         (runtime/core/candidates.py: track prior, FAB-MAP's top_k, islands, the track's reach).
+    sequence: evidence over consecutive frames (runtime/core/sequence.py): when no single pair
+        passes, a run of query frames whose checked places line up with a run of stored frames
+        may pass together. SequenceConfig(frames=0) switches it off.
     temporal_frames: temporal consistency (runtime/core/temporal.py): a verified match counts only
         when the `temporal_frames` preceding frames were verified to frames within
         `temporal_tolerance` frames of it. 0 (default) switches the check off.
@@ -114,6 +118,7 @@ class DetectorConfig:
     memory_mb: float | None = None
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     candidates: CandidateConfig = field(default_factory=CandidateConfig)
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
     temporal_frames: int = 0
     temporal_tolerance: int = 10
 
@@ -140,6 +145,8 @@ class DetectorConfig:
             raise ConfigError(f"verification must be a VerificationConfig, got {type(self.verification).__name__}")
         if not isinstance(self.candidates, CandidateConfig):
             raise ConfigError(f"candidates must be a CandidateConfig, got {type(self.candidates).__name__}")
+        if not isinstance(self.sequence, SequenceConfig):
+            raise ConfigError(f"sequence must be a SequenceConfig, got {type(self.sequence).__name__}")
         if self.temporal_frames < 0 or self.temporal_tolerance < 0:
             raise ConfigError("temporal_frames and temporal_tolerance must be >= 0")
         if self.temporal_frames and not self.verification.enabled:
@@ -193,6 +200,7 @@ class LoopClosureDetector:
             binary = (nearest_two_kernel, same_word_kernel) if self.kind.distance == "hamming" else ()
             compiled.prepare(distinct_kernel, transfer_kernel, epipolar_kernel, *binary)
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
+        self.chain = SequenceEvidence(c.sequence) if c.sequence.frames and v.enabled else None
         # place id -> sequence of the frame that made it / last sequence inserted or matched.
         self._place_frame = np.zeros(0, np.int64)
         self._last_used = np.zeros(0, np.int64)
@@ -336,6 +344,8 @@ class LoopClosureDetector:
                                                 self._pair_check(features, words))
         best = verdict.search.best
         verdict.geometry_ok = best is not None and bool(best.verified)
+        if self.chain is not None:
+            self._chain_step(verdict)
         verdict.verified = verdict.geometry_ok
         if self.temporal is not None:
             matched = int(self._place_frame[verdict.search.best_place]) if verdict.geometry_ok else None
@@ -346,6 +356,20 @@ class LoopClosureDetector:
             self.policy.track.confirm(seq, int(self._place_frame[verdict.search.best_place]))
         verdict.timing_ms = (time.perf_counter() - t0) * 1e3
         return verdict
+
+    def _chain_step(self, verdict: "_Verdict") -> None:
+        """Record this query's checked places as chain links; when no single pair passed, take the
+        place ending the most significant accepted chain (runtime/core/sequence.py)."""
+        attempts = verdict.search.attempts
+        links = [Link(a.place, int(self._place_frame[a.place]), float(a.result.nfa)) for a in attempts
+                 if np.isfinite(a.result.nfa)]
+        chain = self.chain.update(links)
+        if verdict.geometry_ok or chain is None:
+            return
+        link, total = chain
+        verdict.search.best = min((a.result for a in attempts if a.place == link.place), key=lambda g: g.nfa)
+        verdict.search.best_place = link.place
+        verdict.geometry_ok, verdict.sequence_nfa = True, total
 
     def _pair_check(self, features: Features, words: np.ndarray):
         """The policy's PairCheck for this query: verify it against one stored place."""
@@ -464,6 +488,8 @@ class LoopClosureDetector:
             st.put("pending_kps", MapState(deferred=[("", lambda: store.pack_places(pending_kps))]))
         if self.temporal is not None:
             st.put("temporal", self.temporal.state())
+        if self.chain is not None:
+            st.put("chain", self.chain.state())
         return st
 
     def load_state(self, st: MapState) -> None:
@@ -508,6 +534,12 @@ class LoopClosureDetector:
             pkps = self.store.unpack_places(st.part("pending_kps"), pseq.size)
         if self.temporal is not None:
             self.temporal.load_state(st.part("temporal"))
+        if self.chain is not None:
+            chain = st.part("chain")
+            if chain.arrays:
+                self.chain.load_state(chain)
+            else:  # a map saved without chains (another setting, an older version) starts with none
+                self.chain.reset()
         self._place_frame, self._last_used = place_frame, last_used
         self._pending = deque(
             (int(s), pwords[pptr[i]:pptr[i + 1]], pkps[i]) for i, s in enumerate(pseq.tolist())
@@ -577,17 +609,19 @@ class _Verdict:
     place: int | None = None
     timing_ms: float = 0.0
     reason: str | None = None
+    sequence_nfa: float | None = None
 
 
 def _verdict_fields(verdict: _Verdict, place_frame: np.ndarray) -> dict:
     """FrameResult's verification fields."""
     best = verdict.search.best
     out = dict(verified=bool(verdict.verified), geometry_ok=bool(verdict.geometry_ok), temporal_ok=verdict.temporal_ok,
-               candidates_tried=verdict.search.tried, geometry_reason=verdict.reason)
+               candidates_tried=verdict.search.tried, geometry_reason=verdict.reason, sequence_nfa=verdict.sequence_nfa)
     if best is not None:
         out.update(inliers=int(best.inliers), matches=int(best.matches), geometry_model=best.model,
                    nfa=float(best.nfa) if np.isfinite(best.nfa) else None,
-                   geometry_reason="" if verdict.verified else ("temporal" if best.verified else best.reason))
+                   geometry_reason="" if verdict.verified else (
+                       "temporal" if best.verified or verdict.sequence_nfa is not None else best.reason))
     if verdict.verified and verdict.place is not None:
         out.update(verified_place=int(verdict.place), verified_frame=int(place_frame[verdict.place]),
                    geometry=[[float(x) for x in row] for row in best.matrix])

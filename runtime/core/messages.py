@@ -30,7 +30,7 @@ from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 #: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``; 1.2: the log's health in
 #: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...); 1.3: ``nfa``,
 #: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``.
-MESSAGE_FORMAT_VERSION = "1.4"
+MESSAGE_FORMAT_VERSION = "1.5"
 
 #: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
 LOG_STATES = ("ok", "images_stopped", "stopped", "failed", "closed")
@@ -244,6 +244,10 @@ class FrameResult(_Message):
         "why verification failed: '' when verified, else no_evidence (too few keypoints or matches to fit a "
         "model), chance, degenerate, collinear, clustered, cheirality, temporal, ...; null: nothing verified"),
         since="1.3")
+    sequence_nfa: float | None = _f(None, (
+        "verified by evidence over consecutive frames (DetectorConfig.sequence): the summed log10 NFA of the chain "
+        "of frames ending here, whose last link is this frame's verified_place (nfa is that pair's own); null "
+        "when one pair passed alone or nothing was verified"), since="1.5")
     candidates: list[Candidate] = field(default_factory=list, metadata=_meta(
         "the top places of the ranking (CandidateConfig.top_k) and every other place checked (track, "
         "island)", since="1.3"))

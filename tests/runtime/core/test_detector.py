@@ -8,6 +8,7 @@ import pytest
 from aefabmap import ConfigError
 from aefabmap.runtime.adapters.bundle_reader import load_detector
 from aefabmap.runtime.core.detector import DetectorConfig
+from aefabmap.runtime.core.sequence import SequenceConfig
 from tests.conftest import make_synthetic_bundle
 
 
@@ -108,3 +109,44 @@ def test_attached_keypoints_make_a_words_only_place_verifiable():
     off.process_words(words[2][words[2] >= 0])
     with pytest.raises(ConfigError):
         off.attach_keypoints(0, feats[0], words[0])
+
+
+def test_a_chain_of_weak_pairs_verifies_the_last_frame_and_survives_a_restart(monkeypatch):
+    """Two consecutive queries whose checked places (stored frames 0 and 1) each fall short alone
+    pass together: the second is verified with the chain's summed NFA; a detector loaded from the
+    first one's state reaches the same verdict."""
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap.runtime.core import candidates as C
+    from aefabmap.runtime.core.map_state import MapState
+    from aefabmap.runtime.core.verification import GeometryResult
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(6, seed=0, size=(640, 480))
+
+    def weak(nfa):
+        return GeometryResult(verified=False, model="H", matrix=np.eye(3), inliers=7, matches=30, nfa=nfa,
+                              reason="chance")
+
+    def search(policy, seq, top, ranking, place_frames, stored, check):
+        want = {3: 0, 4: 1}.get(seq)  # queries 3 and 4 each get one weak pair, to stored frames 0 and 1
+        out = C.Search(tried=1)
+        if want is not None and (place_frames == want).any():
+            pid = int(np.flatnonzero(place_frames == want)[0])
+            g = weak(-3.6)
+            out.best, out.best_place, out.attempts = g, pid, [C.Attempt(pid, "fabmap", g)]
+        return out
+
+    monkeypatch.setattr(C.CandidatePolicy, "search", search)
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    results = [det.process(im) for im in images[:4]]
+    assert not any(r.verified for r in results)
+    saved = det.state()
+    saved.resolve()
+    r = det.process(images[4])
+    assert r.verified and r.verified_frame == 1 and r.sequence_nfa == pytest.approx(-7.2)
+    assert r.nfa == pytest.approx(-3.6) and r.geometry_reason == ""
+    again = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    again.load_state(MapState(saved.arrays, saved.scalars))
+    assert again.process(images[4]).to_dict() | {"timings_ms": {}} == r.to_dict() | {"timings_ms": {}}
+    off = load_detector(default_bundle(), DetectorConfig(exclude=1, sequence=SequenceConfig(frames=0)))
+    assert not [off.process(im) for im in images[:5]][-1].verified
