@@ -11,7 +11,7 @@ import json
 import logging
 import threading
 
-from aefabmap.cli.run import add_zenoh_options
+from aefabmap.cli.run import add_zenoh_options, warn_exposure
 from aefabmap.errors import AefabmapError
 
 log = logging.getLogger("aefabmap.publish")
@@ -48,7 +48,9 @@ def main(args: argparse.Namespace) -> int:
 
     stop = threading.Event()
     try:
-        session = cli_session_config("connect", connect=args.connect, listen=args.listen)
+        session = cli_session_config("connect", connect=args.connect, listen=args.listen,
+                                     allow_exposure=args.allow_exposure)
+        warn_exposure(session, log)
         if args.images is not None:
             source = images_dir_source(args.images)
         elif args.video is not None:

@@ -32,13 +32,26 @@ def add_zenoh_options(p: argparse.ArgumentParser, group=None, *, config: bool = 
     g.add_argument("--connect", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)")
     g.add_argument("--listen", action="append", metavar="EP", default=[],
-                   help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; exposes the node "
-                   "to that network)")
+                   help="zenoh endpoint to listen on, e.g. tcp/192.168.1.20:7447 (repeatable; a non-loopback "
+                   "endpoint without mutual TLS needs --allow-exposure)")
+    g.add_argument("--allow-exposure", action="store_true",
+                   help="accept a session other hosts reach without authentication (a non-loopback listen "
+                   "endpoint without mutual TLS, or multicast scouting), from --listen or --config; logged at start")
     if config:
         g.add_argument("--config", metavar="zenoh.json5", default=None,
                        help="zenoh JSON5 configuration file (--connect/--listen override it)")
     p.epilog = ("Network: with none of --connect/--listen/--config, `run` listens on tcp/127.0.0.1:7447 only and "
                 "`publish` connects there; no multicast scouting.")
+
+
+def warn_exposure(session, logger: logging.Logger) -> None:
+    """Log, at start, how a session accepted with --allow-exposure is exposed."""
+    from aefabmap.runtime.adapters.zenoh_transport import session_exposure
+
+    if session.allow_exposure:
+        reasons = session_exposure(session)
+        if reasons:
+            logger.warning("network exposure accepted (--allow-exposure): the node %s", "; ".join(reasons))
 
 
 def add_log_rotation_options(p: argparse.ArgumentParser) -> None:
@@ -155,10 +168,11 @@ def main(args: argparse.Namespace) -> int:
         rotation = log_rotation_config(args)
         # A ROS 2 run joins the rmw_zenoh router (it owns port 7447) instead of listening there.
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
-                                     listen=args.listen, config_file=args.config)
+                                     listen=args.listen, config_file=args.config, allow_exposure=args.allow_exposure)
         if ros is not None and not args.config and not args.listen:
             # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
             session = dataclasses.replace(session, mode="client")
+        warn_exposure(session, log)
         # The live view draws the inlier matches: keep them (a few hundred floats a frame).
         config = build_run_config(args, keep_inlier_points=args.foxglove is not None)
         if config.profile is not None:  # before loading: the profile's model or nothing

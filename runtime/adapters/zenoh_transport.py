@@ -25,6 +25,7 @@ not counted as a drop).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import threading
@@ -36,6 +37,7 @@ from pathlib import Path
 import zenoh
 
 from aefabmap.errors import ConfigError, TransportError
+from aefabmap.runtime.adapters.zenoh_exposure import exposure
 
 #: Zenoh's customary port; the CLI's loopback default (see cli_session_config).
 DEFAULT_PORT = 7447
@@ -57,6 +59,9 @@ class SessionConfig:
     Exposure: without a config file the session listens on exactly ``listen`` (none: it
     listens nowhere, where zenoh's own default would be every interface) and does not join
     multicast scouting. See :func:`cli_session_config` for the CLI's loopback default.
+    allow_exposure: accept a session that listens where other hosts reach it without
+    authentication, or joins multicast scouting (runtime/adapters/zenoh_exposure.py); without
+    it such a session is a ConfigError.
     """
 
     connect: tuple[str, ...] = ()
@@ -64,6 +69,7 @@ class SessionConfig:
     config_file: str | None = None
     mode: str | None = None  # None: the config file's mode, else "peer"
     multicast_scouting: bool | None = None
+    allow_exposure: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "connect", _split_endpoints(self.connect, "connect"))
@@ -78,6 +84,7 @@ class SessionConfig:
             "config_file": self.config_file,
             "mode": self.mode,
             "multicast_scouting": self.multicast_scouting,
+            "allow_exposure": self.allow_exposure,
         }
 
 
@@ -134,9 +141,20 @@ def build_zenoh_config(sc: SessionConfig) -> zenoh.Config:
             conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
         if sc.config_file and not sc.listen:
             _no_default_listen(conf, sc.config_file)
+        reasons = exposure(conf)
     except zenoh.ZError as exc:
         raise ConfigError(f"invalid zenoh configuration: {_short(exc)}") from exc
+    if reasons and not sc.allow_exposure:
+        source = f"zenoh config {sc.config_file}" if sc.config_file else "the zenoh session"
+        raise ConfigError(f"{source} would expose the node ({'; '.join(reasons)}): give --allow-exposure to accept "
+                          "that, or listen on loopback or with mutual TLS (deploy/zenoh-tls-acl.json5)")
     return conf
+
+
+def session_exposure(sc: SessionConfig) -> list[str]:
+    """Why the session of sc is reachable without authentication ([]: it is not); ConfigError as
+    build_zenoh_config, except for the exposure itself."""
+    return exposure(build_zenoh_config(dataclasses.replace(sc, allow_exposure=True)))
 
 
 def _no_default_listen(conf: zenoh.Config, config_file: str) -> None:
@@ -160,13 +178,15 @@ def cli_session_config(
     listen=(),
     config_file: str | None = None,
     default_port: int = DEFAULT_PORT,
+    allow_exposure: bool = False,
 ) -> SessionConfig:
     """The session of ``aefabmap run`` (role ``"listen"``) or ``publish`` (``"connect"``).
 
     Loopback only by default: with no endpoint and no config file, the node listens on
     ``tcp/127.0.0.1:<default_port>`` and a publisher connects there, so the two commands find
     each other on one machine and nothing is reachable from the network; no multicast
-    scouting. Any ``--connect``/``--listen``/``--config`` replaces that default.
+    scouting. Any ``--connect``/``--listen``/``--config`` replaces that default; a session that
+    would expose the node needs ``allow_exposure`` (``--allow-exposure``).
     """
     if role not in ("listen", "connect"):
         raise ConfigError(f"session role must be 'listen' or 'connect', got {role!r}")
@@ -174,7 +194,7 @@ def cli_session_config(
     if not connect and not listen and not config_file:
         loopback = (f"tcp/127.0.0.1:{default_port}",)
         return SessionConfig(listen=loopback) if role == "listen" else SessionConfig(connect=loopback)
-    return SessionConfig(connect=connect, listen=listen, config_file=config_file)
+    return SessionConfig(connect=connect, listen=listen, config_file=config_file, allow_exposure=allow_exposure)
 
 
 def open_session(sc: SessionConfig) -> zenoh.Session:

@@ -221,8 +221,8 @@ def test_explicit_options_and_config_file_are_kept(tmp_path):
     assert sc.listen == ("tcp/0.0.0.0:7447",) and sc.connect == ()
     conf_file = tmp_path / "z.json5"
     conf_file.write_text("{ listen: { endpoints: ['tcp/127.0.0.1:0'] }, scouting: { multicast: { enabled: true } } }")
-    sc = cli_session_config("listen", connect=(), listen=(), config_file=str(conf_file))
+    sc = cli_session_config("listen", connect=(), listen=(), config_file=str(conf_file), allow_exposure=True)
     assert sc.listen == () and sc.config_file == str(conf_file)
-    conf = build_zenoh_config(sc)
+    conf = build_zenoh_config(sc)  # multicast scouting: exposure, accepted here
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]  # the file decides
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is True

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 import threading
 
 import pytest
@@ -197,6 +199,53 @@ def test_a_config_file_never_falls_back_to_listening_everywhere_or_multicast_sco
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     chosen = tmp_path / "chosen.json5"
     chosen.write_text('{ listen: { endpoints: ["tcp/127.0.0.1:0"] }, scouting: { multicast: { enabled: true } } }')
-    conf = build_zenoh_config(SessionConfig(config_file=str(chosen)))  # what a file says explicitly, it gets
+    with pytest.raises(ConfigError, match="would expose the node .*joins multicast scouting.*--allow-exposure"):
+        build_zenoh_config(SessionConfig(config_file=str(chosen)))
+    conf = build_zenoh_config(SessionConfig(config_file=str(chosen), allow_exposure=True))  # what a file says, it gets
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is True
+
+
+@pytest.mark.parametrize("listen, exposed", [
+    ("tcp/127.0.0.1:0", False), ("tcp/[::1]:0", False), ("tcp/localhost:0", False), ("udp/127.0.0.2:0", False),
+    ("unixsock-stream//tmp/aefabmap-test.sock", False), ("tcp/0.0.0.0:0", True), ("tcp/[::]:0", True),
+    ("tcp/192.168.1.20:7447", True), ("tcp/robot.local:7447", True), ("tls/0.0.0.0:0", True),
+    ("quic/10.0.0.1:7447", True),
+])
+def test_exposure_of_listen_endpoints(tmp_path, listen, exposed):
+    """Attacker's view: whatever another host can reach without a certificate needs --allow-exposure, from a
+    config file or from --listen alike."""
+    import json
+
+    from aefabmap.errors import ConfigError
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config, session_exposure
+
+    conf_file = tmp_path / "z.json5"
+    conf_file.write_text(json.dumps({"listen": {"endpoints": [listen]}}))
+    for sc in (SessionConfig(config_file=str(conf_file)), SessionConfig(listen=(listen,))):
+        assert bool(session_exposure(sc)) == exposed
+        if exposed:
+            with pytest.raises(ConfigError, match=f"would expose the node \\(listens on {re.escape(listen)}"):
+                build_zenoh_config(sc)
+        build_zenoh_config(dataclasses.replace(sc, allow_exposure=True))
+
+
+def test_mutual_tls_listeners_are_not_exposure(tmp_path):
+    """A TLS/QUIC listener whose peers must show a certificate of the configured CA is authenticated; TLS
+    without client certificates, or a plain TCP endpoint beside it, is not."""
+    import json
+
+    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, session_exposure
+
+    def exposure_of(doc):
+        path = tmp_path / "z.json5"
+        path.write_text(json.dumps(doc))
+        return session_exposure(SessionConfig(config_file=str(path)))
+
+    tls = {"root_ca_certificate": "ca.pem", "listen_certificate": "node.pem", "listen_private_key": "node.key"}
+    listen = {"endpoints": ["tls/0.0.0.0:7447"]}
+    assert exposure_of({"listen": listen, "transport": {"link": {"tls": {**tls, "enable_mtls": True}}}}) == []
+    assert exposure_of({"listen": listen, "transport": {"link": {"tls": tls}}}) != []
+    both = {"endpoints": ["tls/0.0.0.0:7447", "tcp/0.0.0.0:7448"]}
+    assert exposure_of({"listen": both, "transport": {"link": {"tls": {**tls, "enable_mtls": True}}}}) == [
+        "listens on tcp/0.0.0.0:7448 without client authentication"]
