@@ -21,6 +21,7 @@ import statistics
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 import zenoh
 
@@ -107,6 +108,8 @@ class StatusBoard:
         self._counters: dict = {"frames_received": 0, "frames_processed": 0, "dropped": 0, "bad": {}, "loops": 0}
         self._places: int | None = None
         self._map_mb: float | None = None
+        #: Returns the node's current warnings (StatusMessage.warnings); set by the node.
+        self.warnings: Callable[[], list[str]] | None = None
 
     def after_frame(self, loop, drops, result=None, detector=None) -> None:
         """Copy the frame loop's counters (and the result's timings, the map's size)."""
@@ -144,8 +147,14 @@ class StatusBoard:
             places=places, map_mb=map_mb, rss_mb=None if rss is None else round(rss, 1),
             stage_ms={k: round(statistics.median(v), 3) for k, v in stages.items()}, recent_frames=len(timings),
             log_files=files, log_bytes=size, log_errors=getattr(self.log, "errors", 0),
-            log_state=getattr(self.log, "state", None), **counters,
+            log_state=getattr(self.log, "state", None), warnings=self._current_warnings(), **counters,
         )
+
+    def _current_warnings(self) -> list[str]:
+        try:
+            return list(self.warnings()) if self.warnings is not None else []
+        except Exception:  # noqa: BLE001 - a status is answered even when its warnings cannot be listed
+            return ["warnings unavailable"]
 
 
 class HealthEndpoint:

@@ -276,7 +276,10 @@ def run_node(
                       run_config=options.log_metadata(), manifest=manifest if isinstance(manifest, dict) else None)
     board = StatusBoard(image_key=options.key, results_key=options.results_key,
                         manifest=manifest if isinstance(manifest, dict) else None, log=log, t0=t0)
-    with _Transport(options) as io, log.open(), _health(io.session, board):
+    with _Transport(options) as io, log.open(), _health(io.session, board) as health:
+        if isinstance(io.pub, RosResultPublisher):  # /diagnostics carries the status; status, the ROS warnings
+            io.pub.status_source = lambda: board.status(health.zid)
+            board.warnings = io.pub.warnings
         if ready_event is not None:
             ready_event.set()
         if view is not None:

@@ -9,9 +9,11 @@ what this module relies on:
 - payload: the message in CDR (runtime/adapters/ros_cdr.py);
 - attachment (zenoh-ext serialization): int64 sequence number, int64 source timestamp
   (ns), then the publisher gid as a sequence (LEB128 length, then the bytes), all
-  little-endian. The gid is ``RMW_GID_STORAGE_SIZE`` bytes: 16 since Iron, 24 on Humble.
-  Older releases prefixed each field with its name as a string (``sequence_number``,
+  little-endian. The gid is 16 bytes (rmw_zenoh's Humble port too, though Humble's
+  ``RMW_GID_STORAGE_SIZE`` is 24: 24-byte gids are read as well), derived from the entity's
+  liveliness token (see entity_gid). Older releases prefixed each field with its name as a string (``sequence_number``,
   ``source_timestamp``, ``source_gid``), some append the session id as a string; all are parsed;
+- health: the stats also as diagnostic_msgs/DiagnosticArray on ``/diagnostics``;
 - graph: liveliness tokens ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<kind>/<enclave>/<ns>/
   <node>[/<topic>/<type>/<hash>/<qos>]`` with kind ``NN`` (node), ``MP`` (publisher), ``MS``
   (subscription); names have ``/`` replaced by ``%``; ``::,:,:,:,,`` is the default QoS.
@@ -25,13 +27,16 @@ from the sequence numbers per publisher gid.
 
 from __future__ import annotations
 
-import hashlib
+import json
+import logging
+import socket
 import struct
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import xxhash
 import zenoh
 
 from aefabmap.errors import ConfigError, TransportError
@@ -39,8 +44,11 @@ from aefabmap.runtime.adapters.frames import FrameError
 from aefabmap.runtime.adapters.ros_cdr import (
     COMPRESSED_IMAGE_TYPE,
     DECODERS,
+    DIAGNOSTIC_ARRAY_TYPE,
     IMAGE_TYPE,
     STRING_TYPE,
+    DiagnosticStatus,
+    encode_diagnostic_array_cdr,
     encode_string_cdr,
 )
 from aefabmap.runtime.adapters.zenoh_transport import (
@@ -61,17 +69,29 @@ STRING_RIHS01 = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e94
 IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
 #: RIHS01 hash of sensor_msgs/msg/CompressedImage (checked against rosbags in the tests).
 COMPRESSED_IMAGE_RIHS01 = "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a"
-RIHS01_OF = {IMAGE_TYPE: IMAGE_RIHS01, COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_RIHS01}
+#: RIHS01 hash of diagnostic_msgs/msg/DiagnosticArray (checked against rosbags in the tests).
+DIAGNOSTIC_ARRAY_RIHS01 = "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e"
+RIHS01_OF = {IMAGE_TYPE: IMAGE_RIHS01, COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_RIHS01, STRING_TYPE: STRING_RIHS01,
+             DIAGNOSTIC_ARRAY_TYPE: DIAGNOSTIC_ARRAY_RIHS01}
 #: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
 DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
-#: RMW_GID_STORAGE_SIZE of each distribution (the gid length in the attachment).
-GID_STORAGE_BYTES = {"humble": 24, "jazzy": 16}
+#: The gid length rmw_zenoh puts in the attachment, per distribution: 16 everywhere (Humble's
+#: RMW_GID_STORAGE_SIZE is 24, but rmw_zenoh's Humble port hard-codes 16, ros2/rmw_zenoh#388).
+GID_STORAGE_BYTES = {"humble": 16, "jazzy": 16}
+#: Gid lengths accepted in a received attachment (24: Humble's RMW_GID_STORAGE_SIZE, other sources).
+RECEIVED_GID_BYTES = (16, 24)
 #: ``auto``: the distribution the camera's samples carry (their key's type-hash chunk).
 DISTROS = ("auto", "humble", "jazzy")
 #: Result and stats topics, relative: resolved in the node's namespace (``/lcd/result`` in ``/``).
 RESULT_TOPIC = "lcd/result"
 STATS_TOPIC = "lcd/stats"
+#: Where ROS tools (rqt_robot_monitor, the diagnostic aggregator) read health: absolute, so it
+#: stays ``/diagnostics`` in any namespace.
+DIAGNOSTICS_TOPIC = "/diagnostics"
+#: diagnostic_msgs/DiagnosticStatus levels.
+DIAG_OK, DIAG_WARN, DIAG_ERROR = 0, 1, 2
+log = logging.getLogger("aefabmap.ros")
 _INT64_MAX = 2**63 - 1
 
 
@@ -150,6 +170,18 @@ def liveliness_token(domain: int, zid: str, node_id: int, entity_id: int, kind: 
     return "/".join(parts)
 
 
+# --------------------------------------------------------------------------- gids
+# rmw_zenoh derives an entity's gid from its liveliness token: XXH3-128 (seed 0, default
+# secret) of the token's text, stored as the low 64 bits then the high 64 bits, each
+# little-endian (liveliness_utils.cpp, Entity's constructor).
+
+
+def entity_gid(token: str, size: int = GID_BYTES) -> bytes:
+    """The gid rmw_zenoh gives the entity of a liveliness token: XXH3-128 of the token, low 64
+    bits then high 64 bits, little-endian; zero-padded to ``size`` bytes (16 or 24)."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(16, "little").ljust(size, b"\x00")
+
+
 # --------------------------------------------------------------------------- attachment
 
 
@@ -185,7 +217,7 @@ def parse_attachment(data: bytes) -> RmwAttachment:
             pos += 8
         else:
             n, pos = read_varint(data, pos)
-            if n not in GID_STORAGE_BYTES.values() or pos + n > len(data):
+            if n not in RECEIVED_GID_BYTES or pos + n > len(data):
                 raise ValueError(f"attachment gid of {n} bytes (expected 16 or 24)")
             fields.append(bytes(data[pos : pos + n]))
             pos += n
@@ -287,29 +319,30 @@ class RosFrameSubscriber:
 # --------------------------------------------------------------------------- publisher
 
 
-class RosStringPublisher:
-    """A ROS 2 ``std_msgs/msg/String`` publisher on rmw_zenoh's key, with its attachment and
-    its liveliness token (so ``ros2 topic list`` shows the topic)."""
+class RosPublisher:
+    """A ROS 2 publisher of one message type on rmw_zenoh's key, with its attachment and its
+    liveliness token (so ``ros2 topic list`` shows the topic); ``put_cdr`` sends a CDR message."""
 
     def __init__(self, session: zenoh.Session, domain: int, topic: str, type_hash: str, zid: str,
-                 node_id: int, entity_id: int, node: str, gid_bytes: int = GID_BYTES, namespace: str = "/") -> None:
-        self.key = data_key(domain, topic, STRING_TYPE, type_hash)
-        token = liveliness_token(domain, zid, node_id, entity_id, "MP", node, topic, STRING_TYPE, type_hash,
-                                 namespace=namespace)
-        # A hash of the token, as rmw_zenoh derives its gids; Humble's gid storage is zero-padded to 24 bytes.
-        self.gid = hashlib.blake2b(token.encode(), digest_size=GID_BYTES).digest().ljust(gid_bytes, b"\x00")
+                 node_id: int, entity_id: int, node: str, gid_bytes: int = GID_BYTES, namespace: str = "/",
+                 ros_type: str = STRING_TYPE) -> None:
+        self.key = data_key(domain, topic, ros_type, type_hash)
+        self.topic, self.ros_type, self.type_hash = "/" + check_topic(topic), ros_type, type_hash
+        self.token = liveliness_token(domain, zid, node_id, entity_id, "MP", node, topic, ros_type, type_hash,
+                                      namespace=namespace)
+        self.gid = entity_gid(self.token, gid_bytes)
         self.seq = 0
         try:
             self._pub = session.declare_publisher(self.key, congestion_control=zenoh.CongestionControl.DROP)
-            self._token = session.liveliness().declare_token(token)
+            self._token = session.liveliness().declare_token(self.token)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare ROS publisher on {self.key!r}: {exc}") from exc
 
-    def put(self, text: str) -> None:
+    def put_cdr(self, payload: bytes) -> None:
         self.seq += 1  # rmw_zenoh numbers messages from 1
         att = RmwAttachment(self.seq, min(time.time_ns(), _INT64_MAX), self.gid).to_bytes()
         try:
-            self._pub.put(encode_string_cdr(text), attachment=att)
+            self._pub.put(payload, attachment=att)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {self.key!r}: {exc}") from exc
 
@@ -319,6 +352,13 @@ class RosStringPublisher:
                 entity.undeclare()
             except zenoh.ZError:
                 pass
+
+
+class RosStringPublisher(RosPublisher):
+    """A ROS 2 ``std_msgs/msg/String`` publisher (see RosPublisher)."""
+
+    def put(self, text: str) -> None:
+        self.put_cdr(encode_string_cdr(text))
 
 
 @dataclass(frozen=True)
@@ -418,11 +458,15 @@ class RosGraph:
 class RosResultPublisher:
     """ResultPublisher's interface, for a ROS 2 run: the JSON results and stats on their
     plain Zenoh keys (as without ROS), and also as std_msgs/String on ``/lcd/result`` and
-    ``/lcd/stats`` for ROS 2 nodes, with the type hash of the run's distribution.
+    ``/lcd/stats`` and as diagnostic_msgs/DiagnosticArray on ``/diagnostics`` for ROS 2 nodes,
+    with the type hash of the run's distribution.
 
     wire_distro: with distribution ``auto``, returns the camera's (distribution, message type)
     once known (the frame subscriber's ``distro`` and ``ros_type``); the ROS topics and the
     subscription token are declared then, and only the plain keys carry what is published before.
+    status_source: set by the node, returns its StatusMessage (places, map size and per-stage
+    times for the diagnostics). ``warnings()``: why results may reach no ROS subscriber now
+    (each also logged once).
     """
 
     def __init__(self, session: zenoh.Session, result_key: str, options: RosOptions,
@@ -431,27 +475,37 @@ class RosResultPublisher:
 
         self.session, self.options, self.wire_distro = session, options, wire_distro
         self.distro: str | None = None
-        self.ros_results = self.ros_stats = None
+        self.ros_results = self.ros_stats = self.ros_diagnostics = None
+        self.status_source: Callable[[], object] | None = None
+        self.hardware_id = socket.gethostname()
+        self._previous_stats: dict | None = None
+        self._results_sent = 0
         self.graph = RosGraph(session, options)
         try:
             self.plain = ResultPublisher(session, result_key)
+            self.watch = GraphWatch(session, options.domain)
         except BaseException:
-            self.graph.close()
+            self.close()
             raise
         self.result_key, self.stats_key = self.plain.result_key, self.plain.stats_key
+        self._logged: set[str] = set()
         if options.distro != "auto":
             self._adopt(options.distro)
 
     def _adopt(self, distro: str, camera_type: str | None = None) -> None:
         o = self.options
-        string_hash = HUMBLE_TYPE_HASH if distro == "humble" else STRING_RIHS01
         gid_bytes = GID_STORAGE_BYTES[distro]
+
+        def publisher(topic: str, entity_id: int, ros_type: str, cls=RosPublisher):
+            type_hash = HUMBLE_TYPE_HASH if distro == "humble" else RIHS01_OF[ros_type]
+            return cls(self.session, o.domain, o.resolve(topic), type_hash, self.graph.zid, 0, entity_id, o.node,
+                       gid_bytes, o.fq_namespace, ros_type)
+
         try:
             self.graph.declare_subscription(distro, camera_type)
-            self.ros_results = RosStringPublisher(self.session, o.domain, o.resolve(o.result_topic), string_hash,
-                                                  self.graph.zid, 0, 2, o.node, gid_bytes, o.fq_namespace)
-            self.ros_stats = RosStringPublisher(self.session, o.domain, o.resolve(o.stats_topic), string_hash,
-                                                self.graph.zid, 0, 3, o.node, gid_bytes, o.fq_namespace)
+            self.ros_results = publisher(o.result_topic, 2, STRING_TYPE, RosStringPublisher)
+            self.ros_stats = publisher(o.stats_topic, 3, STRING_TYPE, RosStringPublisher)
+            self.ros_diagnostics = publisher(DIAGNOSTICS_TOPIC, 4, DIAGNOSTIC_ARRAY_TYPE)
         except BaseException:
             self.close()
             raise
@@ -466,23 +520,143 @@ class RosResultPublisher:
 
     def publish_result(self, result: dict | bytes) -> None:
         self.plain.publish_result(result)
+        self._results_sent += 1
         if self._ready():
             self.ros_results.put(_text(result))
+        self._log_warnings()
 
     def publish_stats(self, stats: dict | bytes) -> None:
         self.plain.publish_stats(stats)
         if self._ready():
             self.ros_stats.put(_text(stats))
+            self.ros_diagnostics.put_cdr(self._diagnostics(stats))
+        self._log_warnings()
+
+    def _diagnostics(self, stats: dict | bytes) -> bytes:
+        """The stats (and the node's status, when given) as a DiagnosticArray in CDR."""
+        doc = json.loads(stats) if isinstance(stats, (bytes, str)) else stats
+        status = None
+        if self.status_source is not None:
+            try:
+                status = self.status_source()
+            except Exception:  # noqa: BLE001 - the diagnostics go out without the status's extras
+                status = None
+        o = self.options
+        entry = node_diagnostic(doc, status, self._previous_stats, name=f"aefabmap: {o.node}",
+                                hardware_id=self.hardware_id, node=_fq_node(o), distro=self.distro or "")
+        self._previous_stats = doc
+        return encode_diagnostic_array_cdr(int(doc.get("stamp_ns") or time.time_ns()), [entry])
+
+    def warnings(self) -> list[str]:
+        """Why results published now may reach no ROS 2 subscriber (empty when none)."""
+        out = []
+        if self.distro is None and self._results_sent:
+            out.append(f"--ros-distro auto has not learnt the ROS 2 distribution (no camera sample yet): results go "
+                       f"to the Zenoh key {self.result_key} only, not to {self.options.resolve(self.options.result_topic)}")
+        for pub in (self.ros_results, self.ros_stats, self.ros_diagnostics):
+            if pub is not None:
+                out += self.watch.mismatches(pub.topic, pub.ros_type, pub.type_hash)
+        return out
+
+    def _log_warnings(self) -> None:
+        for text in self.warnings():
+            if text not in self._logged:
+                self._logged.add(text)
+                log.warning("%s", text)
 
     def close(self) -> None:
-        for pub in (self.ros_results, self.ros_stats, getattr(self, "plain", None)):
+        for pub in (self.ros_results, self.ros_stats, self.ros_diagnostics, getattr(self, "plain", None),
+                    getattr(self, "watch", None)):
             if pub is not None:
                 pub.close()
-        self.ros_results = self.ros_stats = None
+        self.ros_results = self.ros_stats = self.ros_diagnostics = None
         self.graph.close()
 
 
-def _text(doc: dict | bytes) -> str:
-    import json
+def _fq_node(options: RosOptions) -> str:
+    return options.fq_namespace.rstrip("/") + "/" + options.node
 
+
+class GraphWatch:
+    """The ROS 2 subscriptions of a domain, from their liveliness tokens (kept while they live),
+    so a publisher can tell whether the subscribers of its topic use another type hash."""
+
+    def __init__(self, session: zenoh.Session, domain: int) -> None:
+        self._lock = threading.Lock()
+        self._subs: dict[str, tuple[str, str, str]] = {}  # token -> (topic, mangled type, hash)
+        try:
+            self._sub = session.liveliness().declare_subscriber(f"{ADMIN_SPACE}/{check_domain(domain)}/**",
+                                                                self._on_token, history=True)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot watch the ROS 2 graph: {exc}") from exc
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        # A Zenoh thread: a malformed token is ignored, never raised.
+        token = str(sample.key_expr)
+        parts = token.split("/")
+        if len(parts) < 13 or parts[5] != "MS":
+            return
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._subs.pop(token, None)
+            else:
+                self._subs[token] = ("/" + parts[9].replace("%", "/").strip("/"), parts[10], parts[11])
+
+    def mismatches(self, topic: str, ros_type: str, type_hash: str) -> list[str]:
+        """One line per other type hash the subscriptions of ``topic`` (type ros_type) use."""
+        mangled = mangle_type(ros_type)
+        with self._lock:
+            theirs = [h for t, m, h in self._subs.values() if t == topic and m == mangled and h != type_hash]
+        return [f"{theirs.count(h)} subscriber(s) of {topic} listen under type hash {h} "
+                f"({distro_of_key(h) or 'unknown distribution'}), results go out under {type_hash} "
+                f"({distro_of_key(type_hash)}): they receive nothing (set --ros-distro)" for h in sorted(set(theirs))]
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass
+
+
+def diagnostic_level(stats: dict, previous: dict | None) -> tuple[int, str]:
+    """(level, message) of a stats message: ERROR when the log failed; WARN when frames were
+    dropped or refused since the previous stats, or the log is not ok; else OK."""
+    state = stats.get("log_state")
+    if state == "failed":
+        return DIAG_ERROR, "the log failed (no file open; retried)"
+    reasons = []
+    for key, what in (("dropped", "frames dropped"), ("bad_total", "frames refused")):
+        new = int(stats.get(key) or 0) - int((previous or {}).get(key) or 0)
+        if new > 0:
+            reasons.append(f"{new} {what}")
+    if state not in (None, "ok"):
+        reasons.append(f"log {state}")
+    return (DIAG_WARN, "; ".join(reasons)) if reasons else (DIAG_OK, "ok")
+
+
+def diagnostic_values(stats: dict, status=None) -> tuple[tuple[str, str], ...]:
+    """The key/value pairs of the node's DiagnosticStatus: counters, bad frames by reason,
+    latency, memory and log state from the stats; places, map MB and per-stage ms (medians
+    over recent frames) from the status when given."""
+    latency = stats.get("latency_ms") or {}
+    pairs = [(k, stats.get(k)) for k in ("frames_received", "frames_processed", "dropped", "publisher_restarts",
+                                         "bad_total", "loops", "fps", "rss_mb", "uptime_s")]
+    pairs += [(f"bad {reason}", n) for reason, n in sorted((stats.get("bad") or {}).items()) if n]
+    pairs += [("latency p50 ms", latency.get("p50")), ("latency p95 ms", latency.get("p95"))]
+    if status is not None:
+        pairs += [("places", status.places), ("map_mb", status.map_mb)]
+        pairs += [(f"stage {name} ms", ms) for name, ms in sorted(status.stage_ms.items())]
+    pairs += [("log_state", stats.get("log_state")), ("log_errors", stats.get("log_errors"))]
+    return tuple((k, "" if v is None else str(v)) for k, v in pairs)
+
+
+def node_diagnostic(stats: dict, status, previous: dict | None, *, name: str, hardware_id: str, node: str = "",
+                    distro: str = "") -> DiagnosticStatus:
+    """The node's DiagnosticStatus for one stats message (see diagnostic_level, diagnostic_values)."""
+    level, message = diagnostic_level(stats, previous)
+    values = diagnostic_values(stats, status) + (("node", node), ("ros_distro", distro))
+    return DiagnosticStatus(level, name, message, hardware_id, values)
+
+
+def _text(doc: dict | bytes) -> str:
     return doc.decode("utf-8") if isinstance(doc, bytes) else json.dumps(doc, separators=(",", ":"))

@@ -1,5 +1,5 @@
 """ROS 2 CDR for exactly the messages the runtime exchanges: sensor_msgs Image and
-CompressedImage in, std_msgs/String out.
+CompressedImage in, std_msgs/String and diagnostic_msgs/DiagnosticArray out.
 
 A small, strict reader rather than a generic one: every length is checked against the
 buffer before anything is sliced, and a malformed message raises :class:`FrameError` with
@@ -16,6 +16,9 @@ the header. A string is a uint32 length including the terminating NUL, then the 
     Image: header (stamp int32 sec, uint32 nanosec; frame_id string), uint32 height,
            uint32 width, string encoding, uint8 is_bigendian, uint32 step, uint8[] data
     CompressedImage: header, string format, uint8[] data
+    DiagnosticArray: header, uint32 count, then per status: uint8 level, string name,
+           string message, string hardware_id, uint32 count, then per value: string key,
+           string value
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from aefabmap.runtime.adapters.frames import (
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 STRING_TYPE = "std_msgs/msg/String"
+DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
 
 _LITTLE = {b"\x00\x01": True, b"\x00\x00": False, b"\x00\x07": True, b"\x00\x06": False}
 #: Longest text field accepted (frame_id, encoding, format), bytes: real ones are tens of bytes.
@@ -163,3 +167,65 @@ def encode_string_cdr(text: str) -> bytes:
     """A ``std_msgs/msg/String`` as little-endian CDR (header, uint32 length with NUL, bytes)."""
     raw = text.encode("utf-8") + b"\x00"
     return b"\x00\x01\x00\x00" + struct.pack("<I", len(raw)) + raw
+
+
+class _Writer:
+    """Little-endian CDR being built; fields aligned to their size from the end of the header."""
+
+    def __init__(self) -> None:
+        self.buf = bytearray(b"\x00\x01\x00\x00")
+
+    def _align(self, n: int) -> None:
+        self.buf += bytes((-(len(self.buf) - 4)) % n)
+
+    def u8(self, value: int) -> None:
+        self.buf += struct.pack("<B", value)
+
+    def u32(self, value: int) -> None:
+        self._align(4)
+        self.buf += struct.pack("<I", value)
+
+    def i32(self, value: int) -> None:
+        self._align(4)
+        self.buf += struct.pack("<i", value)
+
+    def string(self, text: str) -> None:
+        raw = text.encode("utf-8") + b"\x00"
+        self.u32(len(raw))
+        self.buf += raw
+
+    def header(self, stamp_ns: int, frame_id: str = "") -> None:
+        sec, nanosec = divmod(max(0, stamp_ns), 1_000_000_000)
+        self.i32(min(sec, 2**31 - 1))  # builtin_interfaces/Time.sec is an int32
+        self.u32(nanosec)
+        self.string(frame_id)
+
+
+@dataclass(frozen=True)
+class DiagnosticStatus:
+    """One diagnostic_msgs/DiagnosticStatus: level (OK 0, WARN 1, ERROR 2, STALE 3), name,
+    message, hardware_id and (key, value) string pairs."""
+
+    level: int
+    name: str
+    message: str
+    hardware_id: str
+    values: tuple[tuple[str, str], ...] = ()
+
+
+def encode_diagnostic_array_cdr(stamp_ns: int, statuses: list[DiagnosticStatus] | tuple[DiagnosticStatus, ...],
+                                frame_id: str = "") -> bytes:
+    """A ``diagnostic_msgs/msg/DiagnosticArray`` as little-endian CDR; stamp_ns: header stamp (ns)."""
+    w = _Writer()
+    w.header(stamp_ns, frame_id)
+    w.u32(len(statuses))
+    for status in statuses:
+        w.u8(status.level)
+        w.string(status.name)
+        w.string(status.message)
+        w.string(status.hardware_id)
+        w.u32(len(status.values))
+        for key, value in status.values:
+            w.string(key)
+            w.string(value)
+    return bytes(w.buf)

@@ -29,7 +29,8 @@ from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 #: Format of the messages (and of the log layout that carries them): "major.minor".
 #: 1.0: the first logs ("1"); 1.1: generated schemas, ``score_kind``; 1.2: the log's health in
 #: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...); 1.3: ``nfa``,
-#: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``.
+#: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``;
+#: 1.5: ``sequence_nfa``, the status's ``warnings``.
 MESSAGE_FORMAT_VERSION = "1.5"
 
 #: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
@@ -377,6 +378,9 @@ class StatusMessage(_Message):
     log_bytes: int = _f(0, "bytes of those files")
     log_errors: int = _f(0, "log write errors so far (never fatal)")
     log_state: str | None = _f(None, "the log now (see StatsMessage.log_state)", enum=LOG_STATES)
+    warnings: list[str] = field(default_factory=list, metadata=_meta(
+        "what the node warns about now, one line each, e.g. results that no ROS 2 subscriber can read "
+        "(empty: nothing)", since="1.5"))
 
     def __post_init__(self) -> None:
         self.bad_total = sum(self.bad.values())

@@ -170,7 +170,7 @@ def test_rmw_zenoh_image_samples_give_one_result_each(tmp_path, typestore):
     assert [d["frame_seq"] for d in docs] == [1, 2, 3]
     # Our results carry rmw_zenoh's attachment (numbered from 1) and the node is in the graph.
     assert [parse_attachment(a).sequence_number for a in atts] == [1, 2, 3]
-    assert all(len(parse_attachment(a).gid) == 24 for a in atts)  # Humble's gid storage
+    assert all(len(parse_attachment(a).gid) == 16 for a in atts)  # rmw_zenoh's Humble port hard-codes 16
     assert any("/NN/%/%/aefabmap" in t for t in tokens)
     assert any(t.endswith("/MP/%/%/aefabmap/%lcd%result/std_msgs::msg::dds_::String_/TypeHashNotSupported/::,:,:,:,,")
                for t in tokens)
