@@ -1,7 +1,9 @@
 """``aefabmap replay``: run a bundle over the images of an MCAP log (own log or ROS 2 bag).
 
 Exit code: 0, or 1 when ``--check`` finds results that differ from the logged ones;
-errors exit with the code of their aefabmap.errors class.
+errors exit with the code of their aefabmap.errors class. With ``--foxglove`` the replay plays at
+the recorded pace (``--rate``), optionally after the first viewer (``--wait-viewer``), and the
+server stays up after it until Ctrl-C/SIGTERM (docs/streaming.md, "Replay in Foxglove").
 """
 
 from __future__ import annotations
@@ -10,8 +12,9 @@ import argparse
 import dataclasses
 import json
 import logging
+import threading
 
-from aefabmap.errors import AefabmapError, LogError
+from aefabmap.errors import AefabmapError, ConfigError, LogError
 
 log = logging.getLogger("aefabmap.replay")
 
@@ -38,11 +41,44 @@ def register(subparsers) -> argparse.ArgumentParser:
     from aefabmap.cli.run import add_foxglove_options
 
     add_foxglove_options(p)
+    add_playback_options(p)
     p.set_defaults(func=main)
     return p
 
 
-def main(args: argparse.Namespace) -> int:
+#: Longest wait (s) for a viewer when --wait-viewer is given without a value.
+DEFAULT_WAIT_VIEWER_S = 120.0
+
+
+def add_playback_options(p: argparse.ArgumentParser) -> None:
+    """--rate and --wait-viewer (replay.PlaybackConfig)."""
+    p.add_argument("--rate", type=float, default=None, metavar="X",
+                   help="play at X times the recorded pace (the logged capture stamps; a long pause in the log "
+                   "waits a few seconds at most); 0: as fast as possible (default: 1 with --foxglove, else 0)")
+    p.add_argument("--wait-viewer", type=float, nargs="?", const=DEFAULT_WAIT_VIEWER_S, default=None,
+                   metavar="S", help="with --foxglove: start once a viewer has subscribed, waiting at most S "
+                   f"seconds (default {DEFAULT_WAIT_VIEWER_S:g}); at the end the server stays up until Ctrl-C")
+
+
+def playback_config(args: argparse.Namespace):
+    """The PlaybackConfig of the parsed options (ConfigError when invalid)."""
+    from aefabmap.runtime.adapters.replay import PlaybackConfig
+
+    if args.wait_viewer is not None and args.foxglove is None:
+        raise ConfigError("--wait-viewer needs --foxglove")
+    rate = args.rate if args.rate is not None else (1.0 if args.foxglove is not None else 0.0)
+    return PlaybackConfig(rate=rate, wait_viewer_s=args.wait_viewer)
+
+
+def serve_until_stopped(view, stop: threading.Event) -> None:
+    """Keep the Foxglove server of ``view`` up after the replay until ``stop`` (Ctrl-C/SIGTERM)."""
+    server = view.server
+    log.info("replay done; Foxglove server still up on ws://%s:%d until Ctrl-C", server.host, server.port)
+    stop.wait()
+
+
+def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """stop: ends the replay between frames and the serving after it (set by SIGINT/SIGTERM)."""
     from aefabmap.cli.run import start_live_view
     from aefabmap.cli.run_config import logged_run_config
     from aefabmap.cli.state_options import open_state
@@ -52,11 +88,14 @@ def main(args: argparse.Namespace) -> int:
         RUN_CONFIG_METADATA,
         read_log_metadata,
     )
+    from aefabmap.runtime.adapters.node import stop_on_signals
     from aefabmap.runtime.adapters.replay import replay
     from aefabmap.runtime.adapters.ros_bag import is_ros_bag
 
+    stop = stop if stop is not None else threading.Event()
     state_dir = view = None
     try:
+        playback = playback_config(args)
         # Replay with the whole configuration of the logged run (a bag has none: the defaults).
         bag = len(args.log) == 1 and is_ros_bag(args.log[0])
         source = args.log[0] if bag else log_files(args.log)
@@ -68,12 +107,21 @@ def main(args: argparse.Namespace) -> int:
         detector = load_detector(args.model, detector_config)
         if args.state is not None:
             state_dir = open_state(args.state, detector, log)
-        view = start_live_view(args)
-        summary = replay(detector, source, out_path=args.out, check=args.check,
-                         image_topic=args.topic, view=view)
-        if state_dir is not None:
-            info = state_dir.save(detector.state())
-            log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
+        with stop_on_signals(stop):
+            view = start_live_view(args)
+            if playback.wait_viewer_s is not None:
+                log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
+            summary = replay(detector, source, out_path=args.out, check=args.check,
+                             image_topic=args.topic, view=view, playback=playback, stop=stop)
+            if state_dir is not None:
+                info = state_dir.save(detector.state())
+                log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
+                state_dir.close()
+                state_dir = None
+            code = report_summary(args, summary)
+            if view is not None and not stop.is_set():
+                serve_until_stopped(view, stop)
+        return code
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code
@@ -82,12 +130,18 @@ def main(args: argparse.Namespace) -> int:
             view.close()
         if state_dir is not None:
             state_dir.close()
+
+
+def report_summary(args: argparse.Namespace, summary) -> int:
+    """Log and print the replay's summary (one JSON line on stdout); the exit code it calls for."""
+    if summary.stopped:
+        log.warning("replay stopped after %d frames (Ctrl-C/SIGTERM)", summary.frames_read)
     log.info("%s", summary.status.describe())
     if summary.status.truncated:
         log.warning("%s", summary.status.describe())
     doc = summary.to_dict()
     print(json.dumps(doc, default=str))
-    if summary.frames_processed == 0:
+    if summary.frames_processed == 0 and not summary.stopped:
         status = summary.status
         why = status.last_invalid or (f"{summary.frames_read} frames read, none usable" if summary.frames_read
                                       else "no image messages")

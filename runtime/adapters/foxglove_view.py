@@ -22,6 +22,8 @@ size: docs/results.md, "Memory") plus ``pending`` recent frames' thumbnails wait
 from __future__ import annotations
 
 import json
+import threading
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -45,6 +47,11 @@ RESULT_TOPIC = "/lcd/result"
 STATS_TOPIC = "/lcd/stats"
 DEFAULT_PORT = 8765
 INSTALL_HINT = "the Foxglove live view needs foxglove-sdk: install aefabmap[foxglove]"
+#: After a viewer's first subscription, time (s) left for its other ones: a viewer subscribes per
+#: panel and the SDK reports each channel on its own.
+VIEWER_SETTLE_S = 0.5
+#: Slice (s) of the wait for a viewer between looks at the stop event.
+_WAIT_SLICE_S = 0.1
 
 #: Protobuf classes of the view's own topics (the MCAP writer registers their schemas).
 VIEW_PROTOBUF = {PLACE_IMAGE_TOPIC: CompressedImage, ANNOTATIONS_TOPIC: ImageAnnotations}
@@ -146,12 +153,24 @@ def annotations_for(result: FrameResult, frame_id: str = "camera") -> ImageAnnot
     return msg
 
 
+def _subscription_listener(event: threading.Event):
+    """A foxglove-sdk ServerListener that sets ``event`` when any viewer subscribes to any channel."""
+    from foxglove.websocket import ServerListener
+
+    class _Listener(ServerListener):  # the base class answers every other callback
+        def on_subscribe(self, client, channel) -> None:
+            event.set()
+
+    return _Listener()
+
+
 class FoxgloveServer:
     """A Foxglove WebSocket server (foxglove-sdk) with the view's channels, in its own context.
 
     host: loopback by default (the protocol has no authentication). port: 0 picks a free one
     (``self.port`` tells). Raises ConfigError when foxglove-sdk is absent, TransportError when
-    the port cannot be bound.
+    the port cannot be bound. foxglove-sdk accepts only viewers that offer the WebSocket
+    subprotocol ``foxglove.sdk.v1`` (docs/streaming.md, "Live view").
     """
 
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "aefabmap") -> None:
@@ -171,14 +190,31 @@ class FoxgloveServer:
         for topic, kind in ((RESULT_TOPIC, FrameResult), (STATS_TOPIC, StatsMessage)):
             schema = foxglove.Schema(name=kind.TITLE, encoding="jsonschema", data=json.dumps(kind.json_schema()).encode())
             self.channels[topic] = foxglove.Channel(topic, schema=schema, message_encoding="json", context=self._context)
+        self._viewer = threading.Event()
         try:
-            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context)
+            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
+                                                 server_listener=_subscription_listener(self._viewer))
         except Exception as exc:  # the SDK raises its own error types (bind failures)
             raise TransportError(f"cannot start the Foxglove server on {host}:{port}: {exc}"[:300]) from exc
         self.port, self.host = self._server.port, host
 
     def subscribed(self, topic: str) -> bool:
         return self.channels[topic].has_sinks()
+
+    def wait_viewer(self, timeout_s: float, stop: threading.Event | None = None,
+                    settle_s: float = VIEWER_SETTLE_S) -> bool:
+        """Block until a viewer has subscribed to a channel, then ``settle_s`` (s) more for its other
+        subscriptions. False when ``stop`` was set first; TransportError after ``timeout_s`` (s)."""
+        stop = stop or threading.Event()
+        deadline = time.monotonic() + timeout_s
+        while not self._viewer.is_set():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TransportError(f"no Foxglove viewer subscribed to ws://{self.host}:{self.port} "
+                                     f"within {timeout_s:g} s")
+            if stop.wait(min(left, _WAIT_SLICE_S)):
+                return False
+        return not stop.wait(settle_s)
 
     def log(self, topic: str, data: bytes, log_time_ns: int) -> None:
         self.channels[topic].log(data, log_time=log_time_ns)
@@ -202,6 +238,12 @@ class LiveView:
 
     def attach_log(self, log) -> None:
         self.log = log
+
+    def wait_viewer(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """FoxgloveServer.wait_viewer of the view's server (ConfigError without one)."""
+        if self.server is None:
+            raise ConfigError("waiting for a viewer needs the Foxglove server")
+        return self.server.wait_viewer(timeout_s, stop)
 
     def _send(self, topic: str, data: bytes, stamp_ns: int, sequence: int, *, to_log: bool = True) -> None:
         if self.server is not None:

@@ -6,17 +6,23 @@ lossless gray PNG) with the same capture stamps, in the same order. So, with the
 bundle and a log written with ``image_every=1``, the deterministic result fields must come
 out identical; :func:`compare_results` checks that (``aefabmap replay --check``).
 Timings and latencies are never compared.
+
+Playback (:class:`PlaybackConfig`): as fast as possible by default, or at a multiple of the
+recorded pace (the gaps between the logged capture stamps), optionally after the first Foxglove
+viewer subscribed; a ``threading.Event`` stops a replay between frames.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from aefabmap.errors import ConfigError
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.log_set import LogSet, LogSetReader
 from aefabmap.runtime.adapters.mcap_log import (
@@ -151,6 +157,63 @@ def compare_results(
     return report
 
 
+@dataclass(frozen=True)
+class PlaybackConfig:
+    """How a replay plays its frames.
+
+    rate: multiple of the recorded pace (1: the gaps between the capture stamps; 2: twice as
+    fast); 0: as fast as possible. max_gap_s: longest wait (s) for one gap, so a long pause in the
+    log (or a run boundary) never stalls the replay. wait_viewer_s: with a live view, wait at most
+    this long (s) for the first viewer before the first frame; None: do not wait.
+    """
+
+    rate: float = 0.0
+    max_gap_s: float = 3.0
+    wait_viewer_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.rate, (int, float)) and math.isfinite(self.rate) and self.rate >= 0):
+            raise ConfigError(f"replay rate must be a finite number >= 0 (0: as fast as possible), got {self.rate!r}")
+        if not (isinstance(self.max_gap_s, (int, float)) and math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+            raise ConfigError(f"longest replay gap must be > 0 s, got {self.max_gap_s!r}")
+        wait = self.wait_viewer_s
+        if wait is not None and not (isinstance(wait, (int, float)) and math.isfinite(wait) and wait > 0):
+            raise ConfigError(f"viewer wait must be a finite number of seconds > 0, got {wait!r}")
+
+
+class Pacer:
+    """Holds each frame until its recorded time, scaled by 1/rate, has come on a monotonic clock.
+
+    Due times are absolute (the previous due time plus the capped, scaled gap), so the time spent
+    processing a frame is not added to the gaps. A replay that falls more than ``max_gap_s``
+    behind is re-anchored instead of bursting to catch up. Stamps that go back (a new run of a log
+    set) count as no gap.
+    """
+
+    def __init__(self, config: PlaybackConfig, stop: threading.Event | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.config, self.clock = config, clock
+        self.stop = stop if stop is not None else threading.Event()
+        self._due: float | None = None
+        self._stamp_ns: int | None = None
+
+    def wait(self, stamp_ns: int) -> bool:
+        """Wait for the frame captured at ``stamp_ns`` (ns); False when stopped (before or while waiting)."""
+        if self.config.rate <= 0:
+            return not self.stop.is_set()
+        now = self.clock()
+        self._due = self._next_due(stamp_ns, now)
+        self._stamp_ns = stamp_ns
+        delay = self._due - now
+        return not (self.stop.wait(delay) if delay > 0 else self.stop.is_set())
+
+    def _next_due(self, stamp_ns: int, now: float) -> float:
+        if self._due is None or self._stamp_ns is None:
+            return now
+        gap_s = min(max(stamp_ns - self._stamp_ns, 0) / 1e9 / self.config.rate, self.config.max_gap_s)
+        return max(self._due + gap_s, now - self.config.max_gap_s)
+
+
 @dataclass
 class ReplaySummary:
     """What a replay did; status says how much of the log was read (truncation)."""
@@ -164,6 +227,7 @@ class ReplaySummary:
     status: ReadStatus
     out_path: str | None = None
     check: CheckReport | None = None
+    stopped: bool = False  # by the stop event, before the end of the log
 
     @property
     def fps(self) -> float:
@@ -187,6 +251,8 @@ def replay(
     log_config: McapLogConfig | None = None,
     on_result: Callable[[dict], None] | None = None,
     view=None,
+    playback: PlaybackConfig | None = None,
+    stop: threading.Event | None = None,
 ) -> ReplaySummary:
     """Run ``detector`` (see frame_loop.FrameProcessor) over the images of ``mcap_path``: an aefabmap
     log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/adapters/ros_bag.py).
@@ -200,10 +266,21 @@ def replay(
     image_topic: which image topic to read (default: the log's image topic, else the first found).
     on_result: called with each replayed result's dict.
     view: a foxglove_view.LiveView shown every replayed frame (its log is set to ``out_path``'s).
+    playback: pace and viewer wait (default: as fast as possible, no wait). stop: set it to end
+    the replay between frames (or the viewer wait); the summary then says ``stopped``.
     Raises LogError when the source cannot be read (or is of a newer format) or the output
-    not written.
+    not written, ConfigError when waiting for a viewer without a view, TransportError when none
+    came in time.
     """
+    playback = playback or PlaybackConfig()
+    stop = stop if stop is not None else threading.Event()
     reader = open_replay_source(mcap_path, image_topic=image_topic)
+    if playback.wait_viewer_s is not None:
+        if view is None:
+            raise ConfigError("waiting for a viewer needs the Foxglove live view")
+        view.wait_viewer(playback.wait_viewer_s, stop)  # a stop here ends the replay at its first frame
+    pacer = Pacer(playback, stop)
+    stopped = False
     source = str(mcap_path) if isinstance(mcap_path, (str, Path)) else ", ".join(map(str, mcap_path))
     replayed: list[FrameResult] = []
     loop = FrameLoop(detector)
@@ -223,6 +300,9 @@ def replay(
         view.attach_log(writer)
     try:
         for image in reader.frames():
+            if not pacer.wait(image.stamp_ns):
+                stopped = True
+                break
             out = loop.step(image.payload, image.encoding, image.stamp_ns)
             if out.result is None:
                 continue  # counted by the frame loop
@@ -271,6 +351,8 @@ def replay(
             and logged_manifest != json.loads(json.dumps(manifest, sort_keys=True, default=str))
         ):
             report.notes.append("the bundle manifest differs from the one in the log")
+        if stopped:
+            report.notes.append(f"the replay was stopped after {loop.frames_in} frames")
         if reader.status.truncated:
             report.notes.append("the log was truncated (no summary): compared up to its last complete chunk")
         if reader.results and reader.results[0].sequence > 0:
@@ -289,4 +371,5 @@ def replay(
         status=reader.status,
         out_path=str(out_path) if out_path is not None else None,
         check=report,
+        stopped=stopped,
     )

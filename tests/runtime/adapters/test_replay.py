@@ -307,3 +307,115 @@ def test_replay_check_of_an_older_format_log_skips_the_fields_it_cannot_hold(liv
     assert any("not compared:" in n and "score_kind" in n and "nfa" in n for n in summary.check.notes)
     again = replay(load_detector(bundle, config), live_log, check=True)  # a current log: nothing skipped
     assert not any("not compared" in n for n in again.check.notes)
+
+
+class _FakeClock:
+    """A monotonic clock and a stop event whose waits advance it (no real time passes)."""
+
+    def __init__(self) -> None:
+        self.now, self.waits, self.stopped = 100.0, [], False
+
+    def __call__(self) -> float:
+        return self.now
+
+    def wait(self, timeout_s: float) -> bool:
+        self.waits.append(round(timeout_s, 6))
+        self.now += timeout_s
+        return self.stopped
+
+    def is_set(self) -> bool:
+        return self.stopped
+
+
+def test_pacer_waits_the_recorded_gaps_without_adding_processing_time():
+    from aefabmap.runtime.adapters.replay import Pacer, PlaybackConfig
+
+    clock = _FakeClock()
+    pacer = Pacer(PlaybackConfig(rate=1.0, max_gap_s=3.0), stop=clock, clock=clock)
+    s = 10**9  # ns
+    for stamp in (0, s // 2, s):  # frames 0.5 s apart, 0.2 s of processing each
+        assert pacer.wait(stamp)
+        clock.now += 0.2
+    assert clock.waits == [0.3, 0.3]  # the gap minus the processing, not the gap on top of it
+    assert pacer.wait(101 * s) and clock.waits[-1] == 2.8  # a 100 s pause in the log: capped at 3 s
+    n = len(clock.waits)
+    assert pacer.wait(100 * s) and len(clock.waits) == n  # a stamp going back (next run): no wait
+    clock.now += 60.0  # a long stall: re-anchored, no burst of 60 s worth of frames
+    for stamp in (100 * s + s // 2, 101 * s, 102 * s, 103 * s, 104 * s):
+        assert pacer.wait(stamp)
+    assert clock.waits[n:] == [0.5]  # at most max_gap_s (3 s) of frames at once, then paced again
+    double = Pacer(PlaybackConfig(rate=2.0), stop=clock, clock=clock)
+    assert double.wait(0) and double.wait(s) and clock.waits[-1] == 0.5
+    clock.stopped = True
+    assert not double.wait(2 * s)  # stopped while waiting
+    assert not Pacer(PlaybackConfig(rate=0.0), stop=clock, clock=clock).wait(0)  # stopped before a frame
+
+
+def test_playback_config_is_validated():
+    from aefabmap.errors import ConfigError
+    from aefabmap.runtime.adapters.replay import PlaybackConfig
+
+    for bad in ({"rate": -1.0}, {"rate": float("nan")}, {"rate": float("inf")}, {"max_gap_s": 0},
+                {"wait_viewer_s": 0}, {"wait_viewer_s": float("inf")}):
+        with pytest.raises(ConfigError):
+            PlaybackConfig(**bad)
+
+
+def _paced_log(path, n: int, gap_s: float):
+    import cv2
+
+    with McapLogWriter(path) as log:
+        for i, img in enumerate(sample_images(n, size=(96, 72))):
+            _ok, png = cv2.imencode(".png", img)
+            log.write_image(png.tobytes(), "image/png", 1_700_000_000_000_000_000 + round(i * gap_s * 1e9), sequence=i)
+    return path
+
+
+def test_replay_rate_keeps_the_recorded_pace_and_rate_0_does_not_wait(tmp_path):
+    """Rough timing (slow CI machines): lower bounds from the recorded gaps, upper bounds generous."""
+    import threading
+
+    from aefabmap.runtime.adapters.replay import PlaybackConfig
+
+    src = _paced_log(tmp_path / "paced.mcap", 6, gap_s=0.3)  # 1.5 s recorded
+    fast_docs, again_docs = [], []
+    fast = replay(FakeDetector(), src, on_result=fast_docs.append)
+    paced = replay(FakeDetector(), src, playback=PlaybackConfig(rate=1.0))
+    double = replay(FakeDetector(), src, playback=PlaybackConfig(rate=2.0))
+    assert 1.4 <= paced.duration_s < 10 and 0.7 <= double.duration_s < paced.duration_s
+    # Processing time is not added to the gaps: 0.25 s per frame inside 0.3 s gaps.
+    slow = replay(FakeDetector(delay_s=0.25), src, playback=PlaybackConfig(rate=1.0))
+    assert slow.duration_s < 1.5 + 6 * 0.25 - 0.3  # blind sleeps would take 1.5 + 6 * 0.25
+    waits = []
+
+    class _Watch(threading.Event):
+        def wait(self, timeout=None):
+            waits.append(timeout)
+            return super().wait(timeout)
+
+    again = replay(FakeDetector(), src, playback=PlaybackConfig(rate=0.0), stop=_Watch(), on_result=again_docs.append)
+    assert waits == [] and fast.frames_processed == paced.frames_processed == again.frames_processed == 6
+    assert compare_results(fast_docs, again_docs).ok  # --rate 0: the default replay, unchanged
+    assert not fast.stopped and fast.to_dict()["stopped"] is False
+
+
+def test_a_stop_ends_a_paced_replay_between_frames(tmp_path):
+    import threading
+    import time
+
+    from aefabmap.runtime.adapters.replay import PlaybackConfig
+
+    src = _paced_log(tmp_path / "pauses.mcap", 5, gap_s=100.0)  # long pauses: capped, then stopped
+    stop = threading.Event()
+    seen = []
+
+    def on_result(doc: dict) -> None:
+        seen.append(doc["sequence"])
+        if len(seen) == 2:
+            threading.Timer(0.2, stop.set).start()  # Ctrl-C during the (capped) wait for frame 2
+
+    t0 = time.monotonic()
+    summary = replay(FakeDetector(), src, playback=PlaybackConfig(rate=1.0, max_gap_s=3.0), on_result=on_result,
+                     stop=stop)
+    assert summary.stopped and summary.frames_processed == 2 and seen == [0, 1]
+    assert time.monotonic() - t0 < 3.0 + 2.5  # one capped gap, then the stop within its wait
