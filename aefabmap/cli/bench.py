@@ -49,6 +49,17 @@ def register(sub) -> None:
     pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     pl.add_argument("--json", type=Path, metavar="OUT")
     pl.set_defaults(func=run_pipeline)
+    sq = bsub.add_parser("sequence", help="per-stage ms per frame of the runtime's own path over a folder of real "
+                         "images, on one core")
+    sq.add_argument("--images", type=Path, required=True, metavar="DIR", help="image folder (file-name order)")
+    sq.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    sq.add_argument("--exclude", type=int, default=50, metavar="N", help="exclusion window, frames (default 50)")
+    sq.add_argument("--limit", type=int, default=None, metavar="N", help="first N images only")
+    sq.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
+                    help="compiled kernels when numba can run (auto) or numpy / OpenCV (the hardened unit's path)")
+    sq.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
+    sq.add_argument("--json", type=Path, metavar="OUT")
+    sq.set_defaults(func=run_sequence)
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
     qz.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
     qz.add_argument("--variant", default=None,
@@ -201,6 +212,26 @@ def run_pipeline(args) -> int:
     print(f"{'total w/o verification':<24}{v['median']:>12.2f}{v['p95']:>10.2f}")
     t = doc["target"]
     print(f"target median <= 10 ms: wall {'MET' if t['met_wall'] else 'MISSED'}, CPU {'MET' if t['met_cpu'] else 'MISSED'}")
+    return 0
+
+
+def run_sequence(args) -> int:
+    from aefabmap.runtime.tools.sequence_bench import STAGES, SequenceBenchConfig, bench_sequence
+
+    doc = bench_sequence(SequenceBenchConfig(images=str(args.images), bundle=str(_model(args)), exclude=args.exclude,
+                                             limit=args.limit, scatter=args.scatter, single_core=not args.all_cores))
+    _emit(doc, args.json)
+    s, c = doc["stages_ms"], doc["stages_cpu_ms"]
+    print(f"\n{doc['images']}: {doc['frames']} frames of {doc['image_size_wh']}, {doc['loops']} loops, "
+          f"{doc['places_verified_per_frame']['mean']} places verified per frame, kernels {doc['scatter']}, "
+          f"{'one core' if doc['single_core'] else 'all cores'}, load {doc['machine']['load_average']}")
+    print(f"{'stage':<16}{'wall median':>12}{'wall p95':>10}{'CPU median':>12}{'CPU mean':>10}  (ms)")
+    for name in STAGES:
+        print(f"{name:<16}{s[name]['median']:>12.2f}{s[name]['p95']:>10.2f}{c[name]['median']:>12.2f}"
+              f"{c[name]['mean']:>10.2f}")
+    w, u = doc["total_ms"], doc["total_cpu_ms"]
+    print(f"{'total':<16}{w['median']:>12.2f}{w['p95']:>10.2f}{u['median']:>12.2f}{u['mean']:>10.2f}")
+    print(f"{doc['frames_per_second']} frames per second")
     return 0
 
 

@@ -1,0 +1,134 @@
+"""Per-frame cost of the runtime's own path over a folder of real images (``aefabmap bench sequence``).
+
+Each image is read and decoded, then goes through the frame loop a node runs (runtime/adapters/
+frame_loop.py: decode, features, words, FAB-MAP, the candidate policy, verification, insertion), in
+file-name order, on one pinned core with one thread everywhere (as ``bench pipeline``). No
+evaluation, no ground truth: what a board pays per frame of this sequence. Printed and saved per
+stage (wall and CPU ms, median / p95 / mean), with the total and the frames per second.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from aefabmap.errors import BundleError, ConfigError, InputError
+from aefabmap.runtime.tools.stream_bench import (
+    SINGLE_THREAD_ENV,
+    _stats,
+    machine_info,
+    pin_one_cpu,
+    run_spawned_single_thread,
+)
+
+STAGES = ("decode", "features", "quantise", "inference", "verification")
+
+
+@dataclass(frozen=True)
+class SequenceBenchConfig:
+    """Settings of :func:`bench_sequence`.
+
+    images: folder of images (list_images: file-name order). bundle: model bundle directory.
+    exclude: DetectorConfig.exclude (frames, the sequence's exclusion window). limit: first N images
+    only (None: all). scatter: "auto" (compiled kernels when numba can run) or "numpy" (the hardened
+    unit's path). single_core: a spawned process pinned to one CPU with one thread everywhere.
+    """
+
+    images: str
+    bundle: str
+    exclude: int = 50
+    limit: int | None = None
+    scatter: str = "auto"
+    single_core: bool = True
+
+    def __post_init__(self) -> None:
+        if self.exclude < 0:
+            raise ConfigError(f"exclude must be >= 0 frames, got {self.exclude}")
+        if self.limit is not None and self.limit < 1:
+            raise ConfigError(f"limit must be >= 1 images, got {self.limit}")
+        if self.scatter not in ("auto", "numpy"):
+            raise ConfigError(f"scatter must be 'auto' or 'numpy', got {self.scatter!r}")
+
+
+def bench_sequence(config: SequenceBenchConfig) -> dict:
+    """Per-stage ms per frame of the runtime's path over config.images (module docstring)."""
+    if not Path(config.bundle).is_dir():
+        raise BundleError(f"model bundle {config.bundle} does not exist")
+    if not Path(config.images).is_dir():
+        raise InputError(f"image folder {config.images} does not exist")
+    if not config.single_core:
+        from aefabmap.runtime.core import compiled
+
+        previous = compiled.active() == "compiled"
+        try:
+            return _bench_here(config)
+        finally:
+            compiled.use(previous)
+    return run_spawned_single_thread(_bench_here, config)
+
+
+def _bench_here(config: SequenceBenchConfig) -> dict:
+    import cv2
+
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.frame_loop import FrameLoop
+    from aefabmap.runtime.adapters.image_folder import list_images
+    from aefabmap.runtime.core import compiled
+    from aefabmap.runtime.core.detector import DetectorConfig
+
+    compiled.use(config.scatter == "auto")
+    pinned = None
+    if config.single_core:
+        cv2.setNumThreads(1)
+        pinned = pin_one_cpu()
+    paths = list_images(config.images)[: config.limit]
+    if not paths:
+        raise InputError(f"no images in {config.images}")
+    det = load_detector(config.bundle, DetectorConfig(threads=1, exclude=config.exclude))
+    loop = FrameLoop(det, strict=True)
+    wall: dict[str, list[float]] = {k: [] for k in STAGES}
+    cpu: dict[str, list[float]] = {k: [] for k in STAGES}
+    total_wall, total_cpu, tried = [], [], []
+    image_size = None
+    t_start = time.perf_counter()
+    for i, path in enumerate(paths):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = loop.step_file(path, i)
+        wall_ms, cpu_ms = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
+        stage = {"decode": out.decode_ms, "verification": 0.0, **out.result.timings_ms}
+        share = cpu_ms / wall_ms if wall_ms > 0 else 1.0  # CPU shared out by the stages' wall times
+        for name in STAGES:
+            wall[name].append(stage.get(name, 0.0))
+            cpu[name].append(stage.get(name, 0.0) * share)
+        total_wall.append(wall_ms)
+        total_cpu.append(cpu_ms)
+        tried.append(out.result.candidates_tried)
+        if image_size is None and out.gray is not None:
+            image_size = [int(out.gray.shape[1]), int(out.gray.shape[0])]
+    seconds = time.perf_counter() - t_start
+    manifest = det.manifest
+    return {
+        "benchmark": "sequence",
+        "images": str(config.images),
+        "bundle": str(config.bundle),
+        "vocabulary_size": det.bundle.vocabulary_size,
+        "features": manifest.get("features"),
+        "exclude": config.exclude,
+        "frames": len(paths),
+        "image_size_wh": image_size,
+        "loops": loop.loops,
+        "places": det.n_places,
+        "places_verified_per_frame": _stats(tried),
+        "scatter": compiled.active(),
+        "single_core": config.single_core,
+        "pinned_cpu": pinned,
+        "threads_env": {k: os.environ.get(k) for k in SINGLE_THREAD_ENV},
+        "stages_ms": {k: _stats(v) for k, v in wall.items()},
+        "stages_cpu_ms": {k: _stats(v) for k, v in cpu.items()},
+        "total_ms": _stats(total_wall),
+        "total_cpu_ms": _stats(total_cpu),
+        "frames_per_second": round(len(paths) / seconds, 2) if seconds > 0 else None,
+        "machine": machine_info(),
+    }

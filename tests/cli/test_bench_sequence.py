@@ -1,0 +1,33 @@
+"""Plumbing of `aefabmap bench sequence` (a tiny generated folder; no timing asserts)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from aefabmap.cli.main import main
+
+
+@pytest.mark.timeout(180)
+def test_bench_sequence_runs_the_frame_loop_over_a_folder(tmp_path, capsys):
+    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+
+    make_demo_sequence(tmp_path / "seq", n_frames=12, seed=3, size=(320, 240))
+    out = tmp_path / "sequence.json"
+    code = main(["bench", "sequence", "--images", str(tmp_path / "seq"), "--exclude", "2", "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["benchmark"] == "sequence" and doc["frames"] == 12 and doc["image_size_wh"] == [320, 240]
+    assert doc["single_core"] is True and doc["threads_env"]["OMP_NUM_THREADS"] == "1"
+    for stage in ("decode", "features", "quantise", "inference", "verification"):
+        assert doc["stages_ms"][stage]["n"] == 12 and doc["stages_cpu_ms"][stage]["median"] >= 0
+    assert 0 < doc["total_ms"]["median"] <= doc["total_ms"]["max"]
+    assert doc["places"] == 12 - 2  # delayed insertion keeps the last `exclude` frames pending
+    assert "frames per second" in capsys.readouterr().out
+
+
+def test_bench_sequence_refuses_a_missing_folder_in_one_line(tmp_path, caplog):
+    code = main(["bench", "sequence", "--images", str(tmp_path / "nowhere")])
+    assert code == 4
+    assert any("does not exist" in r.getMessage() for r in caplog.records)
