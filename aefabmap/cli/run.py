@@ -150,7 +150,7 @@ def main(args: argparse.Namespace) -> int:
 
     from aefabmap.runtime.adapters.bundle_reader import load_detector, read_manifest
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
-    from aefabmap.runtime.adapters.rmw_zenoh import RosOptions, domain_from_env
+    from aefabmap.runtime.adapters.rmw_zenoh import ROS_PEER_LISTEN, RosOptions, domain_from_env
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
 
     stop = threading.Event()
@@ -170,8 +170,8 @@ def main(args: argparse.Namespace) -> int:
         session = cli_session_config("connect" if ros is not None else "listen", connect=args.connect,
                                      listen=args.listen, config_file=args.config, allow_exposure=args.allow_exposure)
         if ros is not None and not args.config and not args.listen:
-            # A client of the router: it routes to rmw_zenoh's peers without this node listening anywhere.
-            session = dataclasses.replace(session, mode="client")
+            # A peer of rmw_zenoh's graph on this host (router reachable, listening on loopback only).
+            session = dataclasses.replace(session, mode="peer", listen=(ROS_PEER_LISTEN,))
         warn_exposure(session, log)
         # The live view draws the inlier matches: keep them (a few hundred floats a frame).
         config = build_run_config(args, keep_inlier_points=args.foxglove is not None)

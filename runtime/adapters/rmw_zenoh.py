@@ -76,6 +76,10 @@ RIHS01_OF = {IMAGE_TYPE: IMAGE_RIHS01, COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_R
 #: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
 DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
+#: Where a ROS 2 run's session listens by default: as rmw_zenoh's nodes do (its default session
+#: config: a peer that connects to the router and listens on loopback), so the camera node on this
+#: host, told of this one by the router's gossip, sends its images directly.
+ROS_PEER_LISTEN = "tcp/127.0.0.1:0"
 #: The gid length rmw_zenoh puts in the attachment, per distribution: 16 everywhere (Humble's
 #: RMW_GID_STORAGE_SIZE is 24, but rmw_zenoh's Humble port hard-codes 16, ros2/rmw_zenoh#388).
 GID_STORAGE_BYTES = {"humble": 16, "jazzy": 16}

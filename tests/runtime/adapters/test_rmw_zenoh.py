@@ -87,12 +87,9 @@ class Router:
         self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
         self.session = zenoh.open(build_zenoh_config(SessionConfig(listen=(self.endpoint,), mode="router")))
 
-    def client(self) -> SessionConfig:
-        """The node's session, as ``aefabmap run --ros-topic`` opens it: a client of the router."""
-        return SessionConfig(connect=(self.endpoint,), mode="client")
-
     def ros_peer(self) -> SessionConfig:
-        """A ROS 2 node's session as rmw_zenoh opens it: a peer listening on a loopback port."""
+        """A ROS 2 node's session as rmw_zenoh opens it (and ``aefabmap run --ros-topic``): a peer
+        that connects to the router and listens on a loopback port."""
         return SessionConfig(connect=(self.endpoint,), listen=("tcp/127.0.0.1:0",), mode="peer")
 
     def close(self) -> None:
@@ -129,7 +126,7 @@ def _publish_and_collect(tmp_path, typestore, frames, expect: int, distro: str =
     router = Router()
     try:
         with (
-            NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
+            NodeThread(detector=FakeDetector(), session_config=router.ros_peer(), key="unused",
                        mcap_path=tmp_path / "ros.mcap", queue_size=16, stats_period_s=0.2,
                        ros=RosOptions(topic=TOPIC, distro=distro, **ros)) as node,
             zenoh.open(build_zenoh_config(router.ros_peer())) as camera,
@@ -352,6 +349,10 @@ def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, ca
                     pub.put(ros_image(typestore, img, "mono8", STAMP0 + i), attachment=rmw_attachment(i + 1, STAMP0))
                 plain.wait_for(lambda d: d["sequence"] == 1, timeout_s=20)
                 assert [d["sequence"] for d in ros.wait_for(2, timeout_s=20)] == [0, 1]
+                # As between rmw_zenoh's nodes on one host: the node and the camera are peers connected
+                # directly (told of each other by the router), so images need not cross the router.
+                peers = list(camera.info.peers_zid())
+                assert len(peers) == 1 and str(peers[0]) != str(router.session.info.zid())
                 plain.close()
                 ros.sub.undeclare()
             got.set()

@@ -96,7 +96,7 @@ def test_camera_on_domain_3_gets_results_and_diagnostics_with_rmw_zenoh_gids(tmp
     router = Router()
     try:
         with (
-            NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
+            NodeThread(detector=FakeDetector(), session_config=router.ros_peer(), key="unused",
                        mcap_path=tmp_path / "ros.mcap", queue_size=16, stats_period_s=0.2,
                        ros=RosOptions(topic=TOPIC, domain=DOMAIN)) as node,
             zenoh.open(build_zenoh_config(router.ros_peer())) as camera,
@@ -182,7 +182,7 @@ def test_results_under_a_distro_no_subscriber_uses_are_warned_in_log_and_status(
     try:
         with (
             zenoh.open(build_zenoh_config(router.ros_peer())) as ros,
-            NodeThread(detector=FakeDetector(), session_config=router.client(), key="unused",
+            NodeThread(detector=FakeDetector(), session_config=router.ros_peer(), key="unused",
                        mcap_path=tmp_path / "warn.mcap", stats_period_s=0.1,
                        ros=RosOptions(topic=TOPIC, domain=DOMAIN, distro="jazzy")) as node,
         ):
@@ -211,7 +211,7 @@ def test_results_under_a_distro_no_subscriber_uses_are_warned_in_log_and_status(
 def test_a_result_before_the_distro_is_known_is_warned():
     router = Router()
     try:
-        with zenoh.open(build_zenoh_config(router.client())) as session:
+        with zenoh.open(build_zenoh_config(router.ros_peer())) as session:
             pub = RosResultPublisher(session, "camera/lcd", RosOptions(topic=TOPIC), wire_distro=lambda: (None, None))
             try:
                 assert pub.warnings() == []
