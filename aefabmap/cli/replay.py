@@ -35,6 +35,9 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
     p.add_argument("--check", action="store_true", help="compare with the results in the log")
+    from aefabmap.cli.run import add_mcap_profile_option
+
+    add_mcap_profile_option(p)
     from aefabmap.cli.state_options import add_state_options
 
     add_state_options(p)
@@ -86,6 +89,7 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     from aefabmap.runtime.adapters.log_set import log_files
     from aefabmap.runtime.adapters.mcap_log import (
         RUN_CONFIG_METADATA,
+        McapLogConfig,
         read_log_metadata,
     )
     from aefabmap.runtime.adapters.node import stop_on_signals
@@ -112,7 +116,8 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             if playback.wait_viewer_s is not None:
                 log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
             summary = replay(detector, source, out_path=args.out, check=args.check,
-                             image_topic=args.topic, view=view, playback=playback, stop=stop)
+                             image_topic=args.topic, view=view, playback=playback, stop=stop,
+                             log_config=McapLogConfig(profile=args.mcap_profile))
             if state_dir is not None:
                 info = state_dir.save(detector.state())
                 log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)

@@ -65,6 +65,14 @@ def add_log_rotation_options(p: argparse.ArgumentParser) -> None:
                    "(default: max(500, 2 x --mcap-max-mb) and 100)")
 
 
+def add_mcap_profile_option(p: argparse.ArgumentParser) -> None:
+    """--mcap-profile: the layout of the written log (mcap_log.McapLogConfig.profile)."""
+    p.add_argument("--mcap-profile", choices=("aefabmap", "ros2"), default="aefabmap",
+                   help="layout of the MCAP log: aefabmap (default: protobuf image, JSON results) or ros2 (CDR "
+                   "sensor_msgs/CompressedImage on /camera/image/compressed, std_msgs/String JSON results and stats; "
+                   "ros2 bag play, rosbags and Foxglove read it, replay too)")
+
+
 def log_rotation_config(args: argparse.Namespace):
     """The LogRotationConfig of the parsed options (ConfigError when inconsistent)."""
     from aefabmap.runtime.adapters.rotating_log import LogRotationConfig
@@ -132,6 +140,7 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="MCAP log to write: a file (an existing one is never overwritten: the next is LOG-0001.mcap), "
                    "a directory (files lcd-YYYYmmdd-HHMMSS-0001.mcap) or a pattern with {n} (run-{n}.mcap)")
     add_log_rotation_options(logs)
+    add_mcap_profile_option(logs)
     inp.add_argument("--queue", type=int, default=None, metavar="N",
                    help="frames kept while busy; older ones are dropped (default 2, or the profile's)")
     logs.add_argument("--image-every", type=int, default=1, metavar="N",
@@ -149,12 +158,13 @@ def main(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from aefabmap.runtime.adapters.bundle_reader import load_detector, read_manifest
+    from aefabmap.runtime.adapters.mcap_log import McapLogConfig
     from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
     from aefabmap.runtime.adapters.rmw_zenoh import ROS_PEER_LISTEN, RosOptions, domain_from_env
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
 
     stop = threading.Event()
-    state_dir = snapshotter = view = None
+    state_dir = snapshotter = journal = view = state_report = None
     try:
         ros_topic = args.ros_topic
         if (args.key is None) == (ros_topic is None):
@@ -187,7 +197,7 @@ def main(args: argparse.Namespace) -> int:
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
                               queue_size=config.queue, stats_period_s=5.0, image_log_every=args.image_every,
                               run_config={RUN_CONFIG_KEY: config.to_dict()}, result_key=args.results_key, ros=ros,
-                              log_rotation=rotation)
+                              log_rotation=rotation, log_config=McapLogConfig(profile=args.mcap_profile))
 
         def on_stats(msg) -> None:
             log.info(
@@ -196,19 +206,24 @@ def main(args: argparse.Namespace) -> int:
                 msg.frames_processed, msg.dropped, msg.bad_total, msg.loops, _fmt(msg.fps),
                 _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb, msg.log_state, msg.log_errors,
             )
+            if journal is not None and journal.behind:  # frames the map state could not keep so far
+                log.warning("%s", journal.report().line())
 
         if args.state is not None:
             from aefabmap.cli.state_options import open_state
+            from aefabmap.runtime.adapters.map_journal import MapJournal
             from aefabmap.runtime.adapters.map_state import SnapshotPolicy, Snapshotter
 
             policy = SnapshotPolicy.parse(args.snapshot_every)
             state_dir = open_state(args.state, detector, log)
+            # Every frame between snapshots goes to the journal: a failing disk loses only what it could not take.
+            journal = MapJournal(state_dir, detector, on_error=lambda exc: log.warning("%s", exc))
             snapshotter = Snapshotter(
                 detector, state_dir, policy,
                 on_error=lambda exc: log.warning("snapshot failed, the previous one is kept: %s", exc),
                 on_saved=lambda info: log.debug("snapshot %s: %d places, %d bytes, %.3f s",
                                                 info.path.name, info.n_places, info.nbytes, info.seconds),
-                background=True,
+                background=True, journal=journal,
             )
 
         view = start_live_view(args)
@@ -218,6 +233,10 @@ def main(args: argparse.Namespace) -> int:
         if snapshotter is not None and snapshotter.saved:
             last = snapshotter.saved[-1]
             log.info("map state saved to %s: %d places, %d bytes", last.path, last.n_places, last.nbytes)
+        if journal is not None:
+            journal.close()
+            state_report = journal.report()
+            (log.warning if state_report.frames_not_written else log.info)("%s", state_report.line())
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code
@@ -226,9 +245,14 @@ def main(args: argparse.Namespace) -> int:
             view.close()
         if snapshotter is not None:
             snapshotter.join()  # a snapshot being written when the run failed
+        if journal is not None:
+            journal.close()
         if state_dir is not None:
             state_dir.close()
-    print(json.dumps(summary.to_dict()))
+    doc = summary.to_dict()
+    if state_report is not None:
+        doc["state"] = state_report.to_dict()
+    print(json.dumps(doc))
     return 0
 
 

@@ -15,15 +15,18 @@ def add_state_options(p: argparse.ArgumentParser, *, snapshots: bool = False) ->
     if snapshots:
         p.add_argument("--snapshot-every", default="60s", metavar="N{s,m,p}",
                        help="with --state: snapshot every N seconds (60s), minutes (5m) or new places (100p); "
-                       "default 60s. A kill -9 loses at most the frames since the last snapshot")
+                       "default 60s. Frames between snapshots go to a journal in DIR: a kill -9 or a full disk loses only "
+                       "the frames that could not be written")
 
 
 def open_state(path, detector, logger: logging.Logger):
-    """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present.
-    A map built with other detector settings loads (it continues with this run's), with a warning
-    naming them."""
+    """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present:
+    the current snapshot, then the frames of its journal. A snapshot built with other detector
+    settings loads (it continues with this run's), with a warning naming them; a journal must
+    match them (runtime/adapters/map_journal.py)."""
     import json
 
+    from aefabmap.runtime.adapters.map_journal import replay_journal
     from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id
     from aefabmap.runtime.core.run_config import settings_differences
 
@@ -32,8 +35,11 @@ def open_state(path, detector, logger: logging.Logger):
         state = directory.load()
         if state is not None:
             detector.load_state(state)
+        journal = replay_journal(detector, directory)
+        _log_journal(journal, path, logger)
+        if state is not None or journal.frames:
             logger.info("map state %s loaded: %d places, next frame %d", path, detector.n_places, detector.next_sequence)
-            stored = state.scalars.get("config")
+            stored = state.scalars.get("config") if state is not None else None
             if isinstance(stored, str):
                 try:
                     differ = settings_differences(json.loads(stored), detector.config.to_dict())
@@ -48,3 +54,15 @@ def open_state(path, detector, logger: logging.Logger):
         directory.close()
         raise
     return directory
+
+
+def _log_journal(journal, path, logger: logging.Logger) -> None:
+    """What replaying the journal (map_journal.JournalReplay) did, when it did anything."""
+    if journal.frames:
+        logger.info("map state %s: %d frames replayed from the journal", path, journal.frames)
+    if journal.cut:
+        logger.warning("map state %s: the journal ends at frame %d (%s); a frame after it was not written",
+                       path, journal.next, journal.cut)
+    if journal.removed:
+        logger.warning("map state %s: %d journal segments after frames that were not written were removed",
+                       path, journal.removed)

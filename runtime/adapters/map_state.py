@@ -14,6 +14,10 @@ leaves CURRENT naming the previous complete snapshot. manifest.json holds the fo
 version, the bundle id (sha256 of the bundle manifest), counts, the state's scalars and the
 sha256 of every array file; arrays are plain .npy (no pickles), read with the checked loader
 (runtime/adapters/npy_file.py) and then checked again by the core (runtime/core/map_state.py).
+
+Between snapshots the live node appends each frame to a journal in DIR (``journal-*`` files,
+runtime/adapters/map_journal.py); loading replays it after the snapshot, and a durable
+snapshot removes the journal segments it makes obsolete.
 """
 
 from __future__ import annotations
@@ -300,6 +304,9 @@ class MapStateDir:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         self._prune(keep=(name, current))
+        from aefabmap.runtime.adapters.map_journal import remove_segments_before
+
+        remove_segments_before(self.path, int(state.scalars.get("sequence") or 0))
         return SnapshotInfo(self.path / name, total, int(state.scalars.get("n_alive") or 0), time.perf_counter() - t0)
 
     def current_or_none(self) -> str | None:
@@ -325,12 +332,14 @@ class _DiskFull(OSError):
 
 
 def load_into(detector, directory: MapStateDir) -> bool:
-    """Load the directory's current state into ``detector`` (True) or leave it empty (False)."""
+    """Load the directory's current state, then replay its journal, into ``detector`` (True), or
+    leave it empty (False: neither is there)."""
+    from aefabmap.runtime.adapters.map_journal import replay_journal
+
     state = directory.load()
-    if state is None:
-        return False
-    detector.load_state(state)
-    return True
+    if state is not None:
+        detector.load_state(state)
+    return replay_journal(detector, directory).frames > 0 or state is not None
 
 
 @dataclass(frozen=True)
@@ -365,13 +374,20 @@ class Snapshotter:
     pack the keypoints and write it all in a thread, so that frames are not held up by the disk; at most
     one write is in flight (a due snapshot waits for the next frame after it) and ``final``
     waits for it before writing the last one.
+
+    journal: a map_journal.MapJournal recording every frame between snapshots. With one, a
+    snapshot that cannot be written (the final one included) is reported, never raised: the
+    journal keeps the frames it could write, and while some are not on disk a snapshot is tried
+    again every ``retry_s`` seconds (it writes them all once the disk has room again).
     """
 
     def __init__(self, detector, directory: MapStateDir, policy: SnapshotPolicy, *,
-                 on_error=None, on_saved=None, clock=time.monotonic, background: bool = False) -> None:
+                 on_error=None, on_saved=None, clock=time.monotonic, background: bool = False,
+                 journal=None, retry_s: float = 10.0) -> None:
         self.detector, self.directory, self.policy = detector, directory, policy
         self.on_error, self.on_saved, self.clock = on_error, on_saved, clock
         self.background = background
+        self.journal, self.retry_s = journal, retry_s
         self.failures = 0
         self.saved: list[SnapshotInfo] = []
         self._writer: threading.Thread | None = None
@@ -385,12 +401,16 @@ class Snapshotter:
         return int(self.detector.frames_inserted)
 
     def after_frame(self) -> None:
+        if self.journal is not None:
+            self.journal.after_frame()
         p = self.policy
         due = (p.seconds is not None and self.clock() - self._t >= p.seconds) or (
-            p.places is not None and self._places_made() - self._inserted >= p.places)
+            p.places is not None and self._places_made() - self._inserted >= p.places) or self._catch_up_due()
         if not due or (self._writer is not None and self._writer.is_alive()):
             return
         state = self.detector.state()
+        if self.journal is not None:
+            self.journal.rotate()  # the frames from here on continue this snapshot
         self._mark()
         if self.background:
             self._writer = threading.Thread(target=self._write, args=(state, False), name="map-snapshot", daemon=True)
@@ -398,9 +418,16 @@ class Snapshotter:
         else:
             self._write(state, final=False)
 
-    def final(self) -> SnapshotInfo:
-        """The stop path's snapshot (after any write in flight); raises StateError when it cannot be written."""
+    def _catch_up_due(self) -> bool:
+        """Frames the journal could not write are waiting for a snapshot, the last tried retry_s ago."""
+        return self.journal is not None and self.clock() - self._t >= self.retry_s and self.journal.behind
+
+    def final(self) -> SnapshotInfo | None:
+        """The stop path's snapshot (after any write in flight). When it cannot be written:
+        StateError without a journal; with one, reported (on_error) and None."""
         self.join()
+        if self.journal is not None:
+            self.journal.after_frame()
         return self._write(self.detector.state(), final=True)
 
     def join(self) -> None:
@@ -413,11 +440,13 @@ class Snapshotter:
             info = self.directory.save(state)
         except AefabmapError as exc:
             self.failures += 1
-            if final:
+            if final and self.journal is None:
                 raise
             if self.on_error is not None:
                 self.on_error(exc)
             return None
+        if self.journal is not None:
+            self.journal.snapshot_durable(int(state.scalars["sequence"]), info.n_places)
         self.saved.append(info)
         if self.on_saved is not None:
             self.on_saved(info)

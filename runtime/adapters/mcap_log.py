@@ -29,8 +29,27 @@ loses at most one chunk or ``flush_interval_s`` of data. :class:`McapLogReader` 
 such a file (no summary) sequentially up to its last complete record and reports
 ``truncated`` and ``messages_read``.
 
+Profile ``ros2`` (McapLogConfig.profile, ``--mcap-profile ros2``): the same run as a file that
+``ros2 bag play``, rosbags and Foxglove read. MCAP profile ``ros2``, schemas ``ros2msg``
+(runtime/adapters/ros_cdr.py definitions), messages ``cdr``:
+
+========================= ================================= ===============================
+topic                     type                              content
+========================= ================================= ===============================
+/camera/image/compressed  ``sensor_msgs/msg/CompressedImage`` every n-th processed frame, header stamp =
+                                                            capture stamp, frame_id; format "jpeg"/"png"
+                                                            (raw frames as lossless gray PNG)
+/lcd/result               ``std_msgs/msg/String``           the result's JSON (with its ``sequence``)
+/lcd/stats                ``std_msgs/msg/String``           the stats' JSON
+========================= ================================= ===============================
+
+The result and stats channels carry channel metadata ``aefabmap.message`` (the JSON schema
+title) so the reader tells them apart from any other String topic; the metadata records are
+the same as in the default profile (ROS tools ignore them). The live view's protobuf topics are
+not written in this profile (ROS readers refuse protobuf schemas).
+
 The reader also takes ROS 2 bags (``sensor_msgs/msg/CompressedImage`` and
-``sensor_msgs/msg/Image``, CDR via mcap-ros2-support).
+``sensor_msgs/msg/Image``, CDR via mcap-ros2-support) and reads both profiles of our logs.
 """
 
 from __future__ import annotations
@@ -60,6 +79,16 @@ from aefabmap.runtime.adapters.frames import (
     encode_frame,
     pack_raw_rows,
 )
+from aefabmap.runtime.adapters.ros_cdr import (
+    COMPRESSED_IMAGE_MSGDEF,
+    COMPRESSED_IMAGE_TYPE,
+    STRING_MSGDEF,
+    STRING_TYPE,
+    decode_compressed_cdr,
+    decode_string_cdr,
+    encode_compressed_image_cdr,
+    encode_string_cdr,
+)
 from aefabmap.runtime.core.messages import (
     MESSAGE_FORMAT_VERSION,
     FrameResult,
@@ -80,6 +109,12 @@ RESULT_SCHEMA_NAME = FrameResult.TITLE
 STATS_SCHEMA_NAME = StatsMessage.TITLE
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+#: Log layouts: ours (protobuf/JSON, the default) and one ROS 2 tools play (see module docstring).
+PROFILES = ("aefabmap", "ros2")
+#: The image topic of the ros2 profile when none is set: ROS names compressed images so.
+ROS2_IMAGE_TOPIC = "/camera/image/compressed"
+#: Channel metadata key naming the JSON message a ros2-profile String channel carries.
+MESSAGE_KIND_KEY = "aefabmap.message"
 
 
 @dataclass(frozen=True)
@@ -90,6 +125,8 @@ class McapLogConfig:
     compression: "zstd", "lz4" or "none".
     flush_interval_s: force out the chunk in progress at least this often (seconds).
     image_every: log every n-th processed frame's image (1 = all; needed for an exact replay).
+    profile: "aefabmap" (protobuf/JSON) or "ros2" (CDR, read by ROS 2 tools); with "ros2" the
+    default image topic becomes ROS2_IMAGE_TOPIC.
     """
 
     chunk_size: int = 256 * 1024
@@ -100,8 +137,13 @@ class McapLogConfig:
     result_topic: str = RESULT_TOPIC
     stats_topic: str = STATS_TOPIC
     frame_id: str = "camera"
+    profile: str = "aefabmap"
 
     def __post_init__(self) -> None:
+        if self.profile not in PROFILES:
+            raise ConfigError(f"MCAP profile must be one of {list(PROFILES)}, got {self.profile!r}")
+        if self.profile == "ros2" and self.image_topic == IMAGE_TOPIC:
+            object.__setattr__(self, "image_topic", ROS2_IMAGE_TOPIC)  # frozen: set once, at construction
         if self.compression not in COMPRESSIONS:
             raise ConfigError(f"MCAP compression must be one of {sorted(COMPRESSIONS)}, got {self.compression!r}")
         if not isinstance(self.chunk_size, int) or self.chunk_size < 1024:
@@ -191,6 +233,7 @@ class McapLogWriter:
         self.images_seen = 0
         self.messages_written = 0
         self._closed = False
+        self._ros2 = self.config.profile == "ros2"
         try:
             self._file = _UnbufferedFile(self.path, exclusive=exclusive)
         except OSError as exc:
@@ -201,10 +244,15 @@ class McapLogWriter:
                 chunk_size=self.config.chunk_size,
                 compression=COMPRESSIONS[self.config.compression],
             )
-            self._writer.start(profile="", library=f"aefabmap/{LOG_FORMAT_VERSION}")
-            self._image_channel = self._register_image_channel()
-            self._result_channel = self._register_json_channel(self.config.result_topic, FrameResult.json_schema())
-            self._stats_channel = self._register_json_channel(self.config.stats_topic, StatsMessage.json_schema())
+            self._writer.start(profile="ros2" if self._ros2 else "", library=f"aefabmap/{LOG_FORMAT_VERSION}")
+            if self._ros2:
+                self._register_ros2_channels()
+            else:
+                self._image_channel = self._register_image_channel()
+                self._result_channel = self._register_json_channel(self.config.result_topic,
+                                                                   FrameResult.json_schema())
+                self._stats_channel = self._register_json_channel(self.config.stats_topic,
+                                                                  StatsMessage.json_schema())
             self._writer.add_metadata(LOG_METADATA, {
                 "format_version": LOG_FORMAT_VERSION,
                 "image_topic": self.config.image_topic,
@@ -235,6 +283,34 @@ class McapLogWriter:
         return self._writer.register_channel(
             topic=self.config.image_topic, message_encoding="protobuf", schema_id=schema_id
         )
+
+    def _register_ros2_channels(self) -> None:
+        """Image, result and stats channels of the ros2 profile (CDR, ros2msg schemas)."""
+        image_schema = self._writer.register_schema(
+            name=COMPRESSED_IMAGE_TYPE, encoding="ros2msg", data=COMPRESSED_IMAGE_MSGDEF.encode()
+        )
+        self._image_channel = self._writer.register_channel(
+            topic=self.config.image_topic, message_encoding="cdr", schema_id=image_schema
+        )
+        string_schema = self._writer.register_schema(name=STRING_TYPE, encoding="ros2msg",
+                                                     data=STRING_MSGDEF.encode())
+        self._result_channel, self._stats_channel = (
+            self._writer.register_channel(topic=topic, message_encoding="cdr", schema_id=string_schema,
+                                          metadata={MESSAGE_KIND_KEY: kind.TITLE})
+            for topic, kind in ((self.config.result_topic, FrameResult), (self.config.stats_topic, StatsMessage))
+        )
+
+    def _image_message(self, payload: bytes, fmt: str, stamp_ns: int) -> bytes:
+        """One serialised image message of the profile; stamp_ns: capture time (ns)."""
+        if self._ros2:
+            return encode_compressed_image_cdr(stamp_ns, fmt, bytes(payload), self.config.frame_id)
+        msg = CompressedImage(frame_id=self.config.frame_id, data=bytes(payload), format=fmt)
+        msg.timestamp.FromNanoseconds(stamp_ns)
+        return msg.SerializeToString()
+
+    def _text_message(self, data: bytes) -> bytes:
+        """JSON bytes as the profile's text message (a CDR std_msgs/String in ros2)."""
+        return encode_string_cdr(data.decode("utf-8")) if self._ros2 else data
 
     def _register_protobuf_channel(self, topic: str, cls) -> int:
         fds = build_file_descriptor_set(cls)
@@ -286,9 +362,7 @@ class McapLogWriter:
             fmt = "png"
         else:
             fmt = kind
-        msg = CompressedImage(frame_id=self.config.frame_id, data=bytes(payload), format=fmt)
-        msg.timestamp.FromNanoseconds(stamp_ns)
-        self._add(self._image_channel, msg.SerializeToString(), log_time_ns, stamp_ns, sequence)
+        self._add(self._image_channel, self._image_message(payload, fmt, stamp_ns), log_time_ns, stamp_ns, sequence)
         self.images_written += 1
         return True
 
@@ -307,7 +381,7 @@ class McapLogWriter:
             data = data if data is not None else _json_bytes(result)
         self._add(
             self._result_channel,
-            data,
+            self._text_message(data),
             log_time_ns,
             stamp if isinstance(stamp, int) else None,
             seq if isinstance(seq, int) else None,
@@ -316,7 +390,10 @@ class McapLogWriter:
     def write_view(self, topic: str, data: bytes, stamp_ns: int, *, sequence: int | None = None,
                    log_time_ns: int | None = None) -> bool:
         """Log one serialised message of the live view (runtime/adapters/foxglove_view.py
-        VIEW_PROTOBUF: place thumbnail, image annotations); its channel is registered at first use."""
+        VIEW_PROTOBUF: place thumbnail, image annotations); its channel is registered at first use.
+        Not logged (False) in the ros2 profile: ROS readers refuse protobuf channels."""
+        if self._ros2:
+            return False
         if topic not in self._view_channels:
             if topic not in VIEW_PROTOBUF:
                 raise ConfigError(f"{topic!r} is not a live-view topic ({sorted(VIEW_PROTOBUF)})")
@@ -330,7 +407,7 @@ class McapLogWriter:
         """Log one stats message on the stats topic (data: its JSON bytes, if already made)."""
         if data is None:
             data = stats.to_json_bytes() if isinstance(stats, StatsMessage) else _json_bytes(stats)
-        self._add(self._stats_channel, data, log_time_ns, None, None)
+        self._add(self._stats_channel, self._text_message(data), log_time_ns, None, None)
 
     def _add(self, channel: int, data: bytes, log_time_ns, publish_time_ns, sequence) -> None:
         if self._closed:
@@ -448,6 +525,7 @@ class ReadStatus:
     last_invalid: str = ""
     format_version: str | None = None
     files: list[str] = field(default_factory=list)
+    profile: str | None = None  # the MCAP header's profile ("ros2"; "" for the default layout)
 
     def describe(self) -> str:
         text = f"{self.path}: read {self.messages_read} messages ({self.images_read} images"
@@ -539,7 +617,9 @@ class McapLogReader:
         chosen: int | None = None
         with open(self.path, "rb") as f:
             for record in complete_records(f, self.status):
-                if isinstance(record, Schema):
+                if isinstance(record, Header):
+                    self.status.profile = record.profile
+                elif isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels[record.id] = record
@@ -552,6 +632,8 @@ class McapLogReader:
                         chosen = self._choose(record, chosen, channels)
                     elif schema is not None and schema.name in _JSON_MESSAGES and record.message_encoding == "json":
                         json_kinds[record.id] = _JSON_MESSAGES[schema.name]
+                    elif _is_ros2_text_channel(record, schema):
+                        json_kinds[record.id] = _JSON_MESSAGES[record.metadata[MESSAGE_KIND_KEY]]
                 elif isinstance(record, Metadata):
                     self._take_metadata(record)
                 elif isinstance(record, Message):
@@ -567,7 +649,7 @@ class McapLogReader:
                             self.status.images_read += 1
                             yield image
                     elif record.channel_id in json_kinds:
-                        self._take_json(record, json_kinds[record.channel_id])
+                        self._take_json(record, json_kinds[record.channel_id], cdr=channel.message_encoding == "cdr")
 
     def _choose(self, channel: Channel, chosen: int | None, channels: dict[int, Channel]) -> int | None:
         topic = channel.topic
@@ -595,16 +677,35 @@ class McapLogReader:
             check_log_version(self.path, self.metadata[record.name])  # LogError: newer major
             self.status.format_version = str(self.metadata[record.name].get("format_version"))
 
-    def _take_json(self, record: Message, kind: type) -> None:
+    def _take_json(self, record: Message, kind: type, *, cdr: bool = False) -> None:
+        """Validate and keep one result/stats message (cdr: JSON inside a std_msgs/String)."""
         try:
-            message = kind.from_json(record.data)
-        except InputError as exc:
+            message = kind.from_json(decode_string_cdr(record.data) if cdr else record.data)
+        except InputError as exc:  # FrameError (broken CDR) included
             self.status.invalid_messages += 1
             self.status.last_invalid = str(exc)[:200]
             return
         (self.results if kind is FrameResult else self.stats).append(message)
 
+    def _count_undecodable(self, why: str) -> None:
+        self.status.undecodable_messages += 1
+        self.status.invalid_messages += 1
+        self.status.last_invalid = why[:200]
+
+    def _decode_cdr_compressed(self, record: Message, channel: Channel) -> LoggedImage | None:
+        """A CDR CompressedImage through the strict reader the live subscriber uses; a broken
+        message is counted with its reason (status.last_invalid) and skipped."""
+        try:
+            image = decode_compressed_cdr(record.data)
+        except FrameError as exc:
+            self._count_undecodable(f"{exc.reason}: {exc}")
+            return None
+        return LoggedImage(channel.topic, image.payload, image.encoding, image.stamp_ns or record.publish_time,
+                           record.log_time, record.sequence)
+
     def _decode_image(self, record, channel, kind, schemas, ros_decoders) -> LoggedImage | None:
+        if kind == "ros2_compressed" and channel.message_encoding == "cdr":
+            return self._decode_cdr_compressed(record, channel)
         try:
             if kind == "foxglove":
                 msg = CompressedImage.FromString(record.data)
@@ -642,13 +743,19 @@ class McapLogReader:
                                record.sequence)
         except (LogError, ImageDecodeError):
             raise
-        except Exception:  # malformed message bytes: count and skip, keep reading
-            self.status.undecodable_messages += 1
+        except Exception as exc:  # malformed message bytes: count and skip, keep reading
+            self._count_undecodable(f"{channel.topic}: {type(exc).__name__}: {exc}")
             return None
 
 
 #: JSON message type of each aefabmap schema name.
 _JSON_MESSAGES: dict[str, type] = {RESULT_SCHEMA_NAME: FrameResult, STATS_SCHEMA_NAME: StatsMessage}
+
+
+def _is_ros2_text_channel(channel: Channel, schema: Schema | None) -> bool:
+    """A ros2-profile result/stats channel: CDR std_msgs/String marked with MESSAGE_KIND_KEY."""
+    return (schema is not None and schema.name == STRING_TYPE and channel.message_encoding == "cdr"
+            and channel.metadata.get(MESSAGE_KIND_KEY) in _JSON_MESSAGES)
 
 
 def log_size_bytes(path: str | Path) -> int:

@@ -39,7 +39,8 @@ _IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_IMAGE_TYPE)
 
 def is_ros_bag(path: str | Path) -> bool:
     """True for what only this reader opens: a rosbag2 directory (with metadata.yaml), a ``.db3`` or ``.bag`` file, or an
-    ``.mcap`` file that is not an aefabmap log (no ``aefabmap.log`` metadata)."""
+    ``.mcap`` file that is not an aefabmap log (no ``aefabmap.log`` metadata). Our ros2-profile logs
+    carry that metadata too, so they go to the MCAP log reader, which also reads their results."""
     p = Path(path)
     if p.is_dir():
         return (p / "metadata.yaml").is_file()  # a rosbag2 directory; other directories are rotated aefabmap logs

@@ -229,3 +229,39 @@ def encode_diagnostic_array_cdr(stamp_ns: int, statuses: list[DiagnosticStatus] 
             w.string(key)
             w.string(value)
     return bytes(w.buf)
+
+
+# ============================================================================ log messages (MCAP ros2 profile)
+
+_MSGDEF_SEPARATOR = "=" * 80 + "\n"
+#: ROS 2 message definitions (schema encoding ``ros2msg``) as rosbag2 and rosbags write them: the
+#: type's fields, then each nested type after a separator line and ``MSG: <type>``.
+COMPRESSED_IMAGE_MSGDEF = (
+    "std_msgs/Header header\nstring format\nuint8[] data\n"
+    + _MSGDEF_SEPARATOR + "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+    + _MSGDEF_SEPARATOR + "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
+)
+STRING_MSGDEF = "string data\n"
+
+
+def encode_compressed_image_cdr(stamp_ns: int, fmt: str, data: bytes, frame_id: str = "") -> bytes:
+    """A ``sensor_msgs/msg/CompressedImage`` as little-endian CDR; stamp_ns: header stamp (ns),
+    fmt: ``"jpeg"`` or ``"png"``, data: the compressed image bytes."""
+    w = _Writer()
+    w.header(stamp_ns, frame_id)
+    w.string(fmt)
+    w.u32(len(data))
+    w.buf += data
+    return bytes(w.buf)
+
+
+def decode_string_cdr(data: bytes | memoryview) -> str:
+    """The text of a CDR ``std_msgs/msg/String`` of any length; raises FrameError ``corrupt``."""
+    r = _Reader(data, STRING_TYPE)
+    raw = bytes(r.octets("data"))
+    if not raw or raw[-1] != 0:
+        r._fail("data is not NUL-terminated")
+    try:
+        return raw[:-1].decode("utf-8")
+    except UnicodeDecodeError:
+        r._fail("data is not UTF-8")

@@ -207,6 +207,9 @@ class LoopClosureDetector:
         self._sequence = 0
         self._last_scores: np.ndarray | None = None
         self.policy = CandidatePolicy(c.candidates)
+        # (words, stamp_ns, features) of the last frame taken: what a map journal records to
+        # replay it with process_words (runtime/adapters/map_journal.py).
+        self.last_input: tuple[np.ndarray, int, Features | None] | None = None
 
     @property
     def manifest(self) -> dict:
@@ -286,6 +289,7 @@ class LoopClosureDetector:
         if features is not None and len(features) != words.size:
             raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
         observed = words[: self._observed_keypoints] if features is not None else words
+        self.last_input = (words, int(stamp_ns), features)
         seq = self._sequence
         self._sequence += 1
         inserted = self._insert_due(seq)
