@@ -46,7 +46,7 @@ from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Feat
 ANGLES = (10, 20, 30, 40)  # degrees of out-of-plane rotation
 SCALES = (0.5, 0.75, 1.5, 2.0)
 KEYPOINTS = 1000  # the runtime's verification budget (VerificationConfig.keypoints)
-FRONT_ENDS = ("orb", "orb-teblid", "orb-beblid", "akaze", "sift", "orb-native", "orb-levels12", "orb-fast10", "orb-fast5")
+FRONT_ENDS = ("orb", "orb-teblid", "orb-beblid", "akaze", "sift", "orb-native", "orb-levels12", "orb-fast10", "orb-fast5", "orb-clahe", "orb-stretch")
 #: AKAZE's detector threshold: OpenCV's default (0.001) finds 200-1300 keypoints on 640-px CamVid
 #: frames, so the 1000-keypoint cap would rarely bind; at 0.0001 it finds 1000-4500.
 AKAZE_THRESHOLD = 1e-4
@@ -94,7 +94,8 @@ def make_front_end(name: str) -> FrontEnd:
         ex = FeatureExtractor(FeatureConfig(kind="sift", max_features=KEYPOINTS, rootsift=True))
         return FrontEnd(name, ex, "l2", ex.kind.window_scale)
     native = name == "orb-native"
-    ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=KEYPOINTS, long_side=None if native else 640))
+    ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=KEYPOINTS, long_side=None if native else 640,
+                                        clahe=name == "orb-clahe", contrast_stretch=name == "orb-stretch"))
     window = ex.kind.window_scale
     if name in ("orb-teblid", "orb-beblid"):
         x2d = getattr(cv2, "xfeatures2d", None)
@@ -111,7 +112,7 @@ def make_front_end(name: str) -> FrontEnd:
         ex._detector = cv2.ORB_create(nfeatures=KEYPOINTS, nlevels=12)
     elif name.startswith("orb-fast"):
         ex._detector = cv2.ORB_create(nfeatures=KEYPOINTS, fastThreshold=int(name[len("orb-fast"):]))
-    elif name not in ("orb", "orb-native") and not name.startswith("orb-fast"):
+    elif name not in ("orb", "orb-native", "orb-clahe", "orb-stretch") and not name.startswith("orb-fast"):
         raise ValueError(f"unknown front-end {name!r}; choose from {FRONT_ENDS}")
     return FrontEnd(name, ex, "hamming", window)
 

@@ -27,7 +27,7 @@ import numpy as np
 from aefabmap.runtime.adapters.bundle_reader import load_detector
 from aefabmap.runtime.adapters.frame_loop import FrameLoop
 from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id
+from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id, load_into
 from aefabmap.runtime.adapters.mcap_log import McapLogReader
 from aefabmap.runtime.adapters.replay import NONDETERMINISTIC_FIELDS
 from aefabmap.runtime.adapters.zenoh_transport import (
@@ -36,6 +36,7 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     open_session,
 )
 from aefabmap.runtime.core.detector import DetectorConfig
+from aefabmap.runtime.core.run_config import MAX_QUEUE
 
 CLI = [sys.executable, "-m", "aefabmap.cli.main"]
 KEY = "restart/camera/image"
@@ -50,7 +51,7 @@ def run_part(args, images_dir: Path, mcap: Path, last_seq: int, port: int, stop:
     """One `run` process fed images_dir; stopped with ``stop`` once result ``last_seq`` is out."""
     ep = f"tcp/127.0.0.1:{port}"
     run = subprocess.Popen(CLI + ["run", "--model", str(args.model), "--key", KEY, "--listen", ep, "--mcap", str(mcap),
-                                  "--queue", "100000", "--state", str(args.work / "state"),
+                                  "--queue", str(MAX_QUEUE), "--state", str(args.work / "state"),
                                   "--snapshot-every", args.snapshot_every],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     docs: queue.Queue = queue.Queue()
@@ -60,7 +61,8 @@ def run_part(args, images_dir: Path, mcap: Path, last_seq: int, port: int, stop:
                                        lambda smp: docs.put(json.loads(smp.payload.to_bytes())))
             probe = FramePublisher(s, KEY)
             if not probe.wait_for_subscriber(120):
-                raise SystemExit("the node never subscribed")
+                run.kill()
+                raise SystemExit(f"the node never subscribed: {run.communicate(timeout=30)[1].strip()[-500:]}")
             probe.close()
             t0 = time.monotonic()
             subprocess.run(CLI + ["publish", "--images", str(images_dir), "--key", KEY, "--rate", str(args.rate),
@@ -108,9 +110,11 @@ def main() -> int:
     with MapStateDir(args.work / "state", bundle_id(det.manifest)) as d:
         state = d.load()  # None: killed before the first snapshot
         snap = d.path / d.current() if state is not None else None
-    saved = int(state.scalars["sequence"]) if state is not None else 0
+        load_into(det, d)  # the snapshot, then the journal of the frames after it
+    snapshot_seq = int(state.scalars["sequence"]) if state is not None else 0
+    saved = det.next_sequence
     print(json.dumps({"stop": "kill -9" if args.kill else "SIGTERM", "exit_code": rc, "seconds": round(t, 1),
-                      "state_sequence": saved, "frames_lost": args.split - saved,
+                      "snapshot_sequence": snapshot_seq, "state_sequence": saved, "frames_lost": args.split - saved,
                       "state_bytes": sum(f.stat().st_size for f in snap.iterdir()) if snap else 0}), flush=True)
     if args.kill:
         return 0

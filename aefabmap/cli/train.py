@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -16,6 +17,11 @@ def register(sub) -> None:
     p.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
     p.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
     p.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")
+    p.add_argument("--contrast-stretch", action=argparse.BooleanOptionalAction, default=True,
+                   help="stretch each image's grey levels (1st..99th percentile to 0..255) before detection, in "
+                   "training and at run time (FeatureConfig.contrast_stretch; default on)")
+    p.add_argument("--clahe", action="store_true",
+                   help="equalise contrast locally (CLAHE) before detection, in training and at run time (FeatureConfig)")
     p.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",
                    help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
                    "O(branching x depth) distances (ORB: bit centres, popcount); ae: autoencoder")
@@ -62,6 +68,8 @@ def run(args) -> int:
         max_features=args.max_features,
         long_side=args.long_side or None,
         rootsift=args.rootsift,
+        clahe=args.clahe,
+        contrast_stretch=args.contrast_stretch,
     )
     config = TrainConfig(
         images=tuple(args.images),

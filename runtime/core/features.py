@@ -80,6 +80,11 @@ class FeatureConfig:
         sees points all over the image.
     bucket_oversample: candidates detected per kept keypoint when bucketing.
     clahe: equalise contrast locally (CLAHE, 8x8 tiles, clip 2) before detection.
+    contrast_stretch: before detection, map the image's STRETCH_PERCENTILE-th and
+        (100 - STRETCH_PERCENTILE)-th grey-level percentiles to 0 and 255 (one look-up table, gain at
+        most MAX_STRETCH_GAIN): FAST's fixed threshold then finds corners in a dark or low-contrast
+        frame (night, dusk, fog) where it finds them in a well-exposed one, and a well-exposed frame
+        is left almost as it is. Measured on training images (docs/results.md, "Light").
     """
 
     kind: str = "orb"
@@ -89,6 +94,7 @@ class FeatureConfig:
     bucket_grid: int = 0
     bucket_oversample: int = 4
     clahe: bool = False
+    contrast_stretch: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.kind, str):
@@ -106,6 +112,8 @@ class FeatureConfig:
             raise ConfigError(f"bucket_oversample must be an integer in [1, 16], got {_clip(self.bucket_oversample)}")
         if not isinstance(self.clahe, bool):
             raise ConfigError(f"clahe must be true or false, got {_clip(self.clahe)}")
+        if not isinstance(self.contrast_stretch, bool):
+            raise ConfigError(f"contrast_stretch must be true or false, got {_clip(self.contrast_stretch)}")
         if not isinstance(self.rootsift, bool):
             raise ConfigError(f"rootsift must be true or false, got {_clip(self.rootsift)}")
         if self.rootsift and "rootsift" not in spec.options:
@@ -127,10 +135,11 @@ class FeatureConfig:
     @classmethod
     def from_dict(cls, data: dict) -> FeatureConfig:
         known = {k: data[k] for k in ("kind", "max_features", "long_side", "rootsift", "bucket_grid",
-                                      "bucket_oversample", "clahe") if k in data}
+                                      "bucket_oversample", "clahe", "contrast_stretch") if k in data}
         # A bundle written before bucketing existed was trained without it: keep it that way.
         known.setdefault("bucket_grid", 0)
         known.setdefault("clahe", False)
+        known.setdefault("contrast_stretch", False)  # bundles written before it existed: none
         return cls(**known)
 
 
@@ -201,6 +210,8 @@ class FeatureExtractor:
                 size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
                 work = cv2.resize(gray, size, interpolation=interp)
                 scale = size[0] / gray.shape[1]
+        if self.config.contrast_stretch:
+            work = stretch_contrast(work)
         if self._clahe is not None:
             work = self._clahe.apply(work)
         kps, desc = self._detector.detectAndCompute(work, None)
@@ -230,6 +241,23 @@ class FeatureExtractor:
         sizes = np.fromiter((k.size for k in kps), np.float32, n)[order] / scale
         desc = self.kind.finish(desc[order], c.rootsift)
         return Features(pts, sizes, desc, (int(shape[0]), int(shape[1])))
+
+
+#: contrast_stretch: the percentile (each end) mapped to black / white, and the largest gain (a
+#: nearly uniform frame, a lens cap or fog, is not blown up into noise).
+STRETCH_PERCENTILE = 1.0
+MAX_STRETCH_GAIN = 8.0
+
+
+def stretch_contrast(gray: np.ndarray) -> np.ndarray:
+    """gray (H, W) uint8 with its grey levels stretched linearly (see FeatureConfig.contrast_stretch)."""
+    hist = cv2.calcHist([gray], [0], None, [256], [0, 256]).ravel()
+    cdf = np.cumsum(hist)
+    lo = int(np.searchsorted(cdf, cdf[-1] * STRETCH_PERCENTILE / 100.0))
+    hi = int(np.searchsorted(cdf, cdf[-1] * (1.0 - STRETCH_PERCENTILE / 100.0)))
+    gain = 255.0 / max(hi - lo, 255.0 / MAX_STRETCH_GAIN)
+    lut = np.clip(np.rint((np.arange(256) - lo) * gain), 0, 255).astype(np.uint8)
+    return cv2.LUT(gray, lut)
 
 
 def _bucket_turns(pts: np.ndarray, shape_hw: tuple[int, int], grid: int) -> np.ndarray:

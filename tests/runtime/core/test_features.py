@@ -128,3 +128,36 @@ def test_bundles_without_bucketing_keep_their_extraction():
     assert FeatureConfig.from_dict(FeatureConfig(bucket_grid=4, clahe=True).to_dict()) == FeatureConfig(bucket_grid=4, clahe=True)
     with pytest.raises(ConfigError):
         FeatureConfig(bucket_grid=-1)
+
+
+def test_contrast_stretch_brings_a_dark_frame_to_full_range_with_a_capped_gain():
+    from aefabmap.runtime.core.features import MAX_STRETCH_GAIN, stretch_contrast
+
+    rng = np.random.default_rng(0)
+    day = rng.integers(0, 256, (120, 160)).astype(np.uint8)
+    dark = (day // 6).astype(np.uint8)  # grey levels 0..42
+    out = stretch_contrast(dark)
+    assert out.dtype == np.uint8 and out.shape == dark.shape
+    assert np.percentile(out, 99) >= 250 and np.percentile(out, 1) <= 5
+    assert np.abs(stretch_contrast(day).astype(int) - day).max() <= 3  # already spans 0..255: nearly unchanged
+    flat = np.full((120, 160), 100, np.uint8)
+    flat[::7, ::7] = 102  # a nearly uniform frame (fog, lens cap): at most MAX_STRETCH_GAIN
+    spread = int(stretch_contrast(flat).max()) - int(stretch_contrast(flat).min())
+    assert spread <= 2 * MAX_STRETCH_GAIN + 1
+
+
+def test_contrast_stretch_finds_corners_in_a_dark_frame_and_old_bundles_keep_it_off():
+    import cv2
+
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(4, seed=0, size=(640, 480))
+    gray = cv2.cvtColor(images[0], cv2.COLOR_BGR2GRAY) if images[0].ndim == 3 else images[0]
+    dark = (gray.astype(np.float32) * 0.12).astype(np.uint8)
+    plain = FeatureExtractor(FeatureConfig(max_features=1000)).extract(dark)
+    stretched = FeatureExtractor(FeatureConfig(max_features=1000, contrast_stretch=True)).extract(dark)
+    assert len(stretched) > 2 * max(len(plain), 1)
+    assert FeatureConfig.from_dict({"kind": "orb"}).contrast_stretch is False  # written before it existed
+    assert FeatureConfig.from_dict(FeatureConfig(contrast_stretch=True).to_dict()).contrast_stretch is True
+    with pytest.raises(ConfigError):
+        FeatureConfig(contrast_stretch="yes")
