@@ -19,8 +19,8 @@ from aefabmap.runtime.tools.stream_bench import (
     SINGLE_THREAD_ENV,
     _stats,
     machine_info,
-    pin_one_cpu,
-    run_spawned_single_thread,
+    prepare_process,
+    run_benchmark,
 )
 
 STAGES = ("decode", "features", "quantise", "inference", "verification")
@@ -58,31 +58,17 @@ def bench_sequence(config: SequenceBenchConfig) -> dict:
         raise BundleError(f"model bundle {config.bundle} does not exist")
     if not Path(config.images).is_dir():
         raise InputError(f"image folder {config.images} does not exist")
-    if not config.single_core:
-        from aefabmap.runtime.core import compiled
-
-        previous = compiled.active() == "compiled"
-        try:
-            return _bench_here(config)
-        finally:
-            compiled.use(previous)
-    return run_spawned_single_thread(_bench_here, config)
+    return run_benchmark(_bench_here, config)
 
 
 def _bench_here(config: SequenceBenchConfig) -> dict:
-    import cv2
-
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.frame_loop import FrameLoop
     from aefabmap.runtime.adapters.image_folder import list_images
     from aefabmap.runtime.core import compiled
     from aefabmap.runtime.core.detector import DetectorConfig
 
-    compiled.use(config.scatter == "auto")
-    pinned = None
-    if config.single_core:
-        cv2.setNumThreads(1)
-        pinned = pin_one_cpu()
+    pinned = prepare_process(config)
     paths = list_images(config.images)[: config.limit]
     if not paths:
         raise InputError(f"no images in {config.images}")

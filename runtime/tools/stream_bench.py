@@ -150,15 +150,35 @@ def bench_pipeline(config: PipelineBenchConfig) -> dict:
     """Per-stage ms per frame with a pre-filled map (see module docstring)."""
     if not Path(config.bundle).is_dir():
         raise BundleError(f"model bundle {config.bundle} does not exist")
-    if not config.single_core:
-        from aefabmap.runtime.core import compiled
+    return run_benchmark(_bench_pipeline_here, config)
 
-        previous = compiled.active() == "compiled"  # _bench_pipeline_here chooses; restored after
-        try:
-            return _bench_pipeline_here(config)
-        finally:
-            compiled.use(previous)
-    return run_spawned_single_thread(_bench_pipeline_here, config)
+
+def run_benchmark(fn, config) -> dict:
+    """fn(config) in a spawned single-thread process (config.single_core), else here, with the
+    choice of compiled kernels (config.scatter, made by fn through `prepare_process`) restored after."""
+    if config.single_core:
+        return run_spawned_single_thread(fn, config)
+    from aefabmap.runtime.core import compiled
+
+    previous = compiled.active() == "compiled"
+    try:
+        return fn(config)
+    finally:
+        compiled.use(previous)
+
+
+def prepare_process(config) -> int | None:
+    """Kernels as config.scatter asks ("auto": compiled when numba can run; "numpy"), and with
+    config.single_core one OpenCV thread on one pinned CPU; returns that CPU (None: not pinned)."""
+    import cv2
+
+    from aefabmap.runtime.core import compiled
+
+    compiled.use(config.scatter == "auto")
+    if not config.single_core:
+        return None
+    cv2.setNumThreads(1)
+    return pin_one_cpu()
 
 
 def run_spawned_single_thread(fn, *args):
@@ -201,11 +221,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     from aefabmap.runtime.core.verification import VerificationConfig
     from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
 
-    compiled.use(config.scatter == "auto")
-    pinned = None
-    if config.single_core:
-        cv2.setNumThreads(1)
-        pinned = pin_one_cpu()
+    pinned = prepare_process(config)
     verification = VerificationConfig(enabled=config.verification)
     if config.verify_keypoints is not None:
         verification = replace(verification, keypoints=config.verify_keypoints)
