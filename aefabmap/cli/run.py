@@ -194,11 +194,6 @@ def main(args: argparse.Namespace) -> int:
         if compiled.active() == "numpy" and compiled.unavailable_reason():
             log.info("FAB-MAP scores on numpy: %s", compiled.unavailable_reason())
 
-        options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
-                              queue_size=config.queue, stats_period_s=5.0, image_log_every=args.image_every,
-                              run_config={RUN_CONFIG_KEY: config.to_dict()}, result_key=args.results_key, ros=ros,
-                              log_rotation=rotation, log_config=McapLogConfig(profile=args.mcap_profile))
-
         def on_stats(msg) -> None:
             log.info(
                 "processed %d, dropped %d, bad %d, loops %d, %s fps, latency p50 %s ms p95 %s ms, RSS %s MB, "
@@ -226,6 +221,14 @@ def main(args: argparse.Namespace) -> int:
                 background=True, journal=journal,
             )
 
+        # The map this run starts from (a loaded state's frame counter, 0: empty), so that a replay of
+        # a log set spanning restarts rebuilds each run's map (runtime/adapters/replay.py).
+        map_start = {"frame": getattr(detector, "next_sequence", 0), "places": getattr(detector, "n_places", 0)}
+        options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
+                              queue_size=config.queue, stats_period_s=5.0, image_log_every=args.image_every,
+                              run_config={RUN_CONFIG_KEY: config.to_dict(), "map_start": map_start},
+                              result_key=args.results_key, ros=ros, log_rotation=rotation,
+                              log_config=McapLogConfig(profile=args.mcap_profile))
         view = start_live_view(args)
         with stop_on_signals(stop):
             summary = run_node(detector, options, stop_event=stop, on_stats=on_stats, snapshotter=snapshotter,

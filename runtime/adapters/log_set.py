@@ -39,6 +39,7 @@ from typing import TypeVar
 from aefabmap.errors import ConfigError, LogError
 from aefabmap.runtime.adapters.mcap_log import (
     LoggedImage,
+    RUN_CONFIG_METADATA,
     McapLogReader,
     ReadStatus,
     read_log_metadata,
@@ -282,7 +283,12 @@ class LogSetReader:
 
     ``results``/``stats`` are concatenated; ``metadata`` (manifest, run config, format) is
     the first file's; ``status`` adds the counters up (``truncated`` if any file was,
-    ``files`` lists them) and ``runs`` counts the distinct runs met (run_started_ns).
+    ``files`` lists them) and ``runs`` counts the distinct runs met (run_started_ns). Each image
+    carries the index of its run (``LoggedImage.run``); ``map_starts[i]`` is the frame run i's map
+    started at (the ``map_start`` its run configuration records: 0 for an empty map, N for a map
+    state loaded at frame N; None for logs written before it was recorded; known once frames()
+    reached the run, ``file_map_starts`` per file from the start) and ``results_by_run[i]`` its
+    logged results.
     """
 
     def __init__(self, paths: Sequence[Path], *, image_topic: str | None = None) -> None:
@@ -295,6 +301,9 @@ class LogSetReader:
         self.status = ReadStatus(f"{self.paths[0].parent} ({len(self.paths)} files)",
                                  files=[str(p) for p in self.paths])
         self.runs = 0
+        self.file_map_starts = [_map_start(read_log_metadata(p)) for p in self.paths]
+        self.map_starts: list[int | None] = []  # per run, filled as frames() reaches each run
+        self.results_by_run: list[list[FrameResult]] = []
         self._spent = False
 
     @property
@@ -319,12 +328,20 @@ class LogSetReader:
         if self._spent:
             raise LogError(f"{self.status.path}: a log reader can be iterated only once")
         self._spent = True
-        runs: set = set()
-        for reader in self._readers:
-            yield from reader.frames()
+        runs: list = []
+        for reader, start in zip(self._readers, self.file_map_starts, strict=True):
+            run = (reader.metadata.get(LOG_FILE_METADATA) or {}).get("run_started_ns", reader.path)
+            if not runs or runs[-1] != run:  # the files of one run are consecutive in reading order
+                runs.append(run)
+                self.map_starts.append(start)
+                self.results_by_run.append([])
+            index = len(runs) - 1
+            for image in reader.frames():
+                image.run = index
+                yield image
             self.results.extend(reader.results)
+            self.results_by_run[index].extend(reader.results)
             self.stats.extend(reader.stats)
-            runs.add((reader.metadata.get(LOG_FILE_METADATA) or {}).get("run_started_ns", reader.path))
             self._add_status(reader.status)
         self.runs = len(runs)
 
@@ -341,6 +358,13 @@ class LogSetReader:
         if s.truncated:
             t.truncated = True
             t.reason = f"{Path(s.path).name}: {s.reason}"
+
+
+def _map_start(metadata: dict[str, dict]) -> int | None:
+    """The frame the run that wrote a file (its metadata records) started its map at (None: not recorded)."""
+    start = (metadata.get(RUN_CONFIG_METADATA) or {}).get("map_start")
+    frame = start.get("frame") if isinstance(start, dict) else None
+    return frame if isinstance(frame, int) and not isinstance(frame, bool) and frame >= 0 else None
 
 
 def open_log_reader(sources, *, image_topic: str | None = None) -> McapLogReader | LogSetReader:

@@ -494,7 +494,8 @@ class LoggedImage:
 
     payload/encoding: a frame as runtime.frames understands it; stamp_ns: capture time
     (ns, from the message header/timestamp); log_time_ns: MCAP log time; sequence: MCAP
-    message sequence; topic: the channel topic.
+    message sequence; topic: the channel topic; run: index of the run that logged it within a
+    log set (log_set.LogSetReader; 0 for a single file).
     """
 
     topic: str
@@ -503,6 +504,7 @@ class LoggedImage:
     stamp_ns: int
     log_time_ns: int
     sequence: int
+    run: int = 0
 
     def decode(self) -> np.ndarray:
         """Grayscale (H, W) uint8 image; raises FrameError (an InputError) when undecodable."""

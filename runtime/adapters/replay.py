@@ -241,6 +241,83 @@ class ReplaySummary:
         return d
 
 
+class _Restarts:
+    """The runs of a log set, replayed from the map each started with (LogSetReader.map_starts).
+
+    A run of `aefabmap run --state` started from the map saved at frame N (or an empty one). The
+    replay keeps a copy of its own map when it reaches frame N of an earlier run, and loads it
+    when that run starts, so frames an earlier run processed after N (lost from its map by the
+    restart) are replayed as they happened and checked; runs are compared one by one.
+    """
+
+    def __init__(self, reader, detector) -> None:
+        self.detector = detector
+        self.notes: list[str] = []
+        self.replayed_run: list[int] = []  # run of each replayed result
+        # Rebuilding maps needs a detector that saves and loads them (not every FrameProcessor does).
+        rebuilds = all(hasattr(detector, a) for a in ("state", "load_state", "next_sequence"))
+        self._reader = reader if isinstance(reader, LogSetReader) and rebuilds else None
+        self._wanted = {m for m in self._reader.file_map_starts if m} if self._reader is not None else set()
+        self._saved: dict[int, object] = {}
+        self._empty = self._copy() if self._reader is not None and len(self._reader.paths) > 1 else None
+        self._run = 0
+        self._last_comparable = None  # the first run that cannot be reproduced (None: all can)
+
+    def _copy(self):
+        from aefabmap.runtime.core.map_state import MapState
+
+        st = self.detector.state().resolve()
+        return MapState(dict(st.arrays), dict(st.scalars))
+
+    def before(self, image) -> None:
+        """Called before each image is processed: switch maps at a run's start, keep copies."""
+        if self._reader is None:
+            return
+        if image.run != self._run:
+            self._start_run(image.run)
+        seq = self.detector.next_sequence
+        if seq in self._wanted and seq not in self._saved and image.sequence == seq:
+            self._saved[seq] = self._copy()
+
+    def _start_run(self, run: int) -> None:
+        self._run = run
+        start, here = self._reader.map_starts[run], self.detector.next_sequence
+        if start is None or start == here or self._last_comparable is not None:
+            if start is None:
+                self.notes.append(f"run {run + 1} of the log set does not record the map it started with (a log "
+                                  "written before that was recorded): replayed with the map so far")
+            return
+        if start == 0 and self._empty is not None:
+            self.detector.load_state(self._empty)
+            self.notes.append(f"run {run + 1} started with an empty map: so was its replay")
+        elif start in self._saved:
+            self.detector.load_state(self._saved[start])
+            self.notes.append(f"run {run + 1} resumed from the map saved at frame {start}, after the run before "
+                              f"reached frame {here - 1}: replayed from that map")
+        else:
+            self._last_comparable = run
+            self.notes.append(f"run {run + 1} resumed from a map saved at frame {start} that this log cannot "
+                              f"rebuild (its frames are not all in the log): runs from {run + 1} on are not compared")
+
+    def compare(self, reader, replayed: list[FrameResult], *, ignore: tuple[str, ...]) -> CheckReport:
+        """compare_results run by run (one run: the whole log), merged."""
+        if self._reader is None or len(self._reader.results_by_run) <= 1:
+            return compare_results([r.to_dict() for r in reader.results], [r.to_dict() for r in replayed],
+                                   ignore=ignore, truncated=reader.status.truncated)
+        report = CheckReport()
+        stop = self._last_comparable if self._last_comparable is not None else len(self._reader.results_by_run)
+        for run, logged in enumerate(self._reader.results_by_run[:stop]):
+            mine = [r.to_dict() for r, k in zip(replayed, self.replayed_run, strict=True) if k == run]
+            part = compare_results([r.to_dict() for r in logged], mine, ignore=ignore,
+                                   truncated=reader.status.truncated)
+            for name in ("compared", "matched", "mismatched", "only_in_log", "only_in_replay", "tail_ignored"):
+                setattr(report, name, getattr(report, name) + getattr(part, name))
+            for f, n in part.field_counts.items():
+                report.field_counts[f] = report.field_counts.get(f, 0) + n
+            report.mismatches += part.mismatches[: max(0, 20 - len(report.mismatches))]
+        return report
+
+
 def replay(
     detector,
     mcap_path: str | Path | list[str | Path],
@@ -284,6 +361,7 @@ def replay(
     source = str(mcap_path) if isinstance(mcap_path, (str, Path)) else ", ".join(map(str, mcap_path))
     replayed: list[FrameResult] = []
     loop = FrameLoop(detector)
+    restarts = _Restarts(reader, detector)
     writer = None
     t0 = time.monotonic()
     manifest = getattr(detector, "manifest", None)
@@ -303,11 +381,13 @@ def replay(
             if not pacer.wait(image.stamp_ns):
                 stopped = True
                 break
+            restarts.before(image)
             out = loop.step(image.payload, image.encoding, image.stamp_ns)
             if out.result is None:
                 continue  # counted by the frame loop
             result = out.result
             replayed.append(result)
+            restarts.replayed_run.append(getattr(image, "run", 0))
             if on_result is not None:
                 on_result(result.to_dict())
             if writer is not None:
@@ -328,8 +408,7 @@ def replay(
     if check:
         version = reader.format_version
         newer = FrameResult.fields_since(version) if version is not None else ()
-        report = compare_results([r.to_dict() for r in reader.results], [r.to_dict() for r in replayed],
-                                 ignore=NONDETERMINISTIC_FIELDS + newer, truncated=reader.status.truncated)
+        report = restarts.compare(reader, replayed, ignore=NONDETERMINISTIC_FIELDS + newer)
         if newer:
             report.notes.append(f"not in this log's format {reader.status.format_version}, not compared: "
                                 + ", ".join(newer))
@@ -358,9 +437,7 @@ def replay(
         if reader.results and reader.results[0].sequence > 0:
             report.notes.append(f"the log starts at frame {reader.results[0].sequence} (its first files deleted by "
                                 "the log budget?): the replay starts with an empty map, so results differ")
-        if isinstance(reader, LogSetReader) and reader.runs > 1:
-            report.notes.append(f"the {len(reader.paths)} files hold {reader.runs} runs: each run started with an "
-                                "empty map, the replay with one map, so results differ after the first run")
+        report.notes += restarts.notes
     return ReplaySummary(
         source=source,
         frames_read=loop.frames_in,
