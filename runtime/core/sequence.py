@@ -13,10 +13,10 @@ independent under the null hypothesis, each link's NFA bounds the chance of its 
 the product of `frames` such chances s has P(product <= s) = s * sum_{i<frames} (-ln s)^i / i!.
 One query forms at most (checked places) x (2 * tolerance + 1)^(frames - 1) chains. Asking
 that to be as unlikely as one pair at the single-pair bound (-4) gives the default -7 for
-two frames (-4, minus log10 of ~5 places x 7 alignments, minus log10 of 1 - ln s at s = 1e-7).
-Consecutive frames are not independent under the null (repetitive structure repeats), which is
-why the bound was checked against chains between different drives of the training set, where
-no chain came within several orders of it.
+two frames (-4, minus log10 of a handful of checked places x 7 alignments, minus log10 of
+1 - ln s at s = 1e-7). Consecutive frames are not independent under the null (repetitive
+structure repeats), which is why the bound is checked against chains between different drives
+of the training set (scripts/calibrate_sequence.py).
 """
 
 from __future__ import annotations
