@@ -301,7 +301,10 @@ class LogSetReader:
         self.status = ReadStatus(f"{self.paths[0].parent} ({len(self.paths)} files)",
                                  files=[str(p) for p in self.paths])
         self.runs = 0
-        self.file_map_starts = [_map_start(read_log_metadata(p)) for p in self.paths]
+        metas = [read_log_metadata(p) for p in self.paths]  # records written at open: cheap
+        self.file_map_starts = [_map_start(m) for m in metas]
+        self._file_runs = [(m.get(LOG_FILE_METADATA) or {}).get("run_started_ns", str(p))
+                           for m, p in zip(metas, self.paths, strict=True)]
         self.map_starts: list[int | None] = []  # per run, filled as frames() reaches each run
         self.results_by_run: list[list[FrameResult]] = []
         self._spent = False
@@ -329,8 +332,7 @@ class LogSetReader:
             raise LogError(f"{self.status.path}: a log reader can be iterated only once")
         self._spent = True
         runs: list = []
-        for reader, start in zip(self._readers, self.file_map_starts, strict=True):
-            run = (reader.metadata.get(LOG_FILE_METADATA) or {}).get("run_started_ns", reader.path)
+        for reader, start, run in zip(self._readers, self.file_map_starts, self._file_runs, strict=True):
             if not runs or runs[-1] != run:  # the files of one run are consecutive in reading order
                 runs.append(run)
                 self.map_starts.append(start)
