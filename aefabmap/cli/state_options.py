@@ -24,29 +24,18 @@ def open_state(path, detector, logger: logging.Logger):
     the current snapshot, then the frames of its journal. A snapshot built with other detector
     settings loads (it continues with this run's), with a warning naming them; a journal must
     match them (runtime/adapters/map_journal.py)."""
-    import json
-
-    from aefabmap.runtime.adapters.map_journal import replay_journal
-    from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id
-    from aefabmap.runtime.core.run_config import settings_differences
+    from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id, load_map
+    from aefabmap.runtime.core.run_config import recorded_settings_differences
 
     directory = MapStateDir(path, bundle_id(detector.manifest)).open()
     try:
-        state = directory.load()
-        if state is not None:
-            detector.load_state(state)
-        journal = replay_journal(detector, directory)
+        state, journal = load_map(detector, directory)
         _log_journal(journal, path, logger)
         if state is not None or journal.frames:
             logger.info("map state %s loaded: %d places, next frame %d", path, detector.n_places, detector.next_sequence)
             stored = state.scalars.get("config") if state is not None else None
             if isinstance(stored, str):
-                try:
-                    differ = settings_differences(json.loads(stored), detector.config.to_dict())
-                except (ValueError, RecursionError):
-                    differ = ["(unreadable record)"]
-                # Kept inlier points change what is drawn, never a decision.
-                differ = [d for d in differ if not d.endswith("keep_inlier_points")]
+                differ = recorded_settings_differences(stored, detector.config)
                 if differ:
                     logger.warning("map state %s was built with other detector settings (%s); this run continues "
                                    "it with its own", path, ", ".join(differ))

@@ -189,7 +189,7 @@ def _records(path: Path, label: str):
 
 
 def _check_header(payload: bytes, directory, detector, base: int, label: str) -> None:
-    from aefabmap.runtime.core.run_config import settings_differences
+    from aefabmap.runtime.core.run_config import recorded_settings_differences
 
     if len(payload) > _MAX_HEADER_BYTES or payload[:1] != b"H":
         raise StateError(f"{label} does not start with a journal header")
@@ -206,11 +206,7 @@ def _check_header(payload: bytes, directory, detector, base: int, label: str) ->
         raise StateError(f"{label} was written with another model bundle; remove it to load the snapshot alone")
     if doc.get("first") != base:
         raise StateError(f"{label}: header says it starts at frame {str(doc.get('first'))[:20]}, its name {base}")
-    try:
-        differ = settings_differences(json.loads(doc.get("config")), detector.config.to_dict())
-    except (TypeError, ValueError, RecursionError):
-        differ = ["(unreadable record)"]
-    differ = [d for d in differ if not d.endswith("keep_inlier_points")]  # changes drawings, never a decision
+    differ = recorded_settings_differences(doc.get("config"), detector.config)
     if differ:
         raise StateError(f"{label} was written with other detector settings ({', '.join(differ)}): restart with "
                          "them to replay it, or remove it to load the snapshot alone")

@@ -331,15 +331,21 @@ class _DiskFull(OSError):
     """A snapshot write ran out of space (internal: save() retries once after pruning)."""
 
 
-def load_into(detector, directory: MapStateDir) -> bool:
-    """Load the directory's current state, then replay its journal, into ``detector`` (True), or
-    leave it empty (False: neither is there)."""
+def load_map(detector, directory: MapStateDir):
+    """Load the directory's current state, then replay its journal, into ``detector``; returns
+    (the snapshot's MapState or None, the map_journal.JournalReplay)."""
     from aefabmap.runtime.adapters.map_journal import replay_journal
 
     state = directory.load()
     if state is not None:
         detector.load_state(state)
-    return replay_journal(detector, directory).frames > 0 or state is not None
+    return state, replay_journal(detector, directory)
+
+
+def load_into(detector, directory: MapStateDir) -> bool:
+    """`load_map`: True when it loaded anything, False when the directory holds no map."""
+    state, journal = load_map(detector, directory)
+    return state is not None or journal.frames > 0
 
 
 @dataclass(frozen=True)

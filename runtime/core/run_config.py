@@ -142,3 +142,15 @@ def settings_differences(stored: object, current: object, prefix: str = "") -> l
             out += settings_differences(stored.get(key), current.get(key), f"{prefix}{key}.")
         return out[:20]
     return [] if stored == current else [prefix.rstrip(".")]
+
+
+def recorded_settings_differences(recorded: object, config: DetectorConfig) -> list[str]:
+    """Dotted names of the detector settings in which ``recorded`` (the JSON text a map state or
+    journal stored, DetectorConfig.to_dict) differs from ``config``, ignoring the kept inlier
+    points (they change what is drawn, never a decision); ["(unreadable record)"] when the
+    text cannot be read."""
+    try:
+        differ = settings_differences(json.loads(recorded), config.to_dict())
+    except (TypeError, ValueError, RecursionError):
+        return ["(unreadable record)"]
+    return [d for d in differ if not d.endswith("keep_inlier_points")]
