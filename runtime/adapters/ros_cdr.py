@@ -163,12 +163,6 @@ def decode_compressed_cdr(data: bytes | memoryview) -> RosImage:
 DECODERS = {IMAGE_TYPE: decode_image_cdr, COMPRESSED_IMAGE_TYPE: decode_compressed_cdr}
 
 
-def encode_string_cdr(text: str) -> bytes:
-    """A ``std_msgs/msg/String`` as little-endian CDR (header, uint32 length with NUL, bytes)."""
-    raw = text.encode("utf-8") + b"\x00"
-    return b"\x00\x01\x00\x00" + struct.pack("<I", len(raw)) + raw
-
-
 class _Writer:
     """Little-endian CDR being built; fields aligned to their size from the end of the header."""
 
@@ -199,6 +193,13 @@ class _Writer:
         self.i32(min(sec, 2**31 - 1))  # builtin_interfaces/Time.sec is an int32
         self.u32(nanosec)
         self.string(frame_id)
+
+
+def encode_string_cdr(text: str) -> bytes:
+    """A ``std_msgs/msg/String`` as little-endian CDR (header, uint32 length with NUL, bytes)."""
+    w = _Writer()
+    w.string(text)
+    return bytes(w.buf)
 
 
 @dataclass(frozen=True)
