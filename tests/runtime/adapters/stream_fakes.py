@@ -211,6 +211,26 @@ ROS2_IMAGE = (
 )
 
 
+def record_live_log(path, **node_options):
+    """A log at ``path`` recorded by a live node (NodeThread with a FakeDetector, loopback Zenoh):
+    16 sample frames published as 8 JPEG then 8 raw mono8, every result awaited. node_options go
+    to the NodeThread (stats_period_s, log_config, run_config...). Returns (summary, images)."""
+    from aefabmap.runtime.tools.publisher import array_source, publish_frames
+
+    images = sample_images(16, size=(96, 72))
+    listen, connect = session_pair()
+    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=path, queue_size=32,
+                    **node_options) as node:
+        with open_session(connect) as s:
+            results = JsonCollector(s, RESULTS)
+            publish_frames(connect, KEY, array_source(images[:8], "jpeg"), rate_hz=200, wait_for_subscriber_s=10)
+            publish_frames(connect, KEY, array_source(images[8:], "mono8"), rate_hz=200, wait_for_subscriber_s=10)
+            results.wait_for(lambda d: d["sequence"] == 15, timeout_s=30)
+            results.close()
+        summary = node.finish()
+    return summary, images
+
+
 def write_ros2_bag(path, images, *, stamp0_ns: int = 1_700_000_000_000_000_000, raw_topic: bool = True,
                    pad: int = 3) -> list[int]:
     """Write a ROS 2 bag with /cam/compressed (jpeg CompressedImage) and, if raw_topic,

@@ -38,19 +38,14 @@ from aefabmap.runtime.adapters.ros_cdr import (
     encode_string_cdr,
 )
 from aefabmap.runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
-from aefabmap.runtime.adapters.zenoh_transport import open_session
 from aefabmap.runtime.core.messages import FrameResult
-from aefabmap.runtime.tools.publisher import array_source, publish_frames
 
 from .stream_fakes import (
     CLI,
-    KEY,
     FakeDetector,
-    JsonCollector,
-    NodeThread,
+    record_live_log,
     run_node_process,
     sample_images,
-    session_pair,
 )
 from tests.conftest import cli_args, make_synthetic_bundle
 
@@ -103,17 +98,7 @@ def stamp_ns(msg) -> int:
 def ros2_run(tmp_path_factory):
     """A live node's ros2-profile log: 16 frames, 8 jpeg then 8 raw mono8 (logged as png)."""
     path = tmp_path_factory.mktemp("ros2") / "run.mcap"
-    images = sample_images(16, size=(96, 72))
-    listen, connect = session_pair()
-    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=path, queue_size=32,
-                    stats_period_s=0.2, log_config=ROS2, run_config={"model": "fake"}) as node:
-        with open_session(connect) as s:
-            results = JsonCollector(s, "robot/camera/lcd")
-            publish_frames(connect, KEY, array_source(images[:8], "jpeg"), rate_hz=200, wait_for_subscriber_s=10)
-            publish_frames(connect, KEY, array_source(images[8:], "mono8"), rate_hz=200, wait_for_subscriber_s=10)
-            results.wait_for(lambda d: d["sequence"] == 15, timeout_s=30)
-            results.close()
-        summary = node.finish()
+    summary, images = record_live_log(path, stats_period_s=0.2, log_config=ROS2, run_config={"model": "fake"})
     assert summary.frames_processed == 16 and summary.images_logged == 16
     return path, images
 

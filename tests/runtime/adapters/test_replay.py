@@ -27,6 +27,7 @@ from .stream_fakes import (
     FakeDetector,
     JsonCollector,
     NodeThread,
+    record_live_log,
     sample_images,
     session_pair,
     write_ros2_bag,
@@ -40,17 +41,7 @@ pytestmark = pytest.mark.timeout(90)
 def live_log(tmp_path_factory):
     """A log recorded by the live node: 16 frames of a two-lap synthetic loop (jpeg + raw)."""
     path = tmp_path_factory.mktemp("live") / "live.mcap"
-    listen, connect = session_pair()
-    images = sample_images(16, size=(96, 72))
-    with NodeThread(detector=FakeDetector(), session_config=listen, key=KEY, mcap_path=path,
-                    queue_size=32, stats_period_s=0.5) as node:
-        with open_session(connect) as s:
-            results = JsonCollector(s, "robot/camera/lcd")
-            publish_frames(connect, KEY, array_source(images[:8], "jpeg"), rate_hz=200, wait_for_subscriber_s=10)
-            publish_frames(connect, KEY, array_source(images[8:], "mono8"), rate_hz=200, wait_for_subscriber_s=10)
-            results.wait_for(lambda d: d["sequence"] == 15, timeout_s=30)
-            results.close()
-        summary = node.finish()
+    summary, _ = record_live_log(path, stats_period_s=0.5)
     assert summary.frames_processed == 16
     return path
 
