@@ -152,11 +152,11 @@ class DetectorConfig:
         if self.temporal_frames and not self.verification.enabled:
             raise ConfigError("temporal consistency works on verified matches: enable verification")
 
-
     def to_dict(self) -> dict:
         """Every setting as plain JSON types (nested configs as objects, tuples as lists): the
         form the map state records and RunConfig carries."""
         return json.loads(json.dumps(asdict(self)))
+
 
 class LoopClosureDetector:
     """Stateful per-frame detector for one model bundle (not thread-safe)."""
