@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 
 import cv2
 import numpy as np
@@ -119,6 +120,21 @@ class RosResults:
             return list(self.docs)
 
 
+def graph_tokens(session, domain: int = 0, timeout_s: float = 10.0) -> list[str]:
+    """The ROS 2 graph's liveliness tokens as ``session`` lists them (liveliness get), once the
+    node's own are all there (its node token, three publishers, its subscription) or timeout_s
+    passed: with peers, a token can reach a newly connected peer a moment after the data does."""
+    deadline = time.monotonic() + timeout_s
+    pause = threading.Event()
+    while True:
+        tokens = [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{domain}/**") if r.ok is not None]
+        kinds = [t.split("/")[5] for t in tokens if len(t.split("/")) > 5]
+        if (kinds.count("NN") >= 1 and kinds.count("MP") >= 3 and kinds.count("MS") >= 1) \
+                or time.monotonic() > deadline:
+            return tokens
+        pause.wait(0.1)
+
+
 def _publish_and_collect(tmp_path, typestore, frames, expect: int, distro: str = "humble",
                          result_key: str = RESULT_KEY, **ros):
     """frames: (key, payload, seq) tuples; returns (summary, results, graph tokens, ros results);
@@ -144,7 +160,7 @@ def _publish_and_collect(tmp_path, typestore, frames, expect: int, distro: str =
             for key, payload, seq in frames:
                 pubs[key].put(payload, attachment=rmw_attachment(seq, STAMP0 + seq))
             docs = results.wait_for(expect, timeout_s=20)
-            tokens = [str(r.result.key_expr) for r in camera.liveliness().get("@ros2_lv/0/**") if r.ok is not None]
+            tokens = graph_tokens(camera)
             summary = node.finish()
             results.sub.undeclare()
             return summary, docs, tokens, results.attachments

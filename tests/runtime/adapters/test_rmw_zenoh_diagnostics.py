@@ -30,7 +30,7 @@ from aefabmap.runtime.adapters.rmw_zenoh import (
 from aefabmap.runtime.adapters.zenoh_transport import build_zenoh_config
 
 from .stream_fakes import FakeDetector, NodeThread, sample_images
-from .test_rmw_zenoh import STAMP0, TOPIC, Router, rmw_attachment, ros_image
+from .test_rmw_zenoh import STAMP0, TOPIC, Router, graph_tokens, rmw_attachment, ros_image
 
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
 xxhash = pytest.importorskip("xxhash")
@@ -116,7 +116,7 @@ def test_camera_on_domain_3_gets_results_and_diagnostics_with_rmw_zenoh_gids(tmp
                 return any(_values(ts, p).get("frames_processed") == str(n) for p, _ in items)
 
             diag_items = diags.wait(done)
-            tokens = [str(r.ok.key_expr) for r in camera.liveliness().get(f"@ros2_lv/{DOMAIN}/**") if r.ok is not None]
+            tokens = graph_tokens(camera, DOMAIN)
             stat_items = stats.wait(lambda items: len(items) >= len(diag_items))
             node.finish()
     finally:
