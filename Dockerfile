@@ -21,11 +21,14 @@ ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1
 COPY deploy/requirements-board.txt /tmp/requirements-board.txt
 RUN python -m venv /opt/aefabmap \
  && /opt/aefabmap/bin/pip install --require-hashes --only-binary=:all: --no-deps -r /tmp/requirements-board.txt
-# Then the project itself, as a wheel (the build backend stays in this stage).
+# Then the project itself, as a wheel with its compiled kernels (the build backend and the C
+# compiler stay in this stage).
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev && rm -rf /var/lib/apt/lists/*
 COPY . /src
 RUN pip wheel --no-deps -w /tmp/dist /src \
  && /opt/aefabmap/bin/pip install --no-deps /tmp/dist/aefabmap-*.whl \
  && /opt/aefabmap/bin/pip check \
+ && /opt/aefabmap/bin/python -c "from aefabmap.runtime.core import native; assert native.available(), native.unavailable_reason()" \
  && ! /opt/aefabmap/bin/python -c "import torch" 2>/dev/null
 
 FROM ${PYTHON_IMAGE}

@@ -23,32 +23,32 @@ def train_dir() -> Path:
     return d
 
 
-@pytest.fixture(params=[False, True], ids=["numpy", "compiled"])
+@pytest.fixture(params=["numpy", "native", "numba"])
 def kernels(request):
-    """Run a test on the numpy / OpenCV fallbacks and on the compiled kernels (runtime/core/compiled.py;
-    skipped without numba): both must give the same results."""
+    """Run a test on the numpy / OpenCV fallbacks and on each compiled form of the kernels
+    (runtime/core/compiled.py; a form that cannot run here is skipped): all must give the same results."""
     from aefabmap.runtime.core import compiled
 
-    if request.param and not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
+    if request.param != "numpy" and request.param not in compiled.backends():
+        pytest.skip(f"the {request.param} kernels cannot run here")
     previous = compiled.use(request.param)
     yield request.param
     compiled.use(previous)
 
 
-@pytest.fixture
-def on_both_paths():
-    """run(fn) -> [fn() on the numpy / OpenCV fallbacks, fn() on the compiled kernels], for tests
-    that compare the two paths with each other (skipped without numba)."""
+@pytest.fixture(params=["native", "numba"])
+def on_both_paths(request):
+    """run(fn) -> [fn() on the numpy / OpenCV fallbacks, fn() on one compiled form], for tests
+    that compare the two paths with each other (once per compiled form; skipped where it cannot run)."""
     from aefabmap.runtime.core import compiled
 
-    if not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
+    if request.param not in compiled.backends():
+        pytest.skip(f"the {request.param} kernels cannot run here")
 
     def run(fn):
         out = []
-        for flag in (False, True):
-            previous = compiled.use(flag)
+        for choice in ("numpy", request.param):
+            previous = compiled.use(choice)
             try:
                 out.append(fn())
             finally:

@@ -9,6 +9,13 @@ from pathlib import Path
 
 log = logging.getLogger("aefabmap.bench")
 
+# compiled.KERNEL_CHOICES, written out: importing runtime/core/compiled.py imports numba, which
+# would slow every command's start.
+_KERNEL_CHOICES = ("auto", "native", "numba", "numpy")
+_KERNELS_HELP = ("the kernels (FAB-MAP scatter, verification's matching, the int8 search's re-rank): auto (default: "
+                 "the ahead-of-time compiled ones when built, else numba's JIT when it can run, else numpy), "
+                 "native, numba, or numpy / OpenCV")
+
 
 def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks (print figures, save JSON)")
@@ -18,8 +25,7 @@ def register(sub) -> None:
     inf.add_argument("--words", type=int, default=10_000, metavar="V")
     inf.add_argument("--queries", type=int, default=200)
     inf.add_argument("--words-per-place", type=int, default=300)
-    inf.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
-                     help="scoring scatter: the compiled kernel when numba is installed and can run (auto, default) or numpy")
+    inf.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
     inf.add_argument("--json", type=Path, metavar="OUT")
     inf.set_defaults(func=run_inference)
     cl = bsub.add_parser("chowliu", help="Chow-Liu learning time and peak memory on synthetic observations")
@@ -42,10 +48,7 @@ def register(sub) -> None:
     pl.add_argument("--words-only-places", action="store_true",
                     help="pre-filled places without keypoints (never verified, so verification is understated; "
                          "the mode of figures measured before this option existed)")
-    pl.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
-                    help="compiled kernels (FAB-MAP scatter, all-pairs Hamming matching of verification): used when "
-                         "numba is installed and can run (auto, default), or numpy / OpenCV (what a board under the "
-                         "hardened unit runs)")
+    pl.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
     pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     pl.add_argument("--json", type=Path, metavar="OUT")
     pl.set_defaults(func=run_pipeline)
@@ -55,8 +58,7 @@ def register(sub) -> None:
     sq.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
     sq.add_argument("--exclude", type=int, default=50, metavar="N", help="exclusion window, frames (default 50)")
     sq.add_argument("--limit", type=int, default=None, metavar="N", help="first N images only")
-    sq.add_argument("--scatter", choices=("auto", "numpy"), default="auto",
-                    help="compiled kernels when numba can run (auto) or numpy / OpenCV (the hardened unit's path)")
+    sq.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
     sq.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     sq.add_argument("--json", type=Path, metavar="OUT")
     sq.set_defaults(func=run_sequence)
@@ -164,9 +166,8 @@ def run_inference(args) -> int:
     from aefabmap.runtime.core import compiled
     from aefabmap.runtime.tools.synthetic_observations import bench_inference
 
-    previous = compiled.use(args.scatter == "auto")
-    if args.scatter == "auto" and compiled.active() == "numpy":
-        log.info("scoring on numpy: %s", compiled.unavailable_reason())
+    previous = compiled.use(True if args.scatter == "auto" else args.scatter)
+    log.info("kernels: %s", compiled.describe())
     try:
         results = [asdict(bench_inference(n, args.words, queries=args.queries, words_per_place=args.words_per_place))
                    for n in args.places]

@@ -191,8 +191,7 @@ def main(args: argparse.Namespace) -> int:
         detector = load_detector(args.model, config.detector)
         from aefabmap.runtime.core import compiled
 
-        if compiled.active() == "numpy" and compiled.unavailable_reason():
-            log.info("FAB-MAP scores on numpy: %s", compiled.unavailable_reason())
+        log.info("kernels: %s", compiled.describe())
 
         def on_stats(msg) -> None:
             log.info(

@@ -33,7 +33,7 @@ import numpy as np
 import onnxruntime as ort
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core import compiled, native
 from aefabmap.runtime.core.onnx_matmul import INPUT_NAME, OUTPUT_NAME, matmul_integer_model
 from aefabmap.runtime.core.onnx_quantizer import session_options
 from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, check_vectors
@@ -158,7 +158,7 @@ class BitCentroidQuantizer:
         return best.astype(np.int32)
 
 
-@compiled.kernel
+@compiled.kernel(native.select_words)
 def select_kernel():
     """Per row of int8 products (overwritten with z + hi): the candidates (module doc), and the
     exact re-rank where there is more than one; compiled (runtime/core/compiled.py). The rows'

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import InputError
-from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core import compiled, native
 
 #: Bits set in each byte value: the popcount table when numpy has no bitwise_count (< 2.0).
 POPCOUNT_TABLE = np.array([i.bit_count() for i in range(256)], np.uint8)
@@ -58,7 +58,7 @@ if compiled.numba is not None:
         return _types.uint64(_types.uint64), codegen
 
 
-@compiled.kernel
+@compiled.kernel(native.nearest_two)
 def nearest_two_kernel():
     """Two nearest rows by Hamming distance over uint64 words, compiled (runtime/core/compiled.py).
 

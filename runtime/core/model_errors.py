@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core import compiled, native
 
 
 def transfer_errors(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -44,7 +44,7 @@ def _transfer(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.sqrt(u * u + v * v)
 
 
-@compiled.kernel
+@compiled.kernel(native.transfer_errors)
 def transfer_kernel():
     """`transfer_errors` compiled: the same expressions per point; out (K,) is written."""
     def transfer(H, Hi, src, dst, out):
@@ -88,7 +88,7 @@ def epipolar_errors(F: np.ndarray, xq: np.ndarray, xp: np.ndarray) -> np.ndarray
     return np.where(ok & np.isfinite(err), err, np.inf)
 
 
-@compiled.kernel
+@compiled.kernel(native.epipolar_errors)
 def epipolar_kernel():
     """`epipolar_errors` compiled: the same expressions per match; out (K,) is written."""
     def epipolar(F, xq, xp, min_normal, out):

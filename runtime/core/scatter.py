@@ -5,7 +5,7 @@ scores[p] = defaults[p] + sum of weights[i] over the rows i that hold a posting 
 Two implementations with bit-identical results (each place's terms are summed in the same
 order, defaults first, then row after row, no reassociation):
 - numpy: one ``np.bincount`` over the defaults and the concatenated rows (always available);
-- compiled: a plain loop compiled by numba when numba is installed (optional; faster per
+- compiled: a plain loop, compiled ahead of time or by numba (runtime/core/compiled.py; faster per
   posting, and it needs no int64 copy of the ids nor a repeated-weights array; docs/results.md,
   "FAB-MAP inference and Chow-Liu learning").
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 
-from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core import compiled, native
 
 if compiled.numba is not None:
     from numba import types as _types
@@ -40,7 +40,7 @@ if compiled.numba is not None:
         return pointer(_types.intp), codegen
 
 
-@compiled.kernel
+@compiled.kernel(native.scatter_buffers)
 def buffers_kernel():
     """The address-reading loop, compiled (runtime/core/compiled.py)."""
     def scatter(acc, addresses, weights, lens):
@@ -54,7 +54,7 @@ def buffers_kernel():
                                nogil=True, cache=False, boundscheck=False)(scatter)
 
 
-@compiled.kernel
+@compiled.kernel(native.append_postings)
 def append_kernel():
     """One posting appended to each of several word buffers, compiled: buffer i (the int32 data
     at addresses[i]) gets `pid` at position positions[i] (the caller checked it has room)."""
@@ -75,7 +75,7 @@ def scatter_buffers(defaults: np.ndarray, addresses: np.ndarray, weights: np.nda
     `scatter_packed` do).
     """
     if compiled.active() != "compiled":
-        raise ConfigError("scatter_buffers needs the compiled kernel (numba installed and in use)")
+        raise ConfigError("scatter_buffers needs the compiled kernels (runtime/core/compiled.py) in use")
     acc = np.array(defaults, dtype=np.float64, copy=True)
     if lens.size:
         buffers_kernel()(acc, np.ascontiguousarray(addresses, np.intp), np.ascontiguousarray(weights, np.float64),

@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core import compiled, native
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE, match_region, significance
 from aefabmap.runtime.core.bits import hamming
 from aefabmap.runtime.core.conditioning import (
@@ -614,7 +614,7 @@ def distinct_matches(xq: np.ndarray, xp: np.ndarray, radius_q: float, radius_p: 
     return np.flatnonzero(firsts.reshape(8, k).all(axis=0)).astype(np.int64)
 
 
-@compiled.kernel
+@compiled.kernel(native.distinct)
 def distinct_kernel():
     """`distinct_matches` compiled (runtime/core/compiled.py): the same cells, computed with the
     same float64 operations, and the same rule (a match is kept when no lower-indexed match shares

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from aefabmap.runtime.core import compiled
+from aefabmap.runtime.core import compiled, native
 from aefabmap.runtime.core.bits import packed_words
 
 if compiled.numba is not None:
     from aefabmap.runtime.core.bits import popcount64
 
 
-@compiled.kernel
+@compiled.kernel(native.same_word)
 def same_word_kernel():
     """Mutual same-word nearest neighbours over uint64 descriptor words (see `match_same_word`).
 

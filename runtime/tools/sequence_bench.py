@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from aefabmap.errors import BundleError, ConfigError, InputError
+from aefabmap.runtime.core.compiled import KERNEL_CHOICES
 from aefabmap.runtime.tools.stream_bench import (
     SINGLE_THREAD_ENV,
     _stats,
@@ -32,8 +33,7 @@ class SequenceBenchConfig:
 
     images: folder of images (list_images: file-name order). bundle: model bundle directory.
     exclude: DetectorConfig.exclude (frames, the sequence's exclusion window). limit: first N images
-    only (None: all). scatter: "auto" (compiled kernels when numba can run) or "numpy" (the hardened
-    unit's path). single_core: a spawned process pinned to one CPU with one thread everywhere.
+    only (None: all). scatter: the kernels, as StreamBenchConfig.scatter. single_core: a spawned process pinned to one CPU with one thread everywhere.
     """
 
     images: str
@@ -48,8 +48,8 @@ class SequenceBenchConfig:
             raise ConfigError(f"exclude must be >= 0 frames, got {self.exclude}")
         if self.limit is not None and self.limit < 1:
             raise ConfigError(f"limit must be >= 1 images, got {self.limit}")
-        if self.scatter not in ("auto", "numpy"):
-            raise ConfigError(f"scatter must be 'auto' or 'numpy', got {self.scatter!r}")
+        if self.scatter not in KERNEL_CHOICES:
+            raise ConfigError(f"scatter must be one of {', '.join(KERNEL_CHOICES)}, got {self.scatter!r}")
 
 
 def bench_sequence(config: SequenceBenchConfig) -> dict:
@@ -107,7 +107,7 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
         "loops": loop.loops,
         "places": det.n_places,
         "places_verified_per_frame": _stats(tried),
-        "scatter": compiled.active(),
+        "scatter": compiled.backend(),
         "single_core": config.single_core,
         "pinned_cpu": pinned,
         "threads_env": {k: os.environ.get(k) for k in SINGLE_THREAD_ENV},

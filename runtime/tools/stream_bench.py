@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap.errors import BundleError, ConfigError, TransportError
+from aefabmap.runtime.core.compiled import KERNEL_CHOICES
 from aefabmap.runtime.core.messages import FrameResult, StatsMessage
 from aefabmap.runtime.tools.node_process import (
     SINGLE_THREAD_ENV,
@@ -118,9 +119,9 @@ class PipelineBenchConfig:
     verified as in a live map, and frames pay what a frame that is not a loop pays. False:
     words only; such places are never verified, which understates verification's cost.
     single_core: spawn a process pinned to one CPU with one thread everywhere.
-    scatter: the compiled kernels (runtime/core/compiled.py: FAB-MAP's scatter, verification's
-    all-pairs Hamming matching), "auto" (compiled when numba can run) or "numpy" (numpy / OpenCV
-    fallbacks: what a board under the hardened unit runs, deploy/README.md).
+    scatter: the kernels (runtime/core/compiled.py: FAB-MAP's scatter, verification's matching,
+    the int8 search's re-rank): "auto" (the preferred compiled form that can run here), "native"
+    (ahead-of-time compiled), "numba" (JIT) or "numpy" (numpy / OpenCV fallbacks).
     """
 
     bundle: str
@@ -142,8 +143,8 @@ class PipelineBenchConfig:
             raise ConfigError("frames must be >= 1 and warmup >= 0")
         if self.prefill not in ("train", "synthetic"):
             raise ConfigError(f"prefill must be 'train' or 'synthetic', got {self.prefill!r}")
-        if self.scatter not in ("auto", "numpy"):
-            raise ConfigError(f"scatter must be 'auto' or 'numpy', got {self.scatter!r}")
+        if self.scatter not in KERNEL_CHOICES:
+            raise ConfigError(f"scatter must be one of {', '.join(KERNEL_CHOICES)}, got {self.scatter!r}")
 
 
 def bench_pipeline(config: PipelineBenchConfig) -> dict:
@@ -160,7 +161,7 @@ def run_benchmark(fn, config) -> dict:
         return run_spawned_single_thread(fn, config)
     from aefabmap.runtime.core import compiled
 
-    previous = compiled.active() == "compiled"
+    previous = compiled.backend()
     try:
         return fn(config)
     finally:
@@ -168,13 +169,13 @@ def run_benchmark(fn, config) -> dict:
 
 
 def prepare_process(config) -> int | None:
-    """Kernels as config.scatter asks ("auto": compiled when numba can run; "numpy"), and with
+    """Kernels as config.scatter asks (KERNEL_CHOICES; "auto": the preferred compiled form), and with
     config.single_core one OpenCV thread on one pinned CPU; returns that CPU (None: not pinned)."""
     import cv2
 
     from aefabmap.runtime.core import compiled
 
-    compiled.use(config.scatter == "auto")
+    compiled.use(True if config.scatter == "auto" else config.scatter)
     if not config.single_core:
         return None
     cv2.setNumThreads(1)
@@ -290,7 +291,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "prefill": config.prefill,
         "prefill_words_per_place": round(mean_words, 1),
         "place_keypoints": bool(config.place_keypoints and config.verification),
-        "scatter": compiled.active(),
+        "scatter": compiled.backend(),
         "prefill_seconds": round(prefill_s, 2),
         "places_in_map": {"min": int(min(n_places)), "max": int(max(n_places))},
         "map_bytes": int(det.map_bytes()),

@@ -119,5 +119,5 @@ def bench_inference(places: int, words: int, *, queries: int = 200, training: in
         remove_ms_median=float(np.median(remove_times) * 1e3) if remove_times else 0.0,
         bytes_per_place=nbytes / max(1, places),
         index_bytes=nbytes,
-        scatter=compiled.active(),
+        scatter=compiled.backend(),
     )

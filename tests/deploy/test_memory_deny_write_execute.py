@@ -90,24 +90,39 @@ def test_demo_runs_in_the_sandbox(tmp_path):
     assert (tmp_path / "demo" / "demo.mcap").stat().st_size > 0
 
 
-def test_fabmap_scores_on_numpy_when_the_jit_is_denied():
+def test_kernels_run_ahead_of_time_compiled_when_the_jit_is_denied():
     """numba (extra `fast`) cannot map write+execute memory under the unit: importing the runtime
-    must not fail, and FAB-MAP must score on the numpy path and say why."""
+    must not fail, numba must not be offered, and the kernels must run on the ahead-of-time
+    compiled library (where it is built) with the numpy path's results."""
     code = textwrap.dedent(
         """
         import numpy as np
         from aefabmap.runtime.core import compiled
+        from aefabmap.runtime.core.bits import nearest_two
         from aefabmap.runtime.core.fabmap import FabMap2
         from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
-        engine = FabMap2(random_tree(200, 0), synthetic_observations(20, 200, 30, 1))
-        for o in synthetic_observations(30, 200, 30, 2):
-            engine.add(o)
-        loc = engine.localize(synthetic_observations(1, 200, 30, 3)[0], add=False)
-        assert np.isfinite(loc.loglik).all()
-        print(compiled.active(), "|", compiled.unavailable_reason())
+
+        def scores():
+            engine = FabMap2(random_tree(200, 0), synthetic_observations(20, 200, 30, 1))
+            for o in synthetic_observations(30, 200, 30, 2):
+                engine.add(o)
+            return engine.localize(synthetic_observations(1, 200, 30, 3)[0], add=False).loglik
+
+        rng = np.random.default_rng(0)
+        a, b = rng.integers(0, 256, (300, 32), np.uint8), rng.integers(0, 256, (400, 32), np.uint8)
+        form = compiled.backend()
+        compiled_out = scores(), nearest_two(a, b)
+        compiled.use("numpy")
+        numpy_out = scores(), nearest_two(a, b)
+        assert np.array_equal(compiled_out[0], numpy_out[0])
+        assert all(np.array_equal(x, y) for x, y in zip(compiled_out[1], numpy_out[1]))
+        print(form, "|", ",".join(compiled.backends()))
         """
     )
     out = _sandboxed([sys.executable, "-c", code], timeout_s=120)
     assert out.returncode == 0, out.stderr[-2000:]
-    active, reason = out.stdout.strip().split(" | ", 1)
-    assert active == "numpy" and "numba" in reason
+    form, offered = out.stdout.strip().split(" | ", 1)
+    assert "numba" not in offered
+    from aefabmap.runtime.core import native
+
+    assert form == ("native" if native.available() else "numpy")

@@ -3,26 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
-from aefabmap.runtime.core import compiled
 from aefabmap.runtime.core.model_errors import epipolar_errors, transfer_errors
 
 
 def _points(seed: int, n: int = 300) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     return rng.uniform(0, 640, (n, 2)), rng.uniform(0, 480, (n, 2))
-
-
-def _both(fn, *args) -> tuple[np.ndarray, np.ndarray]:
-    previous = compiled.use(False)
-    try:
-        numpy_form = fn(*args)
-        compiled.use(True)
-        compiled_form = fn(*args)
-    finally:
-        compiled.use(previous)
-    return numpy_form, compiled_form
 
 
 def test_transfer_errors_measure_both_directions(kernels):
@@ -39,18 +26,16 @@ def test_transfer_errors_measure_both_directions(kernels):
     assert np.all(np.isinf(transfer_errors(np.zeros((3, 3)), src, dst)))  # singular: no inverse
 
 
-def test_compiled_and_numpy_errors_agree():
+def test_compiled_and_numpy_errors_agree(on_both_paths):
     """Random models and points, plus the undefined cases: equal to float64 rounding, and inf
     in exactly the same places."""
-    if not compiled.available():
-        pytest.skip("numba is not installed (extra `fast`)")
     rng = np.random.default_rng(7)
     for seed in range(20):
         src, dst = _points(seed)
         H = np.eye(3) + rng.normal(0, [[0.1, 0.1, 20], [0.1, 0.1, 20], [1e-4, 1e-4, 0.05]])
         F = rng.normal(size=(3, 3))
         for fn, args in ((transfer_errors, (H, src, dst)), (epipolar_errors, (F, dst, src))):
-            a, b = _both(fn, *args)
+            a, b = on_both_paths(lambda: fn(*args))
             assert a.dtype == b.dtype == np.float64 and a.shape == b.shape == (src.shape[0],)
             assert np.array_equal(np.isinf(a), np.isinf(b))
             finite = np.isfinite(a)
@@ -58,7 +43,8 @@ def test_compiled_and_numpy_errors_agree():
     # A null F leaves every line undefined; a NaN point gives inf, not NaN.
     src, dst = _points(1, 5)
     src[2] = np.nan
-    for a in _both(epipolar_errors, np.zeros((3, 3)), dst, src):
+    for a in on_both_paths(lambda: epipolar_errors(np.zeros((3, 3)), dst, src)):
         assert np.all(np.isinf(a))
-    for a in _both(epipolar_errors, rng.normal(size=(3, 3)), dst, src) + _both(transfer_errors, np.eye(3), src, dst):
+    for a in [*on_both_paths(lambda: epipolar_errors(F, dst, src)),
+              *on_both_paths(lambda: transfer_errors(np.eye(3), src, dst))]:
         assert np.isinf(a[2]) and np.all(np.isfinite(np.delete(a, 2)))
