@@ -146,6 +146,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     logs.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
     add_detector_options(p, profile=True)
+    fl = p.add_argument_group("fleet (robots that recognise each other's places)")
+    fl.add_argument("--fleet", default=None, metavar="NAME",
+                    help="join this fleet: offer this map's places to the other robots of the same bundle and "
+                    "verify loops to theirs (a token: letters, digits, '_', '-')")
+    fl.add_argument("--robot", default=None, metavar="ID", help="this robot's id in the fleet (same rules)")
+    fl.add_argument("--fleet-timeout-ms", type=int, default=None, metavar="MS",
+                    help="how long a fetch of another robot's keypoints may wait (default 300)")
     from aefabmap.cli.state_options import add_state_options
 
     add_state_options(p, snapshots=True)
@@ -227,7 +234,7 @@ def main(args: argparse.Namespace) -> int:
                               queue_size=config.queue, stats_period_s=5.0, image_log_every=args.image_every,
                               run_config={RUN_CONFIG_KEY: config.to_dict(), "map_start": map_start},
                               result_key=args.results_key, ros=ros, log_rotation=rotation,
-                              log_config=McapLogConfig(profile=args.mcap_profile))
+                              log_config=McapLogConfig(profile=args.mcap_profile), fleet=config.fleet)
         view = start_live_view(args)
         with stop_on_signals(stop):
             summary = run_node(detector, options, stop_event=stop, on_stats=on_stats, snapshotter=snapshotter,

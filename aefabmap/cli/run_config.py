@@ -12,6 +12,7 @@ import dataclasses
 
 from aefabmap.runtime.core.candidates import CandidateConfig
 from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
+from aefabmap.runtime.core.fleet_map import FleetConfig
 from aefabmap.runtime.core.profiles import PROFILES, get_profile
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.run_config import RUN_CONFIG_FORMAT, RunConfig
@@ -112,8 +113,14 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
         temporal_frames=pick("temporal_frames", d.temporal_frames) if verification.enabled else 0,
         temporal_tolerance=pick("temporal_tolerance", d.temporal_tolerance),
     )
+    fleet = None
+    if opts.get("fleet") is not None or opts.get("robot") is not None:
+        if opts.get("fleet") is None or opts.get("robot") is None:
+            raise ConfigError("--fleet and --robot go together")
+        fleet = FleetConfig(name=opts["fleet"], robot=opts["robot"],
+                            fetch_timeout_ms=pick("fleet_timeout_ms", FleetConfig.fetch_timeout_ms))
     return RunConfig(model=str(opts.get("model", "")), detector=detector, profile=opts.get("profile"),
-                     queue=pick("queue", RunConfig().queue, prof.queue if prof else None))
+                     queue=pick("queue", RunConfig().queue, prof.queue if prof else None), fleet=fleet)
 
 
 def apply_process_settings(config: RunConfig) -> None:

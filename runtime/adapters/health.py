@@ -108,6 +108,7 @@ class StatusBoard:
         self._counters: dict = {"frames_received": 0, "frames_processed": 0, "dropped": 0, "bad": {}, "loops": 0}
         self._places: int | None = None
         self._map_mb: float | None = None
+        self._fleet = None
         #: Returns the node's current warnings (StatusMessage.warnings); set by the node.
         self.warnings: Callable[[], list[str]] | None = None
 
@@ -122,8 +123,11 @@ class StatusBoard:
                 map_mb = round(map_bytes() / 2**20, 3)
             except Exception:  # a detector without a sizable map: not told  # noqa: BLE001
                 map_mb = None
+        fleet_stats = getattr(detector, "fleet_stats", None)
+        fleet = fleet_stats() if callable(fleet_stats) else None
         with self._lock:
             self._counters = counters
+            self._fleet = fleet
             if result is not None:
                 self._timings.append(dict(result.timings_ms))
                 self._places = result.n_places
@@ -133,7 +137,7 @@ class StatusBoard:
     def status(self, zid: str) -> StatusMessage:
         with self._lock:
             counters, timings = self._counters, list(self._timings)
-            places, map_mb = self._places, self._map_mb
+            places, map_mb, fleet = self._places, self._map_mb, self._fleet
         stages: dict[str, list[float]] = {}
         for t in timings:
             for name, ms in t.items():
@@ -147,7 +151,7 @@ class StatusBoard:
             places=places, map_mb=map_mb, rss_mb=None if rss is None else round(rss, 1),
             stage_ms={k: round(statistics.median(v), 3) for k, v in stages.items()}, recent_frames=len(timings),
             log_files=files, log_bytes=size, log_errors=getattr(self.log, "errors", 0),
-            log_state=getattr(self.log, "state", None), warnings=self._current_warnings(), **counters,
+            log_state=getattr(self.log, "state", None), warnings=self._current_warnings(), fleet=fleet, **counters,
         )
 
     def _current_warnings(self) -> list[str]:

@@ -24,6 +24,7 @@ holds the liveliness token ``aefabmap/runtime/<zid>`` and answers status queries
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -35,6 +36,7 @@ from typing import Any, Self
 import numpy as np
 
 from aefabmap.errors import ConfigError
+from aefabmap.runtime.adapters.fleet import FleetNode
 from aefabmap.runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.health import HealthEndpoint, StatusBoard, peak_rss_mb, rss_mb
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
@@ -53,7 +55,10 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     result_key_for,
     stats_key_for,
 )
-from aefabmap.runtime.core.messages import LatencySummary, RunSummary, StatsMessage
+from aefabmap.runtime.core.fleet_map import FleetConfig
+from aefabmap.runtime.core.messages import FleetStats, LatencySummary, RunSummary, StatsMessage
+
+_log = logging.getLogger("aefabmap.node")
 
 __all__ = ["FrameProcessor", "NodeOptions", "RunStats", "RunSummary", "rss_mb", "run_node", "stop_on_signals"]
 
@@ -79,6 +84,7 @@ class NodeOptions:
     only recorded), and also publish results as ROS 2 messages (runtime/adapters/rmw_zenoh.py).
     log_rotation: file size limit, disk budget and free-space thresholds of the log set
     (runtime/adapters/rotating_log.py; mcap_path may then be a directory or a ``{n}`` pattern).
+    fleet: join this fleet (runtime/adapters/fleet.py): offer the own places, verify other robots'.
     """
 
     key: str
@@ -93,6 +99,7 @@ class NodeOptions:
     max_frames: int | None = None
     ros: RosOptions | None = None
     log_rotation: LogRotationConfig | None = None
+    fleet: FleetConfig | None = None
 
     def __post_init__(self) -> None:
         if not self.stats_period_s > 0:
@@ -135,6 +142,8 @@ class RunStats:
     publisher_restarts: int = 0
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=2000))
     peak_rss_mb: float = 0.0
+    #: The fleet's counters (FleetNode.fleet_stats) when the node is in a fleet.
+    fleet: Callable[[], FleetStats] | None = None
 
     def latency(self) -> LatencySummary:
         return LatencySummary(_percentile(self.latencies_ms, 50), _percentile(self.latencies_ms, 95))
@@ -145,10 +154,12 @@ class RunStats:
         for value in (rss, peak):
             if value is not None:
                 self.peak_rss_mb = max(self.peak_rss_mb, value)
-        return loop.stats_message(
+        msg = loop.stats_message(
             uptime_s=uptime_s, dropped=self.dropped, publisher_restarts=self.publisher_restarts,
             rss_mb=None if rss is None else round(rss, 1), latency_ms=self.latency(), fps=round(fps, 2),
         )
+        msg.fleet = self.fleet() if self.fleet is not None else None
+        return msg
 
 
 class StatsEmitter:
@@ -276,7 +287,10 @@ def run_node(
                       run_config=options.log_metadata(), manifest=manifest if isinstance(manifest, dict) else None)
     board = StatusBoard(image_key=options.key, results_key=options.results_key,
                         manifest=manifest if isinstance(manifest, dict) else None, log=log, t0=t0)
-    with _Transport(options) as io, log.open(), _health(io.session, board) as health:
+    with _Transport(options) as io, log.open(), _health(io.session, board) as health, \
+            _fleet(io.session, detector, options.fleet) as fleet:
+        if fleet is not None:  # the frame loop feeds the fleet node, which wraps the detector
+            loop.detector, stats.fleet = fleet, fleet.fleet_stats
         if isinstance(io.pub, RosResultPublisher):  # /diagnostics carries the status; status, the ROS warnings
             io.pub.status_source = lambda: board.status(health.zid)
             board.warnings = io.pub.warnings
@@ -295,7 +309,7 @@ def run_node(
                     outcome = loop.refuse(frame.error)
                 else:
                     outcome = loop.step(frame.payload, frame.encoding, frame.stamp_ns)
-                board.after_frame(loop, io.sub.drops, outcome.result, detector)  # before the result goes out
+                board.after_frame(loop, io.sub.drops, outcome.result, loop.detector)  # before the result goes out
                 output.send(frame, outcome)
                 if snapshotter is not None:
                     snapshotter.after_frame()
@@ -311,6 +325,32 @@ def run_node(
         result_key=options.results_key, stats_key=options.stats_key,
         log_files=[str(p) for p in log.files], log_files_deleted=log.deleted_count, log_errors=log.errors,
     )
+
+
+class _fleet:
+    """The node's fleet side for the run (None when not in a fleet); asks the fleet for its
+    places once at start."""
+
+    def __init__(self, session, detector, config: FleetConfig | None) -> None:
+        self.session, self.detector, self.config = session, detector, config
+        self.node: FleetNode | None = None
+
+    def __enter__(self) -> FleetNode | None:
+        if self.config is None:
+            return None
+        self.node = FleetNode(self.session, self.detector, self.config)
+        try:
+            n = self.node.join()
+        except BaseException:
+            self.node.close()
+            raise
+        _log.info("fleet %s: robot %s joined, %d places offered by the others", self.config.name,
+                  self.config.robot, n)
+        return self.node
+
+    def __exit__(self, *exc_info) -> None:
+        if self.node is not None:
+            self.node.close()
 
 
 class _health:

@@ -47,6 +47,8 @@ class CheckReport:
     frames (tail_ignored of them after the end of a truncated log are not held against it);
     mismatches: the first few differences as {sequence, field, logged, replayed}.
     complete: the log held an image for every logged result (image_every == 1).
+    remote_loops: logged frames verified to another robot's place (run --fleet): what that robot
+    offered is not in the log, so they are left out of the comparison.
     """
 
     compared: int = 0
@@ -55,6 +57,7 @@ class CheckReport:
     only_in_log: int = 0
     only_in_replay: int = 0
     tail_ignored: int = 0
+    remote_loops: int = 0
     field_counts: dict[str, int] = field(default_factory=dict)
     mismatches: list[dict] = field(default_factory=list)
     complete: bool = True
@@ -77,6 +80,8 @@ class CheckReport:
         )
         if self.tail_ignored:
             text += f", {self.tail_ignored} after the truncated end ignored"
+        if self.remote_loops:
+            text += f", {self.remote_loops} loops to other robots' places not compared"
         if self.field_counts:
             text += "; differing fields: " + ", ".join(f"{k}={v}" for k, v in sorted(self.field_counts.items()))
         for note in self.notes:
@@ -143,6 +148,9 @@ def compare_results(
         else:
             report.only_in_replay += 1
     for s in common:
+        if a[s].get("verified_robot") is not None:
+            report.remote_loops += 1
+            continue
         names = fields if fields is not None else sorted((set(a[s]) | set(b[s])) - set(ignore))
         differing = [f for f in names if not _same(a[s].get(f), b[s].get(f), rtol, atol)]
         report.compared += 1
@@ -310,7 +318,8 @@ class _Restarts:
             mine = [r.to_dict() for r, k in zip(replayed, self.replayed_run, strict=True) if k == run]
             part = compare_results([r.to_dict() for r in logged], mine, ignore=ignore,
                                    truncated=reader.status.truncated)
-            for name in ("compared", "matched", "mismatched", "only_in_log", "only_in_replay", "tail_ignored"):
+            for name in ("compared", "matched", "mismatched", "only_in_log", "only_in_replay", "tail_ignored",
+                         "remote_loops"):
                 setattr(report, name, getattr(report, name) + getattr(part, name))
             for f, n in part.field_counts.items():
                 report.field_counts[f] = report.field_counts.get(f, 0) + n

@@ -175,22 +175,7 @@ class LoopClosureDetector:
         self.extractor = FeatureExtractor(extract)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
-        det = bundle.word_detection
-        # The one place that knows which scorer it is (runtime/core/scorer.py).
-        self.scorer: Scorer
-        if c.scorer == "fabmap":
-            fabmap = FabMap2(
-                bundle.tree,
-                bundle.training_observations,
-                pzge=det["pzge"],
-                pzgne=det["pzgne"],
-                smoothing=c.smoothing,
-                naive_bayes=c.naive_bayes,
-                motion_model=c.motion_model,
-            )
-            self.scorer = FabMapScorer(fabmap, c.fabmap_score)
-        else:
-            self.scorer = BowScorer(BowIndex(bundle.vocabulary_size, bundle.training_observations))
+        self.scorer: Scorer = self.new_scorer()
         self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
         self.store: KeypointStore | None = None
         if v.enabled:
@@ -210,6 +195,17 @@ class LoopClosureDetector:
         # (words, stamp_ns, features) of the last frame taken: what a map journal records to
         # replay it with process_words (runtime/adapters/map_journal.py).
         self.last_input: tuple[np.ndarray, int, Features | None] | None = None
+
+    def new_scorer(self) -> Scorer:
+        """An empty scorer of this detector's kind and settings: the one place that knows which
+        scorer it is (runtime/core/scorer.py); other robots' places get one each (fleet_map.py)."""
+        c, bundle = self.config, self.bundle
+        if c.scorer == "fabmap":
+            det = bundle.word_detection
+            fabmap = FabMap2(bundle.tree, bundle.training_observations, pzge=det["pzge"], pzgne=det["pzgne"],
+                             smoothing=c.smoothing, naive_bayes=c.naive_bayes, motion_model=c.motion_model)
+            return FabMapScorer(fabmap, c.fabmap_score)
+        return BowScorer(BowIndex(bundle.vocabulary_size, bundle.training_observations))
 
     @property
     def manifest(self) -> dict:
@@ -377,15 +373,27 @@ class LoopClosureDetector:
 
     def _pair_check(self, features: Features, words: np.ndarray):
         """The policy's PairCheck for this query: verify it against one stored place."""
-        v = self.config.verification
-        q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
-        radius = independence_radius(self.kind.window_radius(features.sizes), v)
-        distance = self.kind.distance
+        verify = self.place_check(features, words)
 
         def check(pid: int, bruteforce: bool, retry_only: bool) -> GeometryResult | None:
             place = self.store.get(pid)
             if place is None or len(place) == 0:
                 return None
+            return verify(place, bruteforce, retry_only)
+
+        return check
+
+    def place_check(self, features: Features, words: np.ndarray, verification: VerificationConfig | None = None):
+        """check(place, bruteforce, retry_only) -> GeometryResult: this query (features, its
+        `words_of`) verified against the keypoints of a place (PlaceKeypoints), ours or another
+        robot's; retry_only: all-pairs matching alone (the reach's retry). verification: other
+        settings than the detector's (a stricter bar for other robots' places)."""
+        v = self.config.verification if verification is None else verification
+        q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
+        radius = independence_radius(self.kind.window_radius(features.sizes), v)
+        distance = self.kind.distance
+
+        def check(place: PlaceKeypoints, bruteforce: bool, retry_only: bool = False) -> GeometryResult:
             if retry_only:
                 return verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
                                               v, distance=distance, radius=radius)

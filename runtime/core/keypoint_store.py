@@ -102,6 +102,11 @@ class KeypointStore:
     def bytes_per_keypoint(self) -> int:
         return int(self.dtype.itemsize)
 
+    @property
+    def no_word_code(self) -> int:
+        """How a keypoint without a word is stored in the word field."""
+        return int(self._no_word)
+
     def pack(self, keypoints: np.ndarray, words: np.ndarray, descriptors: np.ndarray, image_shape) -> PlaceKeypoints:
         """Build the store form of one frame (not yet stored; see `put`).
 

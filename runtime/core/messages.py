@@ -31,7 +31,7 @@ from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 #: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...); 1.3: ``nfa``,
 #: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``;
 #: 1.5: ``sequence_nfa``, the status's ``warnings``.
-MESSAGE_FORMAT_VERSION = "1.5"
+MESSAGE_FORMAT_VERSION = "1.6"
 
 #: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
 LOG_STATES = ("ok", "images_stopped", "stopped", "failed", "closed")
@@ -249,6 +249,9 @@ class FrameResult(_Message):
         "verified by evidence over consecutive frames (DetectorConfig.sequence): the summed log10 NFA of the chain "
         "of frames ending here, whose last link is this frame's verified_place (nfa is that pair's own); null "
         "when one pair passed alone or nothing was verified"), since="1.5")
+    verified_robot: str | None = _f(None, (
+        "the fleet robot whose place was verified (run --fleet): verified_frame is then that robot's frame number "
+        "and verified_place is null; null: a place of this node's own map (or nothing verified)"), since="1.6")
     candidates: list[Candidate] = field(default_factory=list, metadata=_meta(
         "the top places of the ranking (CandidateConfig.top_k) and every other place checked (track, "
         "island)", since="1.3"))
@@ -268,6 +271,38 @@ class FrameResult(_Message):
 
 
 # ============================================================================ stats
+
+
+@dataclass
+class RemoteRobotStats:
+    """One other robot of the fleet, as this node sees it (cumulative)."""
+
+    places: int = _f(0, "its places this node holds now")
+    summaries: int = _f(0, "place summaries received from it")
+    refused: dict[str, int] = field(default_factory=dict, metadata=_meta("its messages refused, by reason"))
+    fetches: int = _f(0, "keypoint fetches asked of it")
+    fetch_failures: int = _f(0, "fetches that gave nothing usable (timeout, bad reply, robot gone)")
+    bytes_in: int = _f(0, "bytes received from it: summaries and keypoint replies")
+    fetch_ms_p50: float | None = _f(None, "median latency of its recent fetches, ms (null: none yet)")
+    loops: int = _f(0, "loops verified to its places")
+    alive: bool = _f(True, "its liveliness token is present")
+
+
+@dataclass
+class FleetStats:
+    """A node's part in a fleet (run --fleet), cumulative."""
+
+    fleet: str = _f(description="fleet name")
+    robot: str = _f(description="this node's robot id")
+    places_served: int = _f(0, "own places offered to the fleet now")
+    summaries_out: int = _f(0, "place summaries published")
+    keypoint_replies: int = _f(0, "keypoint queries answered")
+    bytes_out: int = _f(0, "bytes sent to the fleet: summaries and keypoint replies")
+    remote_places: int = _f(0, "other robots' places held now")
+    remote_evicted: int = _f(0, "other robots' places evicted to stay within the caps")
+    refused_elsewhere: dict[str, int] = field(default_factory=dict, metadata=_meta(
+        "messages refused from robots this node holds no places of (unreadable, other bundle, too many robots)"))
+    robots: dict[str, RemoteRobotStats] = field(default_factory=dict, metadata=_meta("per other robot"))
 
 
 @dataclass
@@ -304,6 +339,7 @@ class StatsMessage(_Message):
         "the log now: 'ok', 'images_stopped' (low disk space: results only), 'stopped' (no space: nothing "
         "logged), 'failed' (no file open after an error; retried), 'closed'; null: not told"),
         enum=LOG_STATES, since="1.2")
+    fleet: FleetStats | None = _f(None, "the node's part in a fleet (null: not in one)", since="1.6")
 
     def __post_init__(self) -> None:
         self.bad_total = sum(self.bad.values())
@@ -381,6 +417,7 @@ class StatusMessage(_Message):
     warnings: list[str] = field(default_factory=list, metadata=_meta(
         "what the node warns about now, one line each, e.g. results that no ROS 2 subscriber can read "
         "(empty: nothing)", since="1.5"))
+    fleet: FleetStats | None = _f(None, "the node's part in a fleet (null: not in one)", since="1.6")
 
     def __post_init__(self) -> None:
         self.bad_total = sum(self.bad.values())
@@ -391,8 +428,10 @@ __all__ = [
     "MESSAGE_FORMAT_VERSION",
     "SCORE_KINDS",
     "TRANSPORT_FIELDS",
+    "FleetStats",
     "FrameResult",
     "LatencySummary",
+    "RemoteRobotStats",
     "RunSummary",
     "StatsMessage",
     "StatusMessage",

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.detector import DetectorConfig
+from aefabmap.runtime.core.fleet_map import FleetConfig
 
 #: Version of RunConfig's dict form.
 RUN_CONFIG_FORMAT = 1
@@ -33,14 +34,19 @@ class RunConfig:
         camera, map caps, temporal check).
     profile: the preset the settings came from (runtime/core/profiles.py), or None.
     queue: frames the live node buffers between the transport and the detector.
+    fleet: the fleet the live node joins (run --fleet; None: none); its remote loops depend on
+        what other robots offered, so a replay cannot decide them again.
     """
 
     model: str = ""
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     profile: str | None = None
     queue: int = 2
+    fleet: FleetConfig | None = None
 
     def __post_init__(self) -> None:
+        if self.fleet is not None and not isinstance(self.fleet, FleetConfig):
+            raise ConfigError(f"fleet must be a FleetConfig, got {type(self.fleet).__name__}")
         if not isinstance(self.detector, DetectorConfig):
             raise ConfigError(f"detector must be a DetectorConfig, got {type(self.detector).__name__}")
         if not isinstance(self.queue, int) or isinstance(self.queue, bool) or not 1 <= self.queue <= MAX_QUEUE:

@@ -73,6 +73,10 @@ class Scorer(Protocol):
         """Forget a stored place."""
         ...
 
+    def place_words(self, place_id: int) -> np.ndarray:
+        """The sorted word ids a place was stored with."""
+        ...
+
     def rank(self, words: np.ndarray) -> Ranking:
         """Rank a query against every stored place (the query is not added)."""
         ...
@@ -121,6 +125,10 @@ class FabMapScorer:
     def remove(self, place_id: int) -> None:
         self.fabmap.remove(place_id)
 
+    def place_words(self, place_id: int) -> np.ndarray:
+        """The sorted word ids a place was stored with."""
+        return self.fabmap.places.place_words(place_id)
+
     def rank(self, words: np.ndarray) -> Ranking:
         loc = self.fabmap.localize(words, add=False)
         best = loc.best_place
@@ -164,6 +172,10 @@ class BowScorer:
 
     def remove(self, place_id: int) -> None:
         self.index.remove(place_id)
+
+    def place_words(self, place_id: int) -> np.ndarray:
+        """The sorted word ids a place was stored with."""
+        return self.index.postings.place_words(place_id)
 
     def rank(self, words: np.ndarray) -> Ranking:
         sims = self.index.similarity(words)

@@ -149,9 +149,10 @@ def test_versions():
         with pytest.raises(InputError, match="malformed"):
             parse_version(bad)
     pose = {"relative_rotation", "relative_translation"}
-    chain = {"sequence_nfa"}
+    chain = {"sequence_nfa"} | {"verified_robot"}
     assert set(FrameResult.fields_since((1, 0))) == {"score_kind", "nfa", "geometry_reason", "candidates"} | pose | chain
     assert set(FrameResult.fields_since((1, 2))) == {"nfa", "geometry_reason", "candidates"} | pose | chain
     assert set(FrameResult.fields_since((1, 3))) == pose | chain
     assert set(FrameResult.fields_since((1, 4))) == chain
+    assert set(FrameResult.fields_since((1, 5))) == {"verified_robot"}
     assert FrameResult.fields_since(parse_version(MESSAGE_FORMAT_VERSION)) == ()

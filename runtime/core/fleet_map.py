@@ -1,0 +1,219 @@
+"""Other robots' places, held beside the own map and verified like its own (pure).
+
+A node of a fleet (runtime/adapters/fleet.py) hands `FleetMap` the place summaries other robots
+publish. Each remote robot gets its own FAB-MAP scorer (runtime/core/scorer.py) built as the
+detector builds its own, so its places are ranked against the same new-place model; its frame
+numbers never mix with another robot's. After the own detector has judged a frame and verified
+nothing, `FleetMap.match` ranks every remote robot's places, takes each robot's best `top_k`,
+gets their keypoints (a cache, else the caller's fetch, which may fail) and verifies them as the
+own places are verified, against a bar stricter by the log10 of the number of remote pairs
+checked (each is one more chance of a false alarm). The own map comes first: remote places live
+in what the own map leaves of `max_places` / `memory_mb` and of the fleet's own caps, the oldest
+arrival evicted first.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from aefabmap.errors import ConfigError
+from aefabmap.runtime.core.fleet_wire import PlaceSummary, check_token
+from aefabmap.runtime.core.keypoint_store import PlaceKeypoints
+from aefabmap.runtime.core.messages import RemoteRobotStats
+from aefabmap.runtime.core.scorer import Scorer
+from aefabmap.runtime.core.verification import GeometryResult
+
+#: Fetch latencies kept per robot for the stats' median (ms).
+_LATENCIES_KEPT = 200
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    """A node's part in a fleet.
+
+    name: the fleet (a key-expression token); robot: this node's id in it (same rules).
+    fetch_timeout_ms: how long a keypoint fetch may wait for the robot that owns the place.
+    top_k: remote places checked per robot and frame (FAB-MAP's best first).
+    max_robots: remote robots kept; summaries of further robots are refused and counted.
+    max_places: remote places kept in all (besides the caps the own map leaves).
+    cache_places: fetched keypoint sets kept for the next frames (a revisit checks the same places).
+    """
+
+    name: str = ""
+    robot: str = ""
+    fetch_timeout_ms: int = 300
+    top_k: int = 2
+    max_robots: int = 16
+    max_places: int = 100_000
+    cache_places: int = 64
+
+    def __post_init__(self) -> None:
+        check_token(self.name, "fleet name")
+        check_token(self.robot, "robot id")
+        for name, lo, hi in (("fetch_timeout_ms", 1, 60_000), ("top_k", 1, 20), ("max_robots", 1, 1000),
+                             ("max_places", 1, 10_000_000), ("cache_places", 1, 100_000)):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
+                raise ConfigError(f"fleet {name} must be an integer in [{lo}, {hi}], got {str(value)[:40]}")
+
+
+class RemoteRobot:
+    """One robot's places: a scorer of their words, the place id <-> frame tables, its counters
+    and its recent fetch latencies (ms)."""
+
+    def __init__(self, scorer: Scorer) -> None:
+        self.scorer = scorer
+        self.frame_of: dict[int, int] = {}
+        self.place_of: dict[int, int] = {}
+        self.stats = RemoteRobotStats()
+        self.fetch_ms: deque[float] = deque(maxlen=_LATENCIES_KEPT)
+
+    def refuse(self, reason: str) -> None:
+        self.stats.refused[reason] = self.stats.refused.get(reason, 0) + 1
+
+
+@dataclass
+class RemoteMatch:
+    """A verified loop to another robot's place."""
+
+    robot: str
+    frame: int
+    geometry: GeometryResult
+    checked: int
+
+
+class FleetMap:
+    """Remote robots' places within caps; see the module doc.
+
+    make_scorer: a fresh, empty scorer like the own map's (LoopClosureDetector.new_scorer).
+    room: (places, bytes) the own map leaves for remote places now (None: no such cap).
+    """
+
+    def __init__(self, config: FleetConfig, make_scorer: Callable[[], Scorer],
+                 room: Callable[[], tuple[int | None, int | None]]) -> None:
+        self.config = config
+        self._make_scorer, self._room = make_scorer, room
+        self.robots: dict[str, RemoteRobot] = {}
+        self._arrivals: deque[tuple[str, int]] = deque()  # (robot, frame), oldest first
+        self._cache: OrderedDict[tuple[str, int], PlaceKeypoints] = OrderedDict()
+        self.evicted = 0
+        #: Refusals of messages from robots the map does not hold (unreadable, other bundle, one
+        #: robot too many), by reason: per-robot counters would let a peer grow them without bound.
+        self.refused_elsewhere: dict[str, int] = {}
+
+    @property
+    def n_places(self) -> int:
+        return sum(r.scorer.n_alive for r in self.robots.values())
+
+    def nbytes(self) -> int:
+        """Scorer memory of the remote places plus the cached keypoints."""
+        return sum(r.scorer.nbytes() for r in self.robots.values()) + sum(p.nbytes for p in self._cache.values())
+
+    def add(self, summary: PlaceSummary) -> bool:
+        """Keep a remote place; False (counted under a reason) when it is refused."""
+        if summary.robot == self.config.robot:
+            return False  # our own summaries, back through a router: not a remote place
+        robot = self.robots.get(summary.robot)
+        if robot is None:
+            if len(self.robots) >= self.config.max_robots:
+                self.refuse(summary.robot, "too_many_robots")
+                return False
+            robot = self.robots[summary.robot] = RemoteRobot(self._make_scorer())
+        robot.stats.summaries += 1
+        if summary.frame in robot.place_of:
+            robot.refuse("duplicate")
+            return False
+        if summary.words.size == 0:
+            robot.refuse("no_words")
+            return False
+        pid = robot.scorer.add(summary.words)
+        robot.frame_of[pid], robot.place_of[summary.frame] = summary.frame, pid
+        self._arrivals.append((summary.robot, summary.frame))
+        self.fit()
+        return summary.frame in robot.place_of
+
+    def refuse(self, robot: str | None, reason: str) -> None:
+        """Count a message refused before it reached the map (undecodable, other bundle), under
+        its robot when the map holds that robot, else in `refused_elsewhere`."""
+        if robot in self.robots:
+            self.robots[robot].refuse(reason)
+        else:
+            self.refused_elsewhere[reason] = self.refused_elsewhere.get(reason, 0) + 1
+
+    def fit(self) -> None:
+        """Evict the oldest remote places until they fit the room the own map leaves."""
+        places, nbytes = self._room()
+        limit = self.config.max_places if places is None else min(self.config.max_places, max(places, 0))
+        while self._arrivals and (self.n_places > limit or (nbytes is not None and self.nbytes() > nbytes)):
+            self._evict_oldest()
+
+    def _evict_oldest(self) -> None:
+        name, frame = self._arrivals.popleft()
+        robot = self.robots.get(name)
+        pid = robot.place_of.pop(frame, None) if robot is not None else None
+        if pid is not None:
+            robot.scorer.remove(pid)
+            del robot.frame_of[pid]
+            self._cache.pop((name, frame), None)
+            self.evicted += 1
+
+    def candidates(self, observed: np.ndarray) -> list[tuple[str, int]]:
+        """(robot, frame) of each robot's top_k places for the observed words, best first per robot."""
+        out = []
+        for name, robot in self.robots.items():
+            if robot.scorer.n_alive == 0:
+                continue
+            order = robot.scorer.rank(observed).order
+            best = np.argsort(-order, kind="stable")[: self.config.top_k]
+            out += [(name, robot.frame_of[int(p)]) for p in best if np.isfinite(order[p]) and int(p) in robot.frame_of]
+        return out
+
+    def keypoints(self, robot: str, frame: int, fetch: Callable[[str, int], PlaceKeypoints | None]) -> PlaceKeypoints | None:
+        """The place's keypoints from the cache, else from fetch (kept in the cache when it gives them)."""
+        key = (robot, frame)
+        if key in self._cache:
+            self._cache.move_to_end(key)
+            return self._cache[key]
+        place = fetch(robot, frame)
+        if place is not None and robot in self.robots and frame in self.robots[robot].place_of:
+            self._cache[key] = place
+            while len(self._cache) > self.config.cache_places:
+                self._cache.popitem(last=False)
+            self.fit()
+        return place
+
+    def match(self, observed: np.ndarray, checker: Callable[[float], Callable[..., GeometryResult]],
+              fetch: Callable[[str, int], PlaceKeypoints | None], max_log10_nfa: float) -> RemoteMatch | None:
+        """The most significant verified remote place for this frame, or None.
+
+        checker(bar) -> check(place, bruteforce, retry_only): the own detector's pair check
+        (LoopClosureDetector.place_check) with the acceptance bar `bar` (log10 NFA). Each
+        candidate is matched by words; each robot's best is also retried all-pairs, as the own
+        map's reach does. The bar is max_log10_nfa - log10(pairs checked).
+        """
+        wanted = self.candidates(observed)
+        if not wanted:
+            return None
+        checks = len(wanted) + len({r for r, _ in wanted})
+        bar = max_log10_nfa - math.log10(checks)
+        check = checker(bar)
+        best: RemoteMatch | None = None
+        retried: set[str] = set()
+        for robot, frame in wanted:
+            place = self.keypoints(robot, frame, fetch)
+            if place is None or len(place) == 0:
+                continue
+            g = check(place, False, False)
+            if not g.verified and robot not in retried:
+                retried.add(robot)
+                g = check(place, False, True)
+            if g.verified and (best is None or g.nfa < best.geometry.nfa):
+                best = RemoteMatch(robot, frame, g, checks)
+        if best is not None:
+            self.robots[best.robot].stats.loops += 1
+        return best

@@ -1,0 +1,173 @@
+"""Robots of a fleet over real Zenoh sessions through a router on loopback
+(runtime/adapters/fleet.py): places offered, fetched on demand and verified; late joiners;
+robots that leave; hostile peers."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from aefabmap.runtime.adapters.bundle_reader import load_detector
+from aefabmap.runtime.adapters.fleet import FleetNode
+from aefabmap.runtime.adapters.map_state import bundle_id
+from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, open_session
+from aefabmap.runtime.core.detector import DetectorConfig
+from aefabmap.runtime.core.fleet_map import FleetConfig
+from aefabmap.runtime.core.fleet_wire import PlaceSummary, fleet_key
+from aefabmap.runtime.tools.node_process import free_tcp_port
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture(scope="module")
+def route():
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(10, seed=3, size=(640, 480))
+    return images
+
+
+@pytest.fixture
+def hub():
+    """A Zenoh router on a loopback port; yields its endpoint."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    router = open_session(SessionConfig(listen=(ep,), mode="router"))
+    yield ep
+    router.close()
+
+
+def _peer(hub: str) -> zenoh.Session:
+    """A peer that reaches the router and listens on loopback, as a robot's node does: the router
+    tells the peers of each other and they connect directly."""
+    return open_session(SessionConfig(connect=(hub,), listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), mode="peer"))
+
+
+def _robot(hub: str, robot: str, **kw) -> tuple[zenoh.Session, FleetNode]:
+    from aefabmap.cli.demo import default_bundle
+
+    session = _peer(hub)
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    return session, FleetNode(session, det, FleetConfig(name="test", robot=robot, **kw))
+
+
+def _until(condition, timeout_s: float = 10.0) -> bool:
+    """Wait (bounded) for a condition that Zenoh's threads make true."""
+    deadline, pause = time.monotonic() + timeout_s, threading.Event()
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        pause.wait(0.02)
+    return True
+
+
+def _feed(node: FleetNode, images) -> list:
+    return [node.process(im, 0) for im in images]
+
+
+def test_a_robot_verifies_a_view_of_anothers_place_fetching_its_keypoints(hub, route):
+    sa, a = _robot(hub, "a")
+    sb, b = _robot(hub, "b")
+    try:
+        # b's token reaching a means b's subscription (declared before it) reached the router too
+        assert _until(lambda: a.robots_alive() == ["b"])
+        _feed(a, route[:6])
+        offered = a.fleet_stats().places_served
+        assert offered == 5  # frames 0-4 entered a's map (exclude 1)
+        assert _until(lambda: (b.process(np.zeros((480, 640), np.uint8), 0), b.map.n_places)[1] == offered)
+        r = b.process(route[3], 0)
+        assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
+        assert r.verified_place is None and r.loop
+        s = b.fleet_stats().robots["a"]
+        assert s.fetches >= 1 and s.fetch_failures == 0 and s.loops == 1 and s.bytes_in > 0 and s.alive
+        assert a.fleet_stats().keypoint_replies >= 1 and a.fleet_stats().bytes_out > 0
+        # b's own map never holds a's places: a frame of b's own route verifies to b (robot null)
+        r2 = b.process(route[3], 0)  # again: still a's place (b stored its own copy only after exclude)
+        assert r2.verified
+    finally:
+        a.close(), b.close(), sa.close(), sb.close()
+
+
+def test_a_late_joiner_gets_every_place_with_one_query_and_a_leaver_is_noticed(hub, route):
+    sa, a = _robot(hub, "a", fetch_timeout_ms=200)
+    _feed(a, route[:6])
+    sc, c = _robot(hub, "c", fetch_timeout_ms=200)
+    try:
+        assert _until(lambda: c.robots_alive() == ["a"])
+        assert c.join(timeout_s=5) == 5
+        c.process(np.zeros((480, 640), np.uint8), 0)
+        assert c.map.n_places == 5
+        a.close()
+        sa.close()  # robot a leaves: its liveliness token goes
+        assert _until(lambda: c.fleet_stats().robots["a"].alive is False)
+        r = c.process(route[3], 0)  # a's places stay usable, but their keypoints cannot be fetched
+        assert not r.verified and r.verified_robot is None
+        s = c.fleet_stats().robots["a"]
+        assert s.places == 5 and s.fetches >= 1 and s.fetch_failures == s.fetches
+    finally:
+        c.close(), sc.close()
+
+
+def test_hostile_peers_are_counted_and_cannot_crash_or_overfill_a_node(hub, route):
+    sb, b = _robot(hub, "b", max_places=4, fetch_timeout_ms=300)
+    evil = _peer(hub)
+    token = evil.liveliness().declare_token(fleet_key("test", "x", "alive"))
+    assert _until(lambda: b.robots_alive() == ["x"])
+    ident = bytes.fromhex(bundle_id(b.detector.manifest))
+    try:
+        garbage = [b"", b"AEFS", b"\xff" * 64, PlaceSummary("x", bytes(32), 1, 0, np.array([1, 2])).encode(),
+                   PlaceSummary("y", ident, 1, 0, np.array([3, 2])).encode()]
+        for i, data in enumerate(garbage):
+            evil.put(fleet_key("test", "x", "place", str(i)), data)
+        # a summary that names another robot than its key
+        evil.put(fleet_key("test", "x", "place", "9"), PlaceSummary("z", ident, 9, 0, np.array([1, 2])).encode())
+        # many valid places from one peer: the node keeps no more than its cap
+        for frame in range(40):
+            evil.put(fleet_key("test", "x", "place", str(100 + frame)),
+                     PlaceSummary("x", ident, 100 + frame, 0, np.arange(frame, frame + 50)).encode())
+
+        def refused():
+            st = b.fleet_stats()
+            return sum(st.refused_elsewhere.values()) + sum(sum(r.refused.values()) for r in st.robots.values())
+
+        assert _until(lambda: (b.process(np.zeros((480, 640), np.uint8), 0), refused() >= 6 and
+                               b.fleet_stats().robots.get("x") is not None and
+                               b.fleet_stats().robots["x"].summaries >= 40)[1])
+        assert b.map.n_places <= 4
+        # the peer answers keypoint queries with garbage: the fetch is refused and counted
+        replies = evil.declare_queryable(fleet_key("test", "x", "keypoints", "*"),
+                                         lambda q: q.reply(str(q.key_expr), b"AEFK" + b"\0" * 40))
+        r = b.process(route[3], 0)
+        assert not r.verified
+        st = b.fleet_stats().robots["x"]
+        assert st.fetches >= 1 and st.fetch_failures == st.fetches and st.refused.get("malformed", 0) >= 1
+        replies.undeclare()
+        token.undeclare()
+    finally:
+        b.close(), sb.close(), evil.close()
+
+
+def test_a_restarted_node_serves_the_places_of_its_loaded_map(hub, route):
+    from aefabmap.cli.demo import default_bundle
+
+    sa, a = _robot(hub, "a")
+    _feed(a, route[:6])
+    state = a.detector.state().resolve()
+    a.close()
+    sa.close()
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    det.load_state(state)
+    s2 = _peer(hub)
+    again = FleetNode(s2, det, FleetConfig(name="test", robot="a"))
+    sc, c = _robot(hub, "c")
+    try:
+        assert _until(lambda: c.robots_alive() == ["a"])
+        assert again.fleet_stats().places_served == 5
+        assert c.join(timeout_s=5) == 5
+        r = c.process(route[3], 0)
+        assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
+    finally:
+        again.close(), s2.close(), c.close(), sc.close()

@@ -1,0 +1,139 @@
+"""Other robots' places (runtime/core/fleet_map.py): kept within what the own map leaves,
+ranked per robot, verified as the own places are, never past the caps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aefabmap.errors import ConfigError
+from aefabmap.runtime.adapters.bundle_reader import load_detector
+from aefabmap.runtime.core.detector import DetectorConfig
+from aefabmap.runtime.core.fleet_map import FleetConfig, FleetMap
+from aefabmap.runtime.core.fleet_wire import PlaceSummary
+
+ID = bytes(32)
+
+
+@pytest.fixture(scope="module")
+def route():
+    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(12, seed=3, size=(640, 480))
+    return images
+
+
+def _detector():
+    from aefabmap.cli.demo import default_bundle
+
+    return load_detector(default_bundle(), DetectorConfig(exclude=1))
+
+
+def _places_of(det, images):
+    """(summary, keypoints) of every place robot "a" stores from images (as a FleetNode would publish)."""
+    out, pending = [], {}
+    for im in images:
+        r = det.process(im)
+        words, _, _ = det.last_input
+        pending[r.sequence] = np.unique(words[: det.bundle.features.max_features])
+        if r.inserted_frame is not None:
+            kps = det.store.get(r.inserted_place)
+            out.append((PlaceSummary("a", ID, r.inserted_frame, 0, pending.pop(r.inserted_frame)), kps))
+    return out
+
+
+def _map(det, room=(None, None), **kw):
+    return FleetMap(FleetConfig(name="f", robot="b", **kw), det.new_scorer, lambda: room)
+
+
+def test_a_view_of_another_robots_place_verifies_to_that_robots_frame(route):
+    a, b = _detector(), _detector()
+    offered = _places_of(a, route[:6])
+    fleet = _map(b)
+    for summary, _ in offered:
+        assert fleet.add(summary)
+    kps = {s.frame: k for s, k in offered}
+    fetched = []
+
+    def fetch(robot, frame):
+        fetched.append((robot, frame))
+        return kps.get(frame)
+
+    r = b.process(route[2])  # robot b's first frame: its own map is empty
+    assert not r.verified
+    words, _, features = b.last_input
+    observed = words[: b.bundle.features.max_features]
+    v = b.config.verification
+    from dataclasses import replace
+
+    match = fleet.match(observed, lambda bar: b.place_check(features, words, replace(v, max_log10_nfa=bar)),
+                        fetch, v.max_log10_nfa)
+    assert match is not None and match.robot == "a" and abs(match.frame - 2) <= 1
+    assert match.geometry.nfa < v.max_log10_nfa - np.log10(match.checked)  # the stricter bar
+    assert fetched and fleet.robots["a"].stats.loops == 1
+    # Fetched keypoints are cached: the same frame again asks nobody.
+    fetched.clear()
+    fleet.match(observed, lambda bar: b.place_check(features, words, replace(v, max_log10_nfa=bar)), fetch,
+                v.max_log10_nfa)
+    assert not fetched
+
+
+def test_a_fetch_that_fails_verifies_nothing_and_raises_nothing(route):
+    a, b = _detector(), _detector()
+    fleet = _map(b)
+    for summary, _ in _places_of(a, route[:4]):
+        fleet.add(summary)
+    b.process(route[1])
+    words, _, features = b.last_input
+    observed = words[: b.bundle.features.max_features]
+    assert fleet.match(observed, lambda bar: b.place_check(features, words), lambda robot, frame: None, -4.0) is None
+
+
+def test_remote_places_live_in_what_the_own_map_leaves(route):
+    a, b = _detector(), _detector()
+    offered = _places_of(a, route[:8])
+    room = [3, None]
+    fleet = FleetMap(FleetConfig(name="f", robot="b"), b.new_scorer, lambda: tuple(room))
+    for summary, _ in offered:
+        fleet.add(summary)
+    assert fleet.n_places == 3 and fleet.evicted == len(offered) - 3
+    assert sorted(fleet.robots["a"].place_of) == [s.frame for s, _ in offered[-3:]]  # the oldest went first
+    room[0] = 1  # the own map grew
+    fleet.fit()
+    assert fleet.n_places == 1
+    room[:] = [None, 0]  # no bytes left at all
+    fleet.fit()
+    assert fleet.n_places == 0
+
+
+def test_refusals_are_counted_and_change_nothing(route):
+    a, b = _detector(), _detector()
+    offered = _places_of(a, route[:3])
+    fleet = _map(b, max_robots=1)
+    first = offered[0][0]
+    assert fleet.add(first)
+    assert not fleet.add(first)  # the same frame again
+    assert not fleet.add(PlaceSummary("b", ID, 99, 0, first.words))  # our own, back through a router
+    assert not fleet.add(PlaceSummary("c", ID, 1, 0, first.words))  # one robot too many
+    assert not fleet.add(PlaceSummary("a", ID, 50, 0, np.zeros(0, np.int64)))
+    assert fleet.robots["a"].stats.refused == {"duplicate": 1, "no_words": 1}
+    assert fleet.refused_elsewhere == {"too_many_robots": 1}
+    assert list(fleet.robots) == ["a"] and fleet.n_places == 1
+
+
+@pytest.mark.parametrize("bad", [dict(name="a/b"), dict(robot="*"), dict(top_k=0), dict(fetch_timeout_ms=0),
+                                 dict(max_places=True)])
+def test_bad_fleet_settings_are_refused(bad):
+    with pytest.raises(ConfigError):
+        FleetConfig(**{"name": "f", "robot": "b", **bad})
+
+
+def test_the_run_configuration_keeps_the_fleet_whole():
+    from aefabmap.runtime.core.run_config import RunConfig
+
+    config = RunConfig(model="m", fleet=FleetConfig(name="lab", robot="b", fetch_timeout_ms=150))
+    assert RunConfig.from_json(config.to_json()) == config
+    doc = config.to_dict()
+    doc["fleet"]["robot"] = "b/*"
+    with pytest.raises(ConfigError):
+        RunConfig.from_dict(doc)
