@@ -196,9 +196,6 @@ def main(args: argparse.Namespace) -> int:
             get_profile(config.profile).check_bundle(read_manifest(Path(args.model)))
         apply_process_settings(config)
         detector = load_detector(args.model, config.detector)
-        from aefabmap.runtime.core import compiled
-
-        log.info("kernels: %s", compiled.describe())
 
         def on_stats(msg) -> None:
             log.info(
@@ -235,6 +232,9 @@ def main(args: argparse.Namespace) -> int:
                               run_config={RUN_CONFIG_KEY: config.to_dict(), "map_start": map_start},
                               result_key=args.results_key, ros=ros, log_rotation=rotation,
                               log_config=McapLogConfig(profile=args.mcap_profile), fleet=config.fleet)
+        from aefabmap.runtime.core import compiled
+
+        log.info("kernels: %s", compiled.describe())  # once the run's settings and state are accepted
         view = start_live_view(args)
         with stop_on_signals(stop):
             summary = run_node(detector, options, stop_event=stop, on_stats=on_stats, snapshotter=snapshotter,
