@@ -48,6 +48,20 @@ class FleetMessageError(InputError):
         self.reason = reason
 
 
+def _unpack_head(data: bytes, head: struct.Struct, what: str) -> tuple:
+    if len(data) < head.size:
+        raise FleetMessageError("malformed", f"{what} of {len(data)} bytes is shorter than its header")
+    return head.unpack_from(data)
+
+
+def _check_head(magic: bytes, version: int, ident: bytes, want_magic: bytes, identity: bytes, what: str) -> None:
+    """This message kind and wire version, from a robot with this node's bundle."""
+    if magic != want_magic or version != WIRE_VERSION:
+        raise FleetMessageError("malformed", f"not a version-{WIRE_VERSION} {what}")
+    if ident != identity:
+        raise FleetMessageError("other_bundle", f"{what} from a robot with another bundle")
+
+
 def check_token(text: object, what: str) -> str:
     """`text` as a fleet name or robot id (TOKEN_PATTERN), else ConfigError."""
     if not isinstance(text, str) or not TOKEN_PATTERN.fullmatch(text):
@@ -83,13 +97,8 @@ class PlaceSummary:
     @classmethod
     def decode(cls, data: bytes, identity: bytes, vocabulary_size: int) -> PlaceSummary:
         """A summary from bytes, checked against this node's bundle identity and vocabulary size."""
-        if len(data) < _SUMMARY_HEAD.size:
-            raise FleetMessageError("malformed", f"summary of {len(data)} bytes is shorter than its header")
-        magic, version, robot_len, ident, frame, stamp_ns, n, width = _SUMMARY_HEAD.unpack_from(data)
-        if magic != SUMMARY_MAGIC or version != WIRE_VERSION:
-            raise FleetMessageError("malformed", f"not a version-{WIRE_VERSION} place summary")
-        if ident != identity:
-            raise FleetMessageError("other_bundle", "summary from a robot with another bundle")
+        magic, version, robot_len, ident, frame, stamp_ns, n, width = _unpack_head(data, _SUMMARY_HEAD, "summary")
+        _check_head(magic, version, ident, SUMMARY_MAGIC, identity, "summary")
         if width not in (2, 4) or n > vocabulary_size or frame < 0:
             raise FleetMessageError("malformed", f"summary with {n} words of {width} bytes, frame {frame}")
         if len(data) != _SUMMARY_HEAD.size + robot_len + n * width:
@@ -116,13 +125,8 @@ def decode_keypoints(data: bytes, identity: bytes, frame: int, dtype: np.dtype, 
                      no_word: int) -> PlaceKeypoints:
     """A keypoint reply for `frame`, checked: this bundle, this store's record form `dtype`, word ids
     below vocabulary_size or the store's no-word code, a plausible image size."""
-    if len(data) < _KEYPOINTS_HEAD.size:
-        raise FleetMessageError("malformed", f"keypoint reply of {len(data)} bytes is shorter than its header")
-    magic, version, ident, got_frame, height, width, n, size = _KEYPOINTS_HEAD.unpack_from(data)
-    if magic != KEYPOINTS_MAGIC or version != WIRE_VERSION:
-        raise FleetMessageError("malformed", f"not a version-{WIRE_VERSION} keypoint reply")
-    if ident != identity:
-        raise FleetMessageError("other_bundle", "keypoint reply from a robot with another bundle")
+    magic, version, ident, got_frame, height, width, n, size = _unpack_head(data, _KEYPOINTS_HEAD, "keypoint reply")
+    _check_head(magic, version, ident, KEYPOINTS_MAGIC, identity, "keypoint reply")
     if got_frame != frame:
         raise FleetMessageError("malformed", f"keypoint reply for frame {got_frame}, asked for {frame}")
     if size != dtype.itemsize or n > MAX_REPLY_KEYPOINTS or not (0 < height <= MAX_IMAGE_SIDE and 0 < width <= MAX_IMAGE_SIDE):
