@@ -9,7 +9,9 @@ its own map empty) streams the rest; b's loops to a's places are scored against 
 Frames go one at a time, the next once the node's result arrived (closed loop: no frame is
 dropped, and frames/s is what the node sustains). --baseline runs b once more without the fleet
 (frames/s, latency); --kill-a-after N kills robot a (SIGKILL) after b's N-th frame;
---late-joiner starts a third robot c after b and reports what it holds.
+--late-joiner starts a third robot c after b and reports what it holds. --a-offline: robot a
+runs without the fleet; its log is then offered by `aefabmap replay LOG --fleet` (a map built
+offline), which b's loops go to.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -102,6 +105,30 @@ class Robot:
         return {"summary": summary.to_dict() if summary else None, "rss_mb_at_end": rss}
 
 
+class OfferedLog:
+    """A `replay LOG --fleet` child that offers the map of a log; `offered`: its report line."""
+
+    def __init__(self, proc: subprocess.Popen, offered: dict) -> None:
+        self.proc, self.offered = proc, offered
+
+
+def offer_log(args, log: Path, router: str, stderr_path: Path) -> OfferedLog:
+    """Replay `log` as robot a of the fleet and wait until it offers its map (the "offering" line)."""
+    cmd = [sys.executable, "-m", "aefabmap.cli.main", "replay", str(log), "--model", args.model,
+           "--connect", router, "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--fleet", args.fleet, "--robot", "a"]
+    t0 = time.monotonic()
+    with open(stderr_path, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True)
+    while time.monotonic() - t0 < 600:
+        line = next((x for x in stderr_path.read_text().splitlines() if "offering" in x), None)
+        if line is not None:
+            return OfferedLog(proc, {"line": line.split(": ", 1)[-1], "seconds": round(time.monotonic() - t0, 2)})
+        if proc.poll() is not None:
+            raise SystemExit(f"replay --fleet exited ({proc.returncode}): {stderr_path}")
+        time.sleep(0.2)
+    raise SystemExit("replay --fleet did not finish its replay in time")
+
+
 def score(results: list[FrameResult], gt: np.ndarray, offset: int, remote_offset: int, tolerance: int) -> dict:
     """Right / wrong loops of robot b: to a's places (frame numbers from remote_offset) and to its own."""
     out = {}
@@ -134,6 +161,7 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", action="store_true", help="run b again without the fleet")
     ap.add_argument("--kill-a-after", type=int, default=None, metavar="N")
     ap.add_argument("--late-joiner", action="store_true")
+    ap.add_argument("--a-offline", action="store_true", help="a's places come from `replay --fleet` of its log")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     paths = list_images(args.images)
@@ -142,9 +170,14 @@ def main(argv=None) -> int:
     router_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     router = open_session(SessionConfig(listen=(router_ep,), mode="router"))
     doc: dict = {"model": args.model, "images": str(args.images), "split": args.split, "work": str(work)}
-    a = Robot("a", args, router_ep, work)
+    a = Robot("a", args, None if args.a_offline else router_ep, work)
     doc["a_seconds"] = round(a.stream(paths[: args.split]), 2)
     time.sleep(6)  # one stats period: a's counters after its last frame
+    offline = None
+    if args.a_offline:
+        doc["a"] = {"stats": a.stats.to_dict() if a.stats else None, **a.stop()}
+        offline = offer_log(args, work / "a.mcap", router_ep, work / "a_replay.log")
+        doc["a_offline"] = offline.offered
     b = Robot("b", args, router_ep, work)
 
     def maybe_kill(i: int) -> None:
@@ -158,7 +191,8 @@ def main(argv=None) -> int:
     doc["b"] = {"frames": len(rest), "seconds": round(seconds, 2), "fps": round(len(rest) / seconds, 2),
                 "latency": latency(b.results), **score(b.results, gt, args.split, 0, args.tolerance),
                 "stats": b.stats.to_dict() if b.stats else None}
-    doc["a"] = {"stats": a.stats.to_dict() if a.stats else None}
+    if offline is None:
+        doc["a"] = {"stats": a.stats.to_dict() if a.stats else None}
     if args.late_joiner:
         c = Robot("c", args, router_ep, work)
         c.stream(paths[:1])
@@ -167,6 +201,9 @@ def main(argv=None) -> int:
     doc["b"].update(b.stop())
     if a.proc.poll() is None:
         doc["a"].update(a.stop())
+    if offline is not None:
+        offline.proc.send_signal(signal.SIGTERM)
+        doc["a_offline"]["exit_code"] = offline.proc.wait(60)
     if args.baseline:
         b0 = Robot("b0", args, None, work)
         s0 = b0.stream(rest)

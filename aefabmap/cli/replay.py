@@ -3,12 +3,16 @@
 Exit code: 0, or 1 when ``--check`` finds results that differ from the logged ones;
 errors exit with the code of their aefabmap.errors class. With ``--foxglove`` the replay plays at
 the recorded pace (``--rate``), optionally after the first viewer (``--wait-viewer``), and the
-server stays up after it until Ctrl-C/SIGTERM (docs/streaming.md, "Replay in Foxglove").
+server stays up after it until Ctrl-C/SIGTERM (docs/streaming.md, "Replay in Foxglove"). With
+``--fleet NAME --robot ID`` the replay joins a fleet as `run` does (docs/fleet.md): the map it
+builds from the log is offered to the other robots, during the replay and after it until
+Ctrl-C/SIGTERM.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
@@ -45,6 +49,11 @@ def register(subparsers) -> argparse.ArgumentParser:
 
     add_foxglove_options(p)
     add_playback_options(p)
+    from aefabmap.cli.run import add_fleet_options, add_zenoh_options
+
+    add_zenoh_options(p, add_fleet_options(p))
+    p.epilog = ("Network (--fleet only): with none of --connect/--listen/--config the replay listens on "
+                "tcp/127.0.0.1:7447 only, as `run` does; no multicast scouting.")
     p.set_defaults(func=main)
     return p
 
@@ -73,11 +82,45 @@ def playback_config(args: argparse.Namespace):
     return PlaybackConfig(rate=rate, wait_viewer_s=args.wait_viewer)
 
 
-def serve_until_stopped(view, stop: threading.Event) -> None:
-    """Keep the Foxglove server of ``view`` up after the replay until ``stop`` (Ctrl-C/SIGTERM)."""
-    server = view.server
-    log.info("replay done; Foxglove server still up on ws://%s:%d until Ctrl-C", server.host, server.port)
+def serve_until_stopped(view, fleet, stop: threading.Event) -> None:
+    """Keep the Foxglove server of ``view`` and the fleet node ``fleet`` (either may be None) up
+    after the replay until ``stop`` (Ctrl-C/SIGTERM)."""
+    if view is not None:
+        server = view.server
+        log.info("replay done; Foxglove server still up on ws://%s:%d until Ctrl-C", server.host, server.port)
+    if fleet is not None:
+        log.info("replay done; offering %d places to fleet %s as robot %s until Ctrl-C",
+                 fleet.fleet_stats().places_served, fleet.config.name, fleet.config.robot)
     stop.wait()
+
+
+def _check_fleet_options(args: argparse.Namespace):
+    """The replay's FleetConfig (None: no fleet); ConfigError for options that need one or clash."""
+    from aefabmap.cli.run_config import fleet_config
+
+    fleet = fleet_config(args)
+    if fleet is None and (args.connect or args.listen or args.config or args.allow_exposure):
+        raise ConfigError("--connect/--listen/--config/--allow-exposure are for --fleet: a replay alone uses no network")
+    if fleet is not None and args.check:
+        raise ConfigError("--check compares the log's results with the own map's: it does not go with --fleet, "
+                          "whose loops to other robots' places the log cannot have")
+    return fleet
+
+
+def _join_fleet(args: argparse.Namespace, detector, config, stack):
+    """Open the session and join the fleet (closed by `stack`); the FleetNode wrapping detector."""
+    from aefabmap.cli.run import warn_exposure
+    from aefabmap.runtime.adapters.fleet import FleetNode
+    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config, open_session
+
+    sc = cli_session_config("listen", connect=args.connect, listen=args.listen, config_file=args.config,
+                            allow_exposure=args.allow_exposure)
+    warn_exposure(sc, log)
+    session = stack.enter_context(open_session(sc))
+    node = stack.enter_context(FleetNode(session, detector, config))
+    n = node.join()
+    log.info("fleet %s: robot %s joined, %d places offered by the others", config.name, config.robot, n)
+    return node
 
 
 def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
@@ -98,8 +141,10 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
 
     stop = stop if stop is not None else threading.Event()
     state_dir = view = None
+    network = contextlib.ExitStack()
     try:
         playback = playback_config(args)
+        fleet_config = _check_fleet_options(args)
         # Replay with the whole configuration of the logged run (a bag has none: the defaults).
         bag = len(args.log) == 1 and is_ros_bag(args.log[0])
         source = args.log[0] if bag else log_files(args.log)
@@ -111,11 +156,13 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         detector = load_detector(args.model, detector_config)
         if args.state is not None:
             state_dir = open_state(args.state, detector, log)
+        # A fleet node serves the places of a loaded state too: join once the map is there.
+        fleet = _join_fleet(args, detector, fleet_config, network) if fleet_config is not None else None
         with stop_on_signals(stop):
             view = start_live_view(args)
             if playback.wait_viewer_s is not None:
                 log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
-            summary = replay(detector, source, out_path=args.out, check=args.check,
+            summary = replay(fleet if fleet is not None else detector, source, out_path=args.out, check=args.check,
                              image_topic=args.topic, view=view, playback=playback, stop=stop,
                              log_config=McapLogConfig(profile=args.mcap_profile))
             if state_dir is not None:
@@ -124,8 +171,8 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
                 state_dir.close()
                 state_dir = None
             code = report_summary(args, summary)
-            if view is not None and not stop.is_set():
-                serve_until_stopped(view, stop)
+            if (view is not None or fleet is not None) and not stop.is_set():
+                serve_until_stopped(view, fleet, stop)
         return code
     except AefabmapError as exc:
         log.error("%s", exc)
@@ -133,6 +180,7 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     finally:
         if view is not None:
             view.close()
+        network.close()
         if state_dir is not None:
             state_dir.close()
 

@@ -105,6 +105,18 @@ def start_live_view(args: argparse.Namespace):
     return LiveView(server)
 
 
+def add_fleet_options(p: argparse.ArgumentParser):
+    """--fleet, --robot and --fleet-timeout-ms (run_config.fleet_config reads them); returns their group."""
+    fl = p.add_argument_group("fleet (robots that recognise each other's places)")
+    fl.add_argument("--fleet", default=None, metavar="NAME",
+                    help="join this fleet: offer this map's places to the other robots of the same bundle and "
+                    "verify loops to theirs (a token: letters, digits, '_', '-')")
+    fl.add_argument("--robot", default=None, metavar="ID", help="this robot's id in the fleet (same rules)")
+    fl.add_argument("--fleet-timeout-ms", type=int, default=None, metavar="MS",
+                    help="how long a fetch of another robot's keypoints may wait (default 300)")
+    return fl
+
+
 def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "run",
@@ -146,13 +158,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     logs.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
     add_detector_options(p, profile=True)
-    fl = p.add_argument_group("fleet (robots that recognise each other's places)")
-    fl.add_argument("--fleet", default=None, metavar="NAME",
-                    help="join this fleet: offer this map's places to the other robots of the same bundle and "
-                    "verify loops to theirs (a token: letters, digits, '_', '-')")
-    fl.add_argument("--robot", default=None, metavar="ID", help="this robot's id in the fleet (same rules)")
-    fl.add_argument("--fleet-timeout-ms", type=int, default=None, metavar="MS",
-                    help="how long a fetch of another robot's keypoints may wait (default 300)")
+    add_fleet_options(p)
     from aefabmap.cli.state_options import add_state_options
 
     add_state_options(p, snapshots=True)

@@ -113,14 +113,21 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
         temporal_frames=pick("temporal_frames", d.temporal_frames) if verification.enabled else 0,
         temporal_tolerance=pick("temporal_tolerance", d.temporal_tolerance),
     )
-    fleet = None
-    if opts.get("fleet") is not None or opts.get("robot") is not None:
-        if opts.get("fleet") is None or opts.get("robot") is None:
-            raise ConfigError("--fleet and --robot go together")
-        fleet = FleetConfig(name=opts["fleet"], robot=opts["robot"],
-                            fetch_timeout_ms=pick("fleet_timeout_ms", FleetConfig.fetch_timeout_ms))
+    fleet = fleet_config(args)
     return RunConfig(model=str(opts.get("model", "")), detector=detector, profile=opts.get("profile"),
                      queue=pick("queue", RunConfig().queue, prof.queue if prof else None), fleet=fleet)
+
+
+def fleet_config(args: argparse.Namespace) -> FleetConfig | None:
+    """The FleetConfig of --fleet / --robot / --fleet-timeout-ms (None: not in a fleet)."""
+    opts = vars(args)
+    if opts.get("fleet") is None and opts.get("robot") is None:
+        return None
+    if opts.get("fleet") is None or opts.get("robot") is None:
+        raise ConfigError("--fleet and --robot go together")
+    timeout = opts.get("fleet_timeout_ms")
+    return FleetConfig(name=opts["fleet"], robot=opts["robot"],
+                       fetch_timeout_ms=FleetConfig.fetch_timeout_ms if timeout is None else timeout)
 
 
 def apply_process_settings(config: RunConfig) -> None:

@@ -10,6 +10,11 @@ own map did not verify it checks the best remote places, fetching their keypoint
 (one fetch at a time, with a timeout; cached). Every message from a peer is validated; a bad one
 is counted under a reason and dropped.
 
+Catch-up: summaries published while two robots could not reach each other are lost to Zenoh.
+When a robot's liveliness token appears (again), the next frame asks that robot for its
+summaries after the latest frame it offered (``.../summaries?after=N``, answered without
+waiting); a robot that joins asks everyone for everything once (`join`).
+
 Threads: Zenoh's callbacks only append to the inbox, flip liveliness flags and read `_served`
 (a dict the frame thread replaces entries of; single dict operations are atomic in CPython);
 the detector and the FleetMap are touched by the frame thread alone.
@@ -33,6 +38,7 @@ from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
 from aefabmap.runtime.core.fleet_map import FleetConfig, FleetMap
 from aefabmap.runtime.core.fleet_wire import (
     FleetMessageError,
+    TOKEN_PATTERN,
     PlaceSummary,
     decode_keypoints,
     encode_keypoints,
@@ -69,6 +75,7 @@ class FleetNode:
         self._frame_of_place: dict[int, int] = {}
         self._pending: dict[int, tuple[np.ndarray, int]] = {}  # sequence -> (unique words, stamp)
         self._alive: dict[str, bool] = {}
+        self._returned: deque[str] = deque()  # robots whose token appeared, to catch up with
         self.out = FleetStats(fleet=config.name, robot=config.robot)
         self._frames = 0
         self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
@@ -142,10 +149,14 @@ class FleetNode:
 
     def _on_summaries_query(self, query: zenoh.Query) -> None:
         try:
+            after = _after_frame(query.parameters.get("after"))
+            if after is None:
+                return  # unreadable: the asker times out
             key = fleet_key(self.config.name, self.config.robot, "summaries")  # a reply's key must match the query
-            for summary, _ in list(self._served.values()):
-                query.reply(key, summary)
-                self.out.bytes_out += len(summary)
+            for frame, (summary, _) in list(self._served.items()):
+                if frame > after:
+                    query.reply(key, summary)
+                    self.out.bytes_out += len(summary)
         except Exception as exc:  # noqa: BLE001
             log.debug("summaries query not answered: %s", str(exc)[:200])
 
@@ -153,13 +164,46 @@ class FleetNode:
         try:
             parts = str(sample.key_expr).split("/")
             if len(parts) == 5 and parts[3] != self.config.robot:
-                self._alive[parts[3]] = sample.kind == zenoh.SampleKind.PUT
+                alive = sample.kind == zenoh.SampleKind.PUT
+                if alive and not self._alive.get(parts[3]) and len(self._returned) < INBOX:
+                    self._returned.append(parts[3])
+                self._alive[parts[3]] = alive
         except Exception:  # noqa: BLE001
             pass
 
     def robots_alive(self) -> list[str]:
         """The other robots of the fleet whose liveliness token this node sees now, sorted."""
         return sorted(r for r, alive in list(self._alive.items()) if alive)
+
+    def catch_up(self) -> list[str]:
+        """Ask each robot whose token appeared since the last call for its summaries after the
+        latest frame it offered; the replies reach the inbox later (nothing waits). Returns the
+        robots asked."""
+        asked: list[str] = []
+        while self._returned:
+            robot = self._returned.popleft()
+            if robot in asked or not TOKEN_PATTERN.fullmatch(robot):  # a key a peer chose
+                continue
+            after = self.map.last_frame(robot)
+            try:
+                self.session.get(f"{fleet_key(self.config.name, robot, 'summaries')}?after={after}",
+                                 self._on_catch_up_reply, consolidation=zenoh.ConsolidationMode.NONE,
+                                 timeout=JOIN_TIMEOUT_S)
+            except zenoh.ZError as exc:
+                log.debug("catch-up with %s not asked: %s", robot, str(exc)[:200])
+                continue
+            asked.append(robot)
+            log.info("fleet %s: robot %s is reachable; asking for its places after frame %d",
+                     self.config.name, robot, after)
+        return asked
+
+    def _on_catch_up_reply(self, reply: zenoh.Reply) -> None:
+        try:  # a Zenoh thread: never raise
+            if reply.ok is not None:
+                self._take(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+        except Exception:  # noqa: BLE001 - a peer's message must never take the node down
+            with self._drops_lock:
+                self._drops += 1
 
     def fetch(self, robot: str, frame: int) -> PlaceKeypoints | None:
         """The keypoints of another robot's place, or None (timeout, bad reply, robot gone); counted."""
@@ -208,6 +252,8 @@ class FleetNode:
 
     def process(self, gray: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         self._drain()
+        if self._returned:  # after the drain: ask for what came after the places just read
+            self.catch_up()
         result = self.detector.process(gray, stamp_ns)
         words, stamp, features = self.detector.last_input
         observed = words[: self.detector.bundle.features.max_features]
@@ -340,4 +386,11 @@ class FleetNode:
 
     def __exit__(self, *exc_info) -> None:
         self.close()
+
+
+def _after_frame(text: str | None) -> int | None:
+    """The ``after`` parameter of a summaries query: -1 when absent, None when unreadable."""
+    if text is None or text == "-1":
+        return -1
+    return int(text) if text.isdigit() and len(text) < 19 else None
 

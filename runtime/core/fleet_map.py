@@ -63,13 +63,15 @@ class FleetConfig:
 
 
 class RemoteRobot:
-    """One robot's places: a scorer of their words, the place id <-> frame tables, its counters
-    and its recent fetch latencies (ms)."""
+    """One robot's places: a scorer of their words, the place id <-> frame tables, the latest
+    frame it offered (-1: none; a catch-up asks for the ones after it), its counters and its
+    recent fetch latencies (ms)."""
 
     def __init__(self, scorer: Scorer) -> None:
         self.scorer = scorer
         self.frame_of: dict[int, int] = {}
         self.place_of: dict[int, int] = {}
+        self.last_frame = -1
         self.stats = RemoteRobotStats()
         self.fetch_ms: deque[float] = deque(maxlen=_LATENCIES_KEPT)
 
@@ -106,6 +108,11 @@ class FleetMap:
         #: robot too many), by reason: per-robot counters would let a peer grow them without bound.
         self.refused_elsewhere: dict[str, int] = {}
 
+    def last_frame(self, robot: str) -> int:
+        """The latest frame `robot` offered this node (-1: none yet)."""
+        held = self.robots.get(robot)
+        return held.last_frame if held is not None else -1
+
     @property
     def n_places(self) -> int:
         return sum(r.scorer.n_alive for r in self.robots.values())
@@ -125,9 +132,9 @@ class FleetMap:
                 return False
             robot = self.robots[summary.robot] = RemoteRobot(self._make_scorer())
         robot.stats.summaries += 1
+        robot.last_frame = max(robot.last_frame, summary.frame)
         if summary.frame in robot.place_of:
-            robot.refuse("duplicate")
-            return False
+            return False  # held already: a catch-up's replies may overlap what arrived live
         if summary.words.size == 0:
             robot.refuse("no_words")
             return False

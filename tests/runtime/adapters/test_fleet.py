@@ -171,3 +171,109 @@ def test_a_restarted_node_serves_the_places_of_its_loaded_map(hub, route):
         assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
     finally:
         again.close(), s2.close(), c.close(), sc.close()
+
+
+def test_places_stored_while_a_robot_was_unreachable_arrive_when_it_is_back(hub, route):
+    """a leaves the fleet (its token goes) and goes on mapping; when it is back, b asks it for the
+    places after the latest one b holds, and gets exactly those."""
+    sa, a = _robot(hub, "a")
+    sb, b = _robot(hub, "b")
+    blank = np.zeros((480, 640), np.uint8)
+    try:
+        assert _until(lambda: a.robots_alive() == ["b"] and b.robots_alive() == ["a"])
+        _feed(a, route[:4])  # frames 0-2 stored (exclude 1)
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 3)
+        detector = a.detector
+        a.close()
+        sa.close()
+        assert _until(lambda: b.robots_alive() == [])
+        received = b.fleet_stats().robots["a"].summaries
+        for im in route[4:8]:  # mapped while unreachable: nothing reaches b
+            detector.process(im, 0)
+        sa = _peer(hub)
+        a = FleetNode(sa, detector, FleetConfig(name="test", robot="a"))  # back, serving its whole map
+        assert a.fleet_stats().places_served == 7
+        assert _until(lambda: b.robots_alive() == ["a"])
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 7)
+        held = sorted(b.map.robots["a"].place_of)
+        assert held == list(range(7)) and b.map.last_frame("a") == 6
+        assert b.fleet_stats().robots["a"].summaries - received == 4  # only the missed ones were sent again
+        assert a.fleet_stats().bytes_out < 7 * len(a._served[0][0])
+    finally:
+        a.close(), b.close(), sa.close(), sb.close()
+
+
+def test_a_summaries_query_with_a_bad_after_parameter_gets_no_reply(hub, route):
+    sa, a = _robot(hub, "a")
+    peer = _peer(hub)
+    try:
+        _feed(a, route[:4])
+        key = fleet_key("test", "a", "summaries")
+
+        def ask(selector: str, timeout: float = 2.0) -> list:  # every reply: they share one key
+            return list(peer.get(selector, timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE))
+
+        assert _until(lambda: len(ask(key)) == 3)
+        assert len(ask(f"{key}?after=1")) == 1
+        for bad in ("x", "-5", "1e3", "9" * 30, ""):
+            assert ask(f"{key}?after={bad}", 0.5) == []
+    finally:
+        a.close(), sa.close(), peer.close()
+
+
+def _image_log(path, images):
+    """An MCAP log of `images` (PNG) by a run whose places enter the map after one frame (exclude 1)."""
+    import cv2
+
+    from aefabmap.cli.run_config import RUN_CONFIG_KEY
+    from aefabmap.runtime.adapters.mcap_log import McapLogWriter
+    from aefabmap.runtime.core.run_config import RunConfig
+
+    run = RunConfig(detector=DetectorConfig(exclude=1)).to_dict()
+    with McapLogWriter(path, run_config={RUN_CONFIG_KEY: run}) as log:
+        for i, img in enumerate(images):
+            png = cv2.imencode(".png", img)[1].tobytes()
+            log.write_image(png, "image/png", 1_700_000_000_000_000_000 + i * 100_000_000, sequence=i)
+    return path
+
+
+def test_replay_fleet_offers_the_map_it_builds_from_a_log_until_stopped(hub, route, tmp_path):
+    from aefabmap.cli import replay as cli_replay
+    from aefabmap.cli.demo import default_bundle
+    from tests.conftest import cli_args
+
+    log_path = _image_log(tmp_path / "a.mcap", route[:6])
+    args = cli_args("replay", log_path, "--model", default_bundle(), "--fleet", "test", "--robot", "a",
+                    "--connect", hub, "--listen", f"tcp/127.0.0.1:{free_tcp_port()}")
+    stop, codes = threading.Event(), []
+    replayer = threading.Thread(target=lambda: codes.append(cli_replay.main(args, stop)), daemon=True)
+    sb, b = _robot(hub, "b")
+    blank = np.zeros((480, 640), np.uint8)
+    try:
+        replayer.start()
+        # the replay's places reach b live or by catch-up; they stay offered after the replay ends
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 5, timeout_s=60)
+        r = b.process(route[3], 0)
+        assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
+        assert replayer.is_alive()  # serving until stopped
+    finally:
+        stop.set()
+        replayer.join(timeout=30)
+        b.close(), sb.close()
+    assert codes == [0]
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--fleet", "test"], "go together"),
+    (["--fleet", "test", "--robot", "a", "--check"], "--check"),
+    (["--connect", "tcp/127.0.0.1:7"], "are for --fleet"),
+])
+def test_replay_fleet_option_errors_are_one_line(tmp_path, route, extra, words, caplog):
+    from aefabmap.cli import replay as cli_replay
+    from aefabmap.cli.demo import default_bundle
+    from tests.conftest import cli_args
+
+    log_path = _image_log(tmp_path / "a.mcap", route[:2])
+    assert cli_replay.main(cli_args("replay", log_path, "--model", default_bundle(), *extra)) == 2
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and words in errors[0]

@@ -114,7 +114,7 @@ def holding(monkeypatch):
     from aefabmap.cli import replay as cli_replay
 
     event, real = threading.Event(), cli_replay.serve_until_stopped
-    monkeypatch.setattr(cli_replay, "serve_until_stopped", lambda view, stop: (event.set(), real(view, stop)))
+    monkeypatch.setattr(cli_replay, "serve_until_stopped", lambda view, fleet, stop: (event.set(), real(view, fleet, stop)))
     return event
 
 

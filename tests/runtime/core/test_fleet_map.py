@@ -112,11 +112,12 @@ def test_refusals_are_counted_and_change_nothing(route):
     fleet = _map(b, max_robots=1)
     first = offered[0][0]
     assert fleet.add(first)
-    assert not fleet.add(first)  # the same frame again
+    assert not fleet.add(first)  # the same frame again (a catch-up overlapping what came live): not a refusal
     assert not fleet.add(PlaceSummary("b", ID, 99, 0, first.words))  # our own, back through a router
     assert not fleet.add(PlaceSummary("c", ID, 1, 0, first.words))  # one robot too many
     assert not fleet.add(PlaceSummary("a", ID, 50, 0, np.zeros(0, np.int64)))
-    assert fleet.robots["a"].stats.refused == {"duplicate": 1, "no_words": 1}
+    assert fleet.robots["a"].stats.refused == {"no_words": 1}
+    assert fleet.robots["a"].stats.summaries == 3 and fleet.last_frame("a") == 50 and fleet.last_frame("x") == -1
     assert fleet.refused_elsewhere == {"too_many_robots": 1}
     assert list(fleet.robots) == ["a"] and fleet.n_places == 1
 
