@@ -200,6 +200,9 @@ class LoopClosureDetector:
         """An empty scorer of this detector's kind and settings: the one place that knows which
         scorer it is (runtime/core/scorer.py); other robots' places get one each (fleet_map.py)."""
         c, bundle = self.config, self.bundle
+        if c.scorer == "fabmap" and isinstance(getattr(self, "scorer", None), FabMapScorer):
+            # The model's tables and new-place index are read-only: shared, not built again.
+            return FabMapScorer(self.scorer.fabmap.empty_like(), c.fabmap_score)
         if c.scorer == "fabmap":
             det = bundle.word_detection
             fabmap = FabMap2(bundle.tree, bundle.training_observations, pzge=det["pzge"], pzgne=det["pzgne"],

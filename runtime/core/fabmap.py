@@ -5,6 +5,7 @@ Pure: no I/O. The model, term by term, with its reference vector: docs/fabmap2.m
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -290,6 +291,14 @@ class FabMap2:
             raise InputError("FAB-MAP needs at least one training observation for the new-place model")
         compiled.prepare(buffers_kernel)
         self._prior: np.ndarray | None = None
+
+    def empty_like(self) -> FabMap2:
+        """A FabMap2 of the same model with no places and no prior; it shares this one's
+        read-only tables and new-place model (other robots' places: runtime/core/fleet_map.py)."""
+        other = copy.copy(self)
+        other.places = InvertedIndex(self.vocabulary_size)
+        other._prior = None
+        return other
 
     @property
     def n_places(self) -> int:

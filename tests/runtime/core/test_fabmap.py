@@ -219,3 +219,21 @@ def test_removal_then_reuse_scores_like_a_fresh_map():
         assert la[pid] == pytest.approx(c.loglik(q)[0], rel=1e-12, abs=1e-9)
     assert np.allclose(np.delete(la, [0, 3, 11]), lb, rtol=1e-12)
     assert a.loglik_new(q) == b.loglik_new(q)
+
+
+def test_an_empty_copy_shares_the_model_and_scores_as_a_fresh_one():
+    words = 300
+    tree = random_tree(words, 5)
+    rng = np.random.default_rng(5)
+    obs = [rng.choice(words, 40, replace=False) for _ in range(12)]
+    training = [rng.choice(words, 40, replace=False) for _ in range(10)]
+    own = FabMap2(tree, training, motion_model=True)
+    for o in obs[:6]:
+        own.localize(o)
+    copy, fresh = own.empty_like(), FabMap2(tree, training, motion_model=True)
+    assert copy.n_places == 0 and copy._prior is None
+    assert copy.tables is own.tables and copy._training is own._training  # shared, not rebuilt
+    for o in obs[6:]:
+        a, b = copy.localize(o), fresh.localize(o)
+        assert np.array_equal(a.loglik, b.loglik) and a.loglik_new == b.loglik_new and a.p_new == b.p_new
+    assert own.n_places == 6  # the original's places are its own
