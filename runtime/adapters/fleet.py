@@ -45,7 +45,7 @@ from aefabmap.runtime.core.fleet_wire import (
     fleet_key,
 )
 from aefabmap.runtime.core.keypoint_store import PlaceKeypoints
-from aefabmap.runtime.core.messages import FleetStats, FrameResult
+from aefabmap.runtime.core.messages import FleetStats, FrameResult, RemoteRobotStats
 
 log = logging.getLogger("aefabmap.fleet")
 
@@ -76,10 +76,11 @@ class FleetNode:
         self._pending: dict[int, tuple[np.ndarray, int]] = {}  # sequence -> (unique words, stamp)
         self._alive: dict[str, bool] = {}
         self._returned: deque[str] = deque()  # robots whose token appeared, to catch up with
+        self._replied: dict[str, list[int]] = {}  # asker -> [keypoint replies, bytes] (Zenoh threads write)
         self.out = FleetStats(fleet=config.name, robot=config.robot)
         self._frames = 0
         self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
-        self._drops_lock = threading.Lock()
+        self._drops_lock = threading.Lock()  # guards what Zenoh threads count: _drops, _replied
         self._handles: list = []
         self._serve_stored()
         try:
@@ -144,6 +145,13 @@ class FleetNode:
             query.reply(str(query.key_expr), data)
             self.out.keypoint_replies += 1
             self.out.bytes_out += len(data)
+            asker = query.parameters.get("robot")
+            with self._drops_lock:  # several Zenoh threads may answer at once
+                if asker and TOKEN_PATTERN.fullmatch(asker) and (
+                        asker in self._replied or len(self._replied) < self.config.max_robots):  # bounded
+                    counts = self._replied.setdefault(asker, [0, 0])
+                    counts[0] += 1
+                    counts[1] += len(data)
         except Exception as exc:  # noqa: BLE001 - a query must never take the node down
             log.debug("keypoint query not answered: %s", str(exc)[:200])
 
@@ -215,8 +223,9 @@ class FleetNode:
         store = self.detector.store
         t0 = time.monotonic()
         try:
-            replies = self.session.get(fleet_key(self.config.name, robot, "keypoints", str(frame)),
-                                       timeout=self.config.fetch_timeout_ms / 1000)
+            replies = self.session.get(  # ?robot=: the owner counts its replies per asker
+                f"{fleet_key(self.config.name, robot, 'keypoints', str(frame))}?robot={self.config.robot}",
+                timeout=self.config.fetch_timeout_ms / 1000)
             for reply in replies:
                 if reply.ok is None:
                     continue
@@ -369,6 +378,9 @@ class FleetNode:
                         alive=self._alive.get(name, True),
                         fetch_ms_p50=round(statistics.median(remote.fetch_ms), 3) if remote.fetch_ms else None)
             robots[name] = s
+        for name, (replies, nbytes) in list(self._replied.items()):  # robots that fetch but offer nothing yet
+            s = robots.setdefault(name, RemoteRobotStats(places=0, alive=self._alive.get(name, True)))
+            s.keypoint_replies, s.bytes_out = replies, nbytes
         return replace(self.out, places_served=len(self._served), remote_places=self.map.n_places,
                        remote_evicted=self.map.evicted, refused_elsewhere=dict(self.map.refused_elsewhere),
                        robots=robots)

@@ -84,6 +84,8 @@ def test_a_robot_verifies_a_view_of_anothers_place_fetching_its_keypoints(hub, r
         s = b.fleet_stats().robots["a"]
         assert s.fetches >= 1 and s.fetch_failures == 0 and s.loops == 1 and s.bytes_in > 0 and s.alive
         assert a.fleet_stats().keypoint_replies >= 1 and a.fleet_stats().bytes_out > 0
+        to_b = a.fleet_stats().robots["b"]  # a holds none of b's places, but counts what it sent b
+        assert to_b.keypoint_replies == a.fleet_stats().keypoint_replies and 0 < to_b.bytes_out < a.fleet_stats().bytes_out
         # b's own map never holds a's places: a frame of b's own route verifies to b (robot null)
         r2 = b.process(route[3], 0)  # again: still a's place (b stored its own copy only after exclude)
         assert r2.verified
