@@ -279,3 +279,19 @@ def test_replay_fleet_option_errors_are_one_line(tmp_path, route, extra, words, 
     assert cli_replay.main(cli_args("replay", log_path, "--model", default_bundle(), *extra)) == 2
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and words in errors[0]
+
+
+def test_askers_named_by_keypoint_queries_are_checked_and_bounded(hub, route):
+    sa, a = _robot(hub, "a", max_robots=3)
+    peer = _peer(hub)
+    try:
+        _feed(a, route[:3])  # frame 0 stored
+        key = fleet_key("test", "a", "keypoints", "0")
+        assert _until(lambda: len(list(peer.get(key, timeout=2))) == 1)
+        for name in ["*", "a$b", "x" * 40, *[f"r{i}" for i in range(10)]]:
+            assert len(list(peer.get(f"{key}?robot={name}", timeout=2))) == 1  # answered, counted or not
+        robots = a.fleet_stats().robots
+        assert set(robots) == {"r0", "r1", "r2"} and all(r.keypoint_replies == 1 for r in robots.values())
+        assert a.fleet_stats().keypoint_replies == 14
+    finally:
+        a.close(), sa.close(), peer.close()
