@@ -240,5 +240,13 @@ def top_places(ranking: np.ndarray, k: int) -> np.ndarray:
     k = min(k, ranking.size)
     if k <= 0:
         return np.zeros(0, np.int64)
-    top = np.argpartition(-ranking, k - 1)[:k] if k < ranking.size else np.arange(ranking.size)
+    if k < ranking.size:
+        # argpartition's choice and order among ties differ between machines (x86-64 / aarch64
+        # numpy): take the places above the k-th value, then the lowest ids equal to it.
+        kth = -np.partition(-ranking, k - 1)[k - 1]
+        above = np.flatnonzero(ranking > kth)
+        top = np.concatenate([above, np.flatnonzero(ranking == kth)[: k - above.size]])
+        top.sort()
+    else:
+        top = np.arange(ranking.size)
     return top[np.argsort(-ranking[top], kind="stable")]
