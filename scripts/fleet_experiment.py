@@ -98,11 +98,16 @@ class Robot:
     def stop(self) -> dict:
         rss = process_rss_mb(self.proc.pid)
         summary = stop_node(self.proc, 60)
+        self.release()
+        return {"summary": summary.to_dict() if summary else None, "rss_mb_at_end": rss}
+
+    def release(self) -> None:
+        """Close this side's session to the node (also after the node was killed: an open
+        session to a dead peer keeps the interpreter from exiting)."""
         for s in self.subs:
             s.undeclare()
         self.pub.close()
         self.session.close()
-        return {"summary": summary.to_dict() if summary else None, "rss_mb_at_end": rss}
 
 
 class OfferedLog:
@@ -201,6 +206,8 @@ def main(argv=None) -> int:
     doc["b"].update(b.stop())
     if a.proc.poll() is None:
         doc["a"].update(a.stop())
+    elif offline is None:
+        a.release()
     if offline is not None:
         offline.proc.send_signal(signal.SIGTERM)
         doc["a_offline"]["exit_code"] = offline.proc.wait(60)

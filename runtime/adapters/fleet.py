@@ -141,7 +141,7 @@ class FleetNode:
             entry = self._served.get(int(frame_text)) if frame_text.isdigit() and len(frame_text) < 19 else None
             if entry is None:
                 return  # not ours (any more): the asker times out or gets another robot's reply
-            data = encode_keypoints(self.identity, int(frame_text), entry[1])
+            data = encode_keypoints(self.identity, int(frame_text), entry[1], self.detector.map_epoch)
             query.reply(str(query.key_expr), data)
             self.out.keypoint_replies += 1
             self.out.bytes_out += len(data)
@@ -236,7 +236,7 @@ class FleetNode:
                     continue
                 try:
                     place = decode_keypoints(data, self.identity, frame, store.dtype, store.vocabulary_size,
-                                             store.no_word_code)
+                                             store.no_word_code, self.map.epoch(robot))
                 except FleetMessageError as exc:
                     remote.refuse(exc.reason)
                     continue
@@ -295,6 +295,11 @@ class FleetNode:
             self.map.add(summary)
             if summary.robot in self.map.robots:
                 self.map.robots[summary.robot].stats.bytes_in += len(data)
+        while self.map.restarted:  # a robot restarted: the places it numbered before are gone; ask for all
+            robot = self.map.restarted.pop()
+            log.info("fleet %s: robot %s restarted with a new map; its earlier places are forgotten",
+                     self.config.name, robot)
+            self._returned.append(robot)
 
     def _publish_inserted(self, result: FrameResult) -> None:
         if result.evicted_place is not None:
@@ -312,7 +317,7 @@ class FleetNode:
         if old is not None:
             self._served.pop(old, None)
         c = self.config
-        summary = PlaceSummary(c.robot, self.identity, frame, stamp, words).encode()
+        summary = PlaceSummary(c.robot, self.identity, frame, stamp, words, self.detector.map_epoch).encode()
         self._served[frame] = (summary, kps)
         self._frame_of_place[place] = frame
         try:
@@ -333,7 +338,8 @@ class FleetNode:
                 continue
             frame = int(frames[place])
             words = np.unique(np.asarray(det.scorer.place_words(int(place)), np.int64))
-            self._served[frame] = (PlaceSummary(c.robot, self.identity, frame, 0, words).encode(), kps)
+            summary = PlaceSummary(c.robot, self.identity, frame, 0, words, det.map_epoch).encode()
+            self._served[frame] = (summary, kps)
             self._frame_of_place[int(place)] = frame
 
     def _sweep(self) -> None:

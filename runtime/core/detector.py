@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import secrets
 import time
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
@@ -190,6 +191,9 @@ class LoopClosureDetector:
         self._place_frame = np.zeros(0, np.int64)
         self._last_used = np.zeros(0, np.int64)
         self._sequence = 0
+        # Names this map's frame numbering (a fleet tells other robots by it that a restarted
+        # node's frame numbers mean other places): drawn for an empty map, kept in its state.
+        self.map_epoch = secrets.randbits(64)
         self._last_scores: np.ndarray | None = None
         self.policy = CandidatePolicy(c.candidates)
         # (words, stamp_ns, features) of the last frame taken: what a map journal records to
@@ -487,7 +491,7 @@ class LoopClosureDetector:
             scorer=c.scorer, verification=self.store is not None, vocabulary_size=int(self.bundle.vocabulary_size),
             max_keypoints=self.store.max_keypoints if self.store is not None else None,
             sequence=self._sequence, track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
-            n_places=self.scorer.n_places, n_alive=self.n_places,
+            n_places=self.scorer.n_places, n_alive=self.n_places, map_epoch=self.map_epoch,
             # The settings the map was built with, whole (JSON; RunConfig's detector part).
             config=json.dumps(c.to_dict(), sort_keys=True),
         )
@@ -560,6 +564,11 @@ class LoopClosureDetector:
             (int(s), pwords[pptr[i]:pptr[i + 1]], pkps[i]) for i, s in enumerate(pseq.tolist())
         )
         self._sequence = seq
+        # A map saved before epochs were kept gets a new one (its fleet peers forget it once).
+        if "map_epoch" in st.scalars:
+            self.map_epoch = st.scalar("map_epoch", int, lo=0, hi=2**64)
+        else:
+            self.map_epoch = secrets.randbits(64)
         self.policy.track.seq, self.policy.track.frame = track_seq, track_frame
         self._last_scores = None
 

@@ -9,7 +9,9 @@ gets their keypoints (a cache, else the caller's fetch, which may fail) and veri
 own places are verified, against a bar stricter by the log10 of the number of remote pairs
 checked (each is one more chance of a false alarm). The own map comes first: remote places live
 in what the own map leaves of `max_places` / `memory_mb` and of the fleet's own caps, the oldest
-arrival evicted first.
+arrival evicted first. A summary of a new map epoch (the robot restarted: its frame numbers
+mean other places now) makes the map forget that robot's places and cached keypoints first, and
+names the robot in `restarted` so that the node asks it for all its places again.
 """
 
 from __future__ import annotations
@@ -64,11 +66,12 @@ class FleetConfig:
 
 class RemoteRobot:
     """One robot's places: a scorer of their words, the place id <-> frame tables, the latest
-    frame it offered (-1: none; a catch-up asks for the ones after it), its counters and its
-    recent fetch latencies (ms)."""
+    frame it offered (-1: none; a catch-up asks for the ones after it), the map epoch they belong
+    to, its counters and its recent fetch latencies (ms)."""
 
-    def __init__(self, scorer: Scorer) -> None:
+    def __init__(self, scorer: Scorer, epoch: int) -> None:
         self.scorer = scorer
+        self.epoch = epoch
         self.frame_of: dict[int, int] = {}
         self.place_of: dict[int, int] = {}
         self.last_frame = -1
@@ -101,12 +104,19 @@ class FleetMap:
         self.config = config
         self._make_scorer, self._room = make_scorer, room
         self.robots: dict[str, RemoteRobot] = {}
-        self._arrivals: deque[tuple[str, int]] = deque()  # (robot, frame), oldest first
+        self._arrivals: deque[tuple[str, int, int]] = deque()  # (robot, epoch, frame), oldest first
         self._cache: OrderedDict[tuple[str, int], PlaceKeypoints] = OrderedDict()
         self.evicted = 0
         #: Refusals of messages from robots the map does not hold (unreadable, other bundle, one
         #: robot too many), by reason: per-robot counters would let a peer grow them without bound.
         self.refused_elsewhere: dict[str, int] = {}
+        #: Robots whose map epoch changed since the caller last emptied this list.
+        self.restarted: list[str] = []
+
+    def epoch(self, robot: str) -> int:
+        """The map epoch of `robot`'s places held (0 when none are)."""
+        held = self.robots.get(robot)
+        return held.epoch if held is not None else 0
 
     def last_frame(self, robot: str) -> int:
         """The latest frame `robot` offered this node (-1: none yet)."""
@@ -130,7 +140,9 @@ class FleetMap:
             if len(self.robots) >= self.config.max_robots:
                 self.refuse(summary.robot, "too_many_robots")
                 return False
-            robot = self.robots[summary.robot] = RemoteRobot(self._make_scorer())
+            robot = self.robots[summary.robot] = RemoteRobot(self._make_scorer(), summary.epoch)
+        elif summary.epoch != robot.epoch:
+            self._forget(summary.robot, summary.epoch)
         robot.stats.summaries += 1
         robot.last_frame = max(robot.last_frame, summary.frame)
         if summary.frame in robot.place_of:
@@ -140,7 +152,7 @@ class FleetMap:
             return False
         pid = robot.scorer.add(summary.words)
         robot.frame_of[pid], robot.place_of[summary.frame] = summary.frame, pid
-        self._arrivals.append((summary.robot, summary.frame))
+        self._arrivals.append((summary.robot, summary.epoch, summary.frame))
         self.fit()
         return summary.frame in robot.place_of
 
@@ -159,10 +171,23 @@ class FleetMap:
         while self._arrivals and (self.n_places > limit or (nbytes is not None and self.nbytes() > nbytes)):
             self._evict_oldest()
 
+    def _forget(self, name: str, epoch: int) -> None:
+        """Drop a restarted robot's places and cached keypoints; from now on its places are of `epoch`."""
+        robot = self.robots[name]
+        for pid in robot.frame_of:
+            robot.scorer.remove(pid)
+        robot.frame_of.clear(), robot.place_of.clear()
+        for key in [k for k in self._cache if k[0] == name]:
+            del self._cache[key]
+        self._arrivals = deque(a for a in self._arrivals if a[0] != name)
+        robot.epoch, robot.last_frame = epoch, -1
+        robot.stats.map_restarts += 1
+        self.restarted.append(name)
+
     def _evict_oldest(self) -> None:
-        name, frame = self._arrivals.popleft()
+        name, epoch, frame = self._arrivals.popleft()
         robot = self.robots.get(name)
-        pid = robot.place_of.pop(frame, None) if robot is not None else None
+        pid = robot.place_of.pop(frame, None) if robot is not None and robot.epoch == epoch else None
         if pid is not None:
             robot.scorer.remove(pid)
             del robot.frame_of[pid]

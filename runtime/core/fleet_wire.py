@@ -1,7 +1,9 @@
 """What robots of a fleet send each other (pure): place summaries and keypoint replies.
 
-A **summary** announces one stored place: the robot, the bundle identity, the frame number, the
-capture stamp and the place's sorted word ids. A **keypoint reply** carries a place's
+A **summary** announces one stored place: the robot, the bundle identity, the map epoch, the
+frame number, the capture stamp and the place's sorted word ids. The **epoch** is a random number
+a node draws when it starts: frame numbers count within one epoch (a robot restarted without its
+map numbers its frames from 0 again), so a new epoch tells the others to forget the old places. A **keypoint reply** carries a place's
 verification keypoints in the keypoint store's record form (runtime/core/keypoint_store.py), sent
 only when another robot asks for them. Both are little-endian binary with a magic, a version and
 the bundle identity, and both are read as hostile input: every size, count and id is checked
@@ -24,7 +26,7 @@ import numpy as np
 from aefabmap.errors import ConfigError, InputError
 from aefabmap.runtime.core.keypoint_store import PlaceKeypoints
 
-WIRE_VERSION = 1
+WIRE_VERSION = 2
 SUMMARY_MAGIC = b"AEFS"
 KEYPOINTS_MAGIC = b"AEFK"
 #: Fleet names and robot ids: a short token that cannot be a key-expression wildcard or separator.
@@ -34,10 +36,12 @@ MAX_REPLY_KEYPOINTS = 8192
 #: Largest image side a reply may state (pixels).
 MAX_IMAGE_SIDE = 16384
 
-# magic, version, robot length, identity, frame, stamp_ns, word count, word width (2 or 4 bytes)
-_SUMMARY_HEAD = struct.Struct("<4sBB32sqqIB")
-# magic, version, identity, frame, height, width, keypoint count, record size
-_KEYPOINTS_HEAD = struct.Struct("<4sB32sqHHIH")
+# magic, version, robot length, identity, epoch, frame, stamp_ns, word count, word width (2 or 4 bytes)
+_SUMMARY_HEAD = struct.Struct("<4sBB32sQqqIB")
+# magic, version, identity, epoch, frame, height, width, keypoint count, record size
+_KEYPOINTS_HEAD = struct.Struct("<4sB32sQqHHIH")
+#: Epochs are unsigned 64-bit.
+MAX_EPOCH = 2**64 - 1
 
 
 class FleetMessageError(InputError):
@@ -78,26 +82,29 @@ def fleet_key(fleet: str, robot: str, *rest: str) -> str:
 @dataclass(frozen=True)
 class PlaceSummary:
     """One stored place of a robot: its sorted unique word ids (int64) and where it came from;
-    identity: the 32 bytes of its bundle's id (runtime/adapters/map_state.py bundle_id)."""
+    identity: the 32 bytes of its bundle's id (runtime/adapters/map_state.py bundle_id); epoch:
+    the robot's map epoch (see the module doc)."""
 
     robot: str
     identity: bytes
     frame: int
     stamp_ns: int
     words: np.ndarray
+    epoch: int = 0
 
     def encode(self) -> bytes:
         wide = self.words.size and int(self.words.max()) > 0xFFFF
         words = np.ascontiguousarray(self.words, "<u4" if wide else "<u2")
         robot = self.robot.encode()
-        head = _SUMMARY_HEAD.pack(SUMMARY_MAGIC, WIRE_VERSION, len(robot), self.identity, self.frame,
+        head = _SUMMARY_HEAD.pack(SUMMARY_MAGIC, WIRE_VERSION, len(robot), self.identity, self.epoch, self.frame,
                                   self.stamp_ns, words.size, words.itemsize)
         return head + robot + words.tobytes()
 
     @classmethod
     def decode(cls, data: bytes, identity: bytes, vocabulary_size: int) -> PlaceSummary:
         """A summary from bytes, checked against this node's bundle identity and vocabulary size."""
-        magic, version, robot_len, ident, frame, stamp_ns, n, width = _unpack_head(data, _SUMMARY_HEAD, "summary")
+        magic, version, robot_len, ident, epoch, frame, stamp_ns, n, width = _unpack_head(data, _SUMMARY_HEAD,
+                                                                                           "summary")
         _check_head(magic, version, ident, SUMMARY_MAGIC, identity, "summary")
         if width not in (2, 4) or n > vocabulary_size or frame < 0:
             raise FleetMessageError("malformed", f"summary with {n} words of {width} bytes, frame {frame}")
@@ -110,25 +117,28 @@ class PlaceSummary:
         words = np.frombuffer(data, "<u2" if width == 2 else "<u4", n, _SUMMARY_HEAD.size + robot_len).astype(np.int64)
         if n and (int(words[-1]) >= vocabulary_size or np.any(np.diff(words) <= 0)):
             raise FleetMessageError("malformed", "summary words are not sorted unique ids of this vocabulary")
-        return cls(robot, ident, int(frame), int(stamp_ns), words)
+        return cls(robot, ident, int(frame), int(stamp_ns), words, int(epoch))
 
 
-def encode_keypoints(identity: bytes, frame: int, place: PlaceKeypoints) -> bytes:
+def encode_keypoints(identity: bytes, frame: int, place: PlaceKeypoints, epoch: int = 0) -> bytes:
     """A keypoint reply: the place's records as the store holds them."""
     records = np.ascontiguousarray(place.records)
-    head = _KEYPOINTS_HEAD.pack(KEYPOINTS_MAGIC, WIRE_VERSION, identity, frame, place.image_shape[0],
+    head = _KEYPOINTS_HEAD.pack(KEYPOINTS_MAGIC, WIRE_VERSION, identity, epoch, frame, place.image_shape[0],
                                 place.image_shape[1], records.shape[0], records.dtype.itemsize)
     return head + records.tobytes()
 
 
 def decode_keypoints(data: bytes, identity: bytes, frame: int, dtype: np.dtype, vocabulary_size: int,
-                     no_word: int) -> PlaceKeypoints:
-    """A keypoint reply for `frame`, checked: this bundle, this store's record form `dtype`, word ids
-    below vocabulary_size or the store's no-word code, a plausible image size."""
-    magic, version, ident, got_frame, height, width, n, size = _unpack_head(data, _KEYPOINTS_HEAD, "keypoint reply")
+                     no_word: int, epoch: int = 0) -> PlaceKeypoints:
+    """A keypoint reply for `frame` of map `epoch`, checked: this bundle, this store's record form
+    `dtype`, word ids below vocabulary_size or the store's no-word code, a plausible image size."""
+    magic, version, ident, got_epoch, got_frame, height, width, n, size = _unpack_head(data, _KEYPOINTS_HEAD,
+                                                                                      "keypoint reply")
     _check_head(magic, version, ident, KEYPOINTS_MAGIC, identity, "keypoint reply")
     if got_frame != frame:
         raise FleetMessageError("malformed", f"keypoint reply for frame {got_frame}, asked for {frame}")
+    if got_epoch != epoch:  # the robot restarted: its frame numbers mean other places now
+        raise FleetMessageError("other_epoch", f"keypoint reply of map epoch {got_epoch}, held {epoch}")
     if size != dtype.itemsize or n > MAX_REPLY_KEYPOINTS or not (0 < height <= MAX_IMAGE_SIDE and 0 < width <= MAX_IMAGE_SIDE):
         raise FleetMessageError("malformed", f"keypoint reply of {n} records of {size} bytes, image {height}x{width}")
     if len(data) != _KEYPOINTS_HEAD.size + n * size:

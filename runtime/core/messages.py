@@ -31,7 +31,7 @@ from aefabmap.runtime.core.json_schema import schema_for_dataclass, validate
 #: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...); 1.3: ``nfa``,
 #: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``;
 #: 1.5: ``sequence_nfa``, the status's ``warnings``; 1.6: ``verified_robot``, ``fleet``; 1.7: the
-#: fleet's per-robot ``keypoint_replies`` and ``bytes_out``.
+#: fleet's per-robot ``map_restarts``, ``keypoint_replies`` and ``bytes_out``.
 MESSAGE_FORMAT_VERSION = "1.7"
 
 #: Values of StatsMessage.log_state (runtime/adapters/rotating_log.py).
@@ -287,6 +287,7 @@ class RemoteRobotStats:
     fetch_ms_p50: float | None = _f(None, "median latency of its recent fetches, ms (null: none yet)")
     loops: int = _f(0, "loops verified to its places")
     alive: bool = _f(True, "its liveliness token is present")
+    map_restarts: int = _f(0, "times it came back with a new map epoch (its places were forgotten)", since="1.7")
     keypoint_replies: int = _f(0, "its keypoint queries this node answered (as the query names the asker)", since="1.7")
     bytes_out: int = _f(0, "bytes of those replies (summaries go to every robot at once: FleetStats.bytes_out)",
                         since="1.7")

@@ -295,3 +295,31 @@ def test_askers_named_by_keypoint_queries_are_checked_and_bounded(hub, route):
         assert a.fleet_stats().keypoint_replies == 14
     finally:
         a.close(), sa.close(), peer.close()
+
+
+def test_a_robot_restarted_without_its_map_is_forgotten_and_read_again(hub, route):
+    """Frame numbers of a robot restarted without its state mean other places: the others drop
+    what they held of it (keypoints cached included) and take its new places."""
+    from aefabmap.cli.demo import default_bundle
+
+    sa, a = _robot(hub, "a")
+    sb, b = _robot(hub, "b")
+    blank = np.zeros((480, 640), np.uint8)
+    try:
+        assert _until(lambda: b.robots_alive() == ["a"])
+        _feed(a, route[:6])  # frames 0-4 stored: route 0-4
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 5)
+        assert b.process(route[3], 0).verified_frame in (2, 3, 4)  # fetched and cached
+        old_epoch = b.map.epoch("a")
+        a.close(), sa.close()
+        sa = _peer(hub)
+        fresh = load_detector(default_bundle(), DetectorConfig(exclude=1))  # no --state
+        a = FleetNode(sa, fresh, FleetConfig(name="test", robot="a"))
+        _feed(a, route[6:9])  # its frames 0-1 are route 6-7 now
+        assert _until(lambda: (b.process(blank, 0), b.map.epoch("a"))[1] == fresh.map_epoch)
+        assert _until(lambda: (b.process(blank, 0), sorted(b.map.robots["a"].place_of))[1] == [0, 1])
+        assert fresh.map_epoch != old_epoch and b.fleet_stats().robots["a"].map_restarts == 1
+        r = b.process(route[3], 0)  # route 3 is no place of a's new map: never a loop to a's frame 3
+        assert r.verified_robot != "a" or r.verified_frame not in (2, 3, 4)
+    finally:
+        a.close(), b.close(), sa.close(), sb.close()

@@ -138,3 +138,45 @@ def test_the_run_configuration_keeps_the_fleet_whole():
     doc["fleet"]["robot"] = "b/*"
     with pytest.raises(ConfigError):
         RunConfig.from_dict(doc)
+
+
+def test_a_new_map_epoch_forgets_the_robots_places_and_cached_keypoints(route):
+    from dataclasses import replace
+
+    a, b = _detector(), _detector()
+    offered = _places_of(a, route[:6])
+    fleet = _map(b, max_places=6)
+    for summary, _ in offered:
+        fleet.add(replace(summary, epoch=1))
+    kps = {s.frame: k for s, k in offered}
+    assert fleet.keypoints("a", offered[0][0].frame, lambda r, f: kps[f]) is not None  # cached now
+    n = fleet.n_places
+    assert n == len(offered) and fleet.epoch("a") == 1 and fleet.restarted == []
+    # a restarted without its map: frame numbers start again and mean other places
+    again = replace(offered[0][0], epoch=2)
+    assert fleet.add(again)
+    assert fleet.restarted == ["a"] and fleet.epoch("a") == 2 and fleet.n_places == 1
+    assert fleet.robots["a"].stats.map_restarts == 1 and fleet.last_frame("a") == again.frame
+    assert fleet.keypoints("a", again.frame, lambda r, f: None) is None  # the old keypoints are not served
+    # eviction sees only the new epoch's places (the old arrivals are gone)
+    for summary, _ in offered[1:]:
+        fleet.add(replace(summary, epoch=2))
+    assert fleet.n_places == len(offered)
+    for i, (summary, _) in enumerate(offered):
+        fleet.add(replace(summary, frame=100 + i, epoch=2))
+    arrivals = [s.frame for s, _ in offered] + [100 + i for i in range(len(offered))]
+    assert fleet.n_places == 6 and sorted(fleet.robots["a"].place_of) == sorted(arrivals[-6:])  # oldest out
+
+
+def test_the_map_epoch_is_kept_in_the_state_and_drawn_anew_for_an_empty_or_older_map(route):
+    a = _detector()
+    _places_of(a, route[:4])
+    state = a.state().resolve()
+    again = _detector()
+    assert again.map_epoch != a.map_epoch  # an empty map numbers its frames anew
+    again.load_state(state)
+    assert again.map_epoch == a.map_epoch  # a restart with --state keeps the numbering
+    del state.scalars["map_epoch"]  # a state saved before epochs existed
+    older = _detector()
+    older.load_state(state)
+    assert older.map_epoch != a.map_epoch and 0 <= older.map_epoch < 2**64

@@ -4,6 +4,7 @@ sends is refused with a counted reason before anything is kept."""
 from __future__ import annotations
 
 import struct
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -45,6 +46,7 @@ def test_summary_round_trip_and_key():
     s = _summary()
     back = PlaceSummary.decode(s.encode(), ID, V)
     assert (back.robot, back.frame, back.stamp_ns, back.words.tolist()) == ("a", 12, s.stamp_ns, [3, 17, 2999])
+    assert back.epoch == 0 and PlaceSummary.decode(replace(s, epoch=2**64 - 1).encode(), ID, V).epoch == 2**64 - 1
     wide = _summary(words=(1, 70_000))
     assert PlaceSummary.decode(wide.encode(), ID, 100_000).words.tolist() == [1, 70_000]
     assert fleet_key("f", "a", "place", "12") == "aefabmap/fleet/f/a/place/12"
@@ -58,7 +60,7 @@ def test_robot_ids_and_fleet_names_are_plain_tokens(token):
 
 def _bad_summaries() -> dict[str, tuple[bytes, str]]:
     good = _summary().encode()
-    head = 4 + 1 + 1 + 32 + 8 + 8 + 4 + 1
+    head = 4 + 1 + 1 + 32 + 8 + 8 + 8 + 4 + 1
     out = {
         "empty": (b"", "malformed"),
         "truncated": (good[:-1], "malformed"),
@@ -74,11 +76,11 @@ def _bad_summaries() -> dict[str, tuple[bytes, str]]:
         "not utf-8 robot": (good[:head] + b"\xff" + good[head + 1:], "malformed"),
     }
     # a word count larger than the vocabulary (a peer asking us to read a huge array)
-    fields = list(struct.unpack_from("<4sBB32sqqIB", good))
-    fields[6] = 2**32 - 1
-    out["huge count"] = (struct.pack("<4sBB32sqqIB", *fields) + good[head:], "malformed")
-    fields[6], fields[7] = 3, 3
-    out["odd width"] = (struct.pack("<4sBB32sqqIB", *fields) + good[head:], "malformed")
+    fields = list(struct.unpack_from("<4sBB32sQqqIB", good))
+    fields[7] = 2**32 - 1
+    out["huge count"] = (struct.pack("<4sBB32sQqqIB", *fields) + good[head:], "malformed")
+    fields[7], fields[8] = 3, 3
+    out["odd width"] = (struct.pack("<4sBB32sQqqIB", *fields) + good[head:], "malformed")
     return out
 
 
@@ -93,7 +95,7 @@ def test_hostile_summaries_are_refused_with_a_reason(case):
 def test_keypoint_reply_round_trip():
     store = _store()
     place = _place(store)
-    back = decode_keypoints(encode_keypoints(ID, 7, place), ID, 7, store.dtype, V, store.no_word_code)
+    back = decode_keypoints(encode_keypoints(ID, 7, place, 5), ID, 7, store.dtype, V, store.no_word_code, 5)
     assert back.image_shape == (240, 320)
     assert np.array_equal(back.records, place.records)
     assert back.words[0] == -1 and np.array_equal(back.words[1:], place.words[1:])
@@ -105,7 +107,7 @@ def _bad_replies() -> dict[str, tuple[bytes, int, str]]:
     records = _place(store).records.copy()
     records["word"][2] = V + 5
     bad_word = encode_keypoints(ID, 7, type(_place(store))(records, (240, 320)))
-    head = struct.Struct("<4sB32sqHHIH")
+    head = struct.Struct("<4sB32sQqHHIH")
     fields = list(head.unpack_from(good))
 
     def with_field(i, value):
@@ -120,9 +122,10 @@ def _bad_replies() -> dict[str, tuple[bytes, int, str]]:
         "other bundle": (encode_keypoints(OTHER, 7, _place(store)), 7, "other_bundle"),
         "another frame": (good, 8, "malformed"),
         "word beyond the vocabulary": (bad_word, 7, "malformed"),
-        "record size": (with_field(7, 40), 7, "malformed"),
-        "too many keypoints": (with_field(6, MAX_REPLY_KEYPOINTS + 1), 7, "malformed"),
-        "zero height": (with_field(4, 0), 7, "malformed"),
+        "record size": (with_field(8, 40), 7, "malformed"),
+        "too many keypoints": (with_field(7, MAX_REPLY_KEYPOINTS + 1), 7, "malformed"),
+        "zero height": (with_field(5, 0), 7, "malformed"),
+        "another map epoch": (with_field(3, 99), 7, "other_epoch"),
     }
 
 
