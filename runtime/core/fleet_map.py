@@ -104,7 +104,7 @@ class FleetMap:
         self.config = config
         self._make_scorer, self._room = make_scorer, room
         self.robots: dict[str, RemoteRobot] = {}
-        self._arrivals: deque[tuple[str, int, int]] = deque()  # (robot, epoch, frame), oldest first
+        self._arrivals: deque[tuple[str, int]] = deque()  # (robot, frame), oldest first
         self._cache: OrderedDict[tuple[str, int], PlaceKeypoints] = OrderedDict()
         self.evicted = 0
         #: Refusals of messages from robots the map does not hold (unreadable, other bundle, one
@@ -152,7 +152,7 @@ class FleetMap:
             return False
         pid = robot.scorer.add(summary.words)
         robot.frame_of[pid], robot.place_of[summary.frame] = summary.frame, pid
-        self._arrivals.append((summary.robot, summary.epoch, summary.frame))
+        self._arrivals.append((summary.robot, summary.frame))
         self.fit()
         return summary.frame in robot.place_of
 
@@ -176,7 +176,8 @@ class FleetMap:
         robot = self.robots[name]
         for pid in robot.frame_of:
             robot.scorer.remove(pid)
-        robot.frame_of.clear(), robot.place_of.clear()
+        robot.frame_of.clear()
+        robot.place_of.clear()
         for key in [k for k in self._cache if k[0] == name]:
             del self._cache[key]
         self._arrivals = deque(a for a in self._arrivals if a[0] != name)
@@ -185,9 +186,9 @@ class FleetMap:
         self.restarted.append(name)
 
     def _evict_oldest(self) -> None:
-        name, epoch, frame = self._arrivals.popleft()
+        name, frame = self._arrivals.popleft()
         robot = self.robots.get(name)
-        pid = robot.place_of.pop(frame, None) if robot is not None and robot.epoch == epoch else None
+        pid = robot.place_of.pop(frame, None) if robot is not None else None
         if pid is not None:
             robot.scorer.remove(pid)
             del robot.frame_of[pid]
