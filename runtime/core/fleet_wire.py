@@ -40,8 +40,6 @@ MAX_IMAGE_SIDE = 16384
 _SUMMARY_HEAD = struct.Struct("<4sBB32sQqqIB")
 # magic, version, identity, epoch, frame, height, width, keypoint count, record size
 _KEYPOINTS_HEAD = struct.Struct("<4sB32sQqHHIH")
-#: Epochs are unsigned 64-bit.
-MAX_EPOCH = 2**64 - 1
 
 
 class FleetMessageError(InputError):
