@@ -105,6 +105,17 @@ def start_live_view(args: argparse.Namespace):
     return LiveView(server)
 
 
+def fleet_session(session, fleet):
+    """The session a fleet node opens: one that only connects (no listen endpoint, no config file,
+    no mode given) joins as a Zenoh client, since peers behind a router exchange nothing unless
+    each listens where the others reach it (docs/fleet.md)."""
+    if fleet is None or session.mode is not None or session.config_file or session.listen or not session.connect:
+        return session
+    log.info("fleet %s: no listen endpoint: joining through %s as a Zenoh client", fleet.name,
+             ", ".join(session.connect))
+    return dataclasses.replace(session, mode="client")
+
+
 def add_fleet_options(p: argparse.ArgumentParser):
     """--fleet, --robot and --fleet-timeout-ms (run_config.fleet_config reads them); returns their group."""
     fl = p.add_argument_group("fleet (robots that recognise each other's places)")
@@ -198,6 +209,7 @@ def main(args: argparse.Namespace) -> int:
         warn_exposure(session, log)
         # The live view draws the inlier matches: keep them (a few hundred floats a frame).
         config = build_run_config(args, keep_inlier_points=args.foxglove is not None)
+        session = fleet_session(session, config.fleet)
         if config.profile is not None:  # before loading: the profile's model or nothing
             get_profile(config.profile).check_bundle(read_manifest(Path(args.model)))
         apply_process_settings(config)

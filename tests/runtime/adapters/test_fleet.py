@@ -323,3 +323,38 @@ def test_a_robot_restarted_without_its_map_is_forgotten_and_read_again(hub, rout
         assert r.verified_robot != "a" or r.verified_frame not in (2, 3, 4)
     finally:
         a.close(), b.close(), sa.close(), sb.close()
+
+
+def test_nodes_that_only_connect_to_the_router_join_as_clients_and_exchange_places(hub, route, tmp_path):
+    """Two Zenoh peers that only connect to a router exchange nothing; `fleet_session` makes such
+    nodes clients, which the router serves (here: replay --fleet and a robot, neither listening)."""
+    from aefabmap.cli import replay as cli_replay
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap.cli.run import fleet_session
+    from tests.conftest import cli_args
+
+    fleet = FleetConfig(name="test", robot="b")
+    only_connect = SessionConfig(connect=(hub,))
+    assert fleet_session(only_connect, fleet).mode == "client"
+    for kept in (SessionConfig(connect=(hub,), listen=("tcp/127.0.0.1:7",)), SessionConfig(connect=(hub,), mode="peer"),
+                 SessionConfig(listen=("tcp/127.0.0.1:7",))):
+        assert fleet_session(kept, fleet) == kept  # a listen endpoint, a chosen mode, or no router
+    assert fleet_session(only_connect, None) == only_connect
+    log_path = _image_log(tmp_path / "a.mcap", route[:6])
+    args = cli_args("replay", log_path, "--model", default_bundle(), "--fleet", "test", "--robot", "a",
+                    "--connect", hub)
+    stop, codes = threading.Event(), []
+    replayer = threading.Thread(target=lambda: codes.append(cli_replay.main(args, stop)), daemon=True)
+    sb = open_session(fleet_session(only_connect, fleet))
+    b = FleetNode(sb, load_detector(default_bundle(), DetectorConfig(exclude=1)), fleet)
+    blank = np.zeros((480, 640), np.uint8)
+    try:
+        replayer.start()
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 5, timeout_s=60)
+        r = b.process(route[3], 0)
+        assert r.verified and r.verified_robot == "a"
+    finally:
+        stop.set()
+        replayer.join(timeout=30)
+        b.close(), sb.close()
+    assert codes == [0]
