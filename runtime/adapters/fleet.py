@@ -356,7 +356,7 @@ class FleetNode:
         match = self.map.match(
             observed,
             lambda bar: self.detector.place_check(features, words, replace(v, max_log10_nfa=bar)),
-            self.fetch, v.max_log10_nfa)
+            self.fetch, v.max_log10_nfa, result.sequence)
         if match is None:
             return
         g = match.geometry

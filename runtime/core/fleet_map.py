@@ -41,6 +41,8 @@ class FleetConfig:
     name: the fleet (a key-expression token); robot: this node's id in it (same rules).
     fetch_timeout_ms: how long a keypoint fetch may wait for the robot that owns the place.
     top_k: remote places checked per robot and frame (FAB-MAP's best first).
+    track, track_memory: the temporal prior after a loop to another robot's place, as the own
+        map's (CandidateConfig.track, track_memory): its next frames are tried first.
     max_robots: remote robots kept; summaries of further robots are refused and counted.
     max_places: remote places kept in all (besides the caps the own map leaves).
     cache_places: fetched keypoint sets kept for the next frames (a revisit checks the same places).
@@ -50,6 +52,8 @@ class FleetConfig:
     robot: str = ""
     fetch_timeout_ms: int = 300
     top_k: int = 2
+    track: int = 2
+    track_memory: int = 3
     max_robots: int = 16
     max_places: int = 100_000
     cache_places: int = 64
@@ -57,7 +61,8 @@ class FleetConfig:
     def __post_init__(self) -> None:
         check_token(self.name, "fleet name")
         check_token(self.robot, "robot id")
-        for name, lo, hi in (("fetch_timeout_ms", 1, 60_000), ("top_k", 1, 20), ("max_robots", 1, 1000),
+        for name, lo, hi in (("fetch_timeout_ms", 1, 60_000), ("top_k", 1, 20), ("track", 0, 20),
+                             ("track_memory", 1, 20), ("max_robots", 1, 1000),
                              ("max_places", 1, 10_000_000), ("cache_places", 1, 100_000)):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not lo <= value <= hi:
@@ -112,6 +117,7 @@ class FleetMap:
         self.refused_elsewhere: dict[str, int] = {}
         #: Robots whose map epoch changed since the caller last emptied this list.
         self.restarted: list[str] = []
+        self._track: tuple[str, int, int] | None = None  # (robot, frame, query sequence) of the last loop
 
     def epoch(self, robot: str) -> int:
         """The map epoch of `robot`'s places held (0 when none are)."""
@@ -183,6 +189,8 @@ class FleetMap:
         self._arrivals = deque(a for a in self._arrivals if a[0] != name)
         robot.epoch, robot.last_frame = epoch, -1
         robot.stats.map_restarts += 1
+        if self._track is not None and self._track[0] == name:
+            self._track = None
         self.restarted.append(name)
 
     def _evict_oldest(self) -> None:
@@ -220,21 +228,49 @@ class FleetMap:
             self.fit()
         return place
 
+    def tracked(self, sequence: int) -> list[tuple[str, int]]:
+        """The remote places the track expects for query `sequence` (nearest first), as the own
+        map's track does (CandidateConfig.track): after a loop of query s to robot R's frame f,
+        query s + lag expects R's frames f + lag, ..., f + lag + track - 1, then f + lag - 1,
+        for lag up to track_memory; those R still holds."""
+        if self._track is None:
+            return []
+        robot, frame, seq = self._track
+        lag = sequence - seq
+        held = self.robots.get(robot)
+        if held is None or not 1 <= lag <= self.config.track_memory:
+            return []
+        expected = [frame + lag + i for i in range(self.config.track)] + [frame + lag - 1]
+        return [(robot, f) for f in expected if f in held.place_of]
+
     def match(self, observed: np.ndarray, checker: Callable[[float], Callable[..., GeometryResult]],
-              fetch: Callable[[str, int], PlaceKeypoints | None], max_log10_nfa: float) -> RemoteMatch | None:
-        """The most significant verified remote place for this frame, or None.
+              fetch: Callable[[str, int], PlaceKeypoints | None], max_log10_nfa: float,
+              sequence: int = 0) -> RemoteMatch | None:
+        """The most significant verified remote place for query `sequence`, or None.
 
         checker(bar) -> check(place, bruteforce, retry_only): the own detector's pair check
-        (LoopClosureDetector.place_check) with the acceptance bar `bar` (log10 NFA). Each
-        candidate is matched by words; each robot's best is also retried all-pairs, as the own
-        map's reach does. The bar is max_log10_nfa - log10(pairs checked).
+        (LoopClosureDetector.place_check) with the acceptance bar `bar` (log10 NFA). The tracked
+        places (`tracked`) come first, each matched by words and retried all-pairs, and the
+        first that passes is taken; else each FAB-MAP candidate is matched by words and each
+        robot's best also retried all-pairs, as the own map's reach does. The bar is
+        max_log10_nfa - log10(pair checks this frame may make).
         """
-        wanted = self.candidates(observed)
-        if not wanted:
+        tracked = self.tracked(sequence)
+        wanted = [c for c in self.candidates(observed) if c not in tracked]
+        if not wanted and not tracked:
             return None
-        checks = len(wanted) + len({r for r, _ in wanted})
+        checks = 2 * len(tracked) + len(wanted) + len({r for r, _ in wanted})
         bar = max_log10_nfa - math.log10(checks)
         check = checker(bar)
+        for robot, frame in tracked:
+            place = self.keypoints(robot, frame, fetch)
+            if place is None or len(place) == 0:
+                continue
+            g = check(place, False, False)
+            if not g.verified:
+                g = check(place, False, True)
+            if g.verified:
+                return self._matched(RemoteMatch(robot, frame, g, checks), sequence)
         best: RemoteMatch | None = None
         retried: set[str] = set()
         for robot, frame in wanted:
@@ -247,6 +283,9 @@ class FleetMap:
                 g = check(place, False, True)
             if g.verified and (best is None or g.nfa < best.geometry.nfa):
                 best = RemoteMatch(robot, frame, g, checks)
-        if best is not None:
-            self.robots[best.robot].stats.loops += 1
-        return best
+        return self._matched(best, sequence) if best is not None else None
+
+    def _matched(self, match: RemoteMatch, sequence: int) -> RemoteMatch:
+        self.robots[match.robot].stats.loops += 1
+        self._track = (match.robot, match.frame, sequence)
+        return match

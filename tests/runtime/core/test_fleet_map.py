@@ -180,3 +180,41 @@ def test_the_map_epoch_is_kept_in_the_state_and_drawn_anew_for_an_empty_or_older
     older = _detector()
     older.load_state(state)
     assert older.map_epoch != a.map_epoch and 0 <= older.map_epoch < 2**64
+
+
+def test_after_a_loop_the_robots_next_frames_are_tried_first_and_paid_for(route):
+    from dataclasses import replace
+
+    from aefabmap.runtime.core.verification import GeometryResult
+
+    a = _detector()
+    offered = _places_of(a, route[:8])
+    fleet = _map(a)
+    for summary, _ in offered:
+        fleet.add(summary)
+    frames = sorted(fleet.robots["a"].place_of)
+    f = frames[2]
+    fleet._matched(type("M", (), {"robot": "a", "frame": f})(), sequence=10)  # a loop of query 10 to a's frame f
+    held = set(frames)
+    assert fleet.tracked(11) == [("a", g) for g in (f + 1, f + 2, f) if g in held]
+    assert fleet.tracked(13) == [("a", g) for g in (f + 3, f + 4, f + 2) if g in held]
+    assert fleet.tracked(14) == [] and fleet.tracked(10) == []  # beyond track_memory; not a later query
+
+    calls, bars = [], []
+
+    def checker(bar):
+        bars.append(bar)
+
+        def check(place, bruteforce, retry_only):
+            calls.append((place, retry_only))
+            return replace(GeometryResult(), verified=len(calls) == 2, nfa=-9.0)  # the retry of the first passes
+        return check
+
+    kps = {s.frame: k for s, k in offered}
+    observed = np.unique(offered[0][0].words)
+    match = fleet.match(observed, checker, lambda robot, frame: kps.get(frame), -4.0, sequence=11)
+    assert match is not None and (match.robot, match.frame) == ("a", f + 1)
+    assert [r for _, r in calls] == [False, True]  # by words, then all-pairs
+    n_tracked = len(fleet.tracked(11))
+    assert match.checked >= 2 * n_tracked and bars == [-4.0 - np.log10(match.checked)]
+    assert fleet.tracked(12)[0] == ("a", f + 2)  # the track follows the new loop
