@@ -2,17 +2,19 @@
 
 A **summary** announces one stored place: the robot, the bundle identity, the map epoch, the
 frame number, the capture stamp and the place's sorted word ids. The **epoch** is a random number
-a node draws when it starts: frame numbers count within one epoch (a robot restarted without its
-map numbers its frames from 0 again), so a new epoch tells the others to forget the old places. A **keypoint reply** carries a place's
-verification keypoints in the keypoint store's record form (runtime/core/keypoint_store.py), sent
-only when another robot asks for them. Both are little-endian binary with a magic, a version and
+a map draws when it starts empty and keeps in its state (LoopClosureDetector.map_epoch): frame
+numbers count within one epoch (a robot restarted without its map numbers its frames from 0
+again), so a new epoch tells the others to forget the old places. A **keypoint reply** carries a
+place's verification keypoints in the keypoint store's record form
+(runtime/core/keypoint_store.py), with the epoch, sent only when another robot asks for them. Both are little-endian binary with a magic, a version and
 the bundle identity, and both are read as hostile input: every size, count and id is checked
 before anything is kept; a bad message raises FleetMessageError with a short reason that the
 node counts.
 
 Key expressions (`fleet_key`): ``aefabmap/fleet/<fleet>/<robot>/place/<frame>`` (summaries),
-``.../keypoints/<frame>`` (the keypoint queryable), ``.../summaries`` (all of a robot's summaries,
-for a robot that joins late) and ``.../alive`` (its liveliness token).
+``.../keypoints/<frame>[?robot=ID]`` (the keypoint queryable; the asker names itself),
+``.../summaries[?after=N]`` (a robot's summaries, of frames after N: for a robot that joins late,
+or comes back) and ``.../alive`` (its liveliness token).
 """
 
 from __future__ import annotations
