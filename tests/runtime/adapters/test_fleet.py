@@ -358,3 +358,32 @@ def test_nodes_that_only_connect_to_the_router_join_as_clients_and_exchange_plac
         replayer.join(timeout=30)
         b.close(), sb.close()
     assert codes == [0]
+
+
+def test_places_stored_during_a_network_partition_arrive_once_it_heals(route):
+    """a and b are clients of two routers; b's router goes down (a partition: a maps on, b hears
+    nothing) and comes back: b sees a's token again and gets exactly the places it missed."""
+    e1, e2 = f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+    r1 = open_session(SessionConfig(listen=(e1,), mode="router"))
+    r2 = open_session(SessionConfig(listen=(e2,), connect=(e1,), mode="router"))
+    sa = open_session(SessionConfig(connect=(e1,), mode="client"))
+    sb = open_session(SessionConfig(connect=(e2,), mode="client"))
+    from aefabmap.cli.demo import default_bundle
+
+    a = FleetNode(sa, load_detector(default_bundle(), DetectorConfig(exclude=1)), FleetConfig(name="test", robot="a"))
+    b = FleetNode(sb, load_detector(default_bundle(), DetectorConfig(exclude=1)), FleetConfig(name="test", robot="b"))
+    blank = np.zeros((480, 640), np.uint8)
+    try:
+        assert _until(lambda: b.robots_alive() == ["a"])
+        _feed(a, route[:4])  # frames 0-2 stored
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 3)
+        r2.close()  # the partition
+        assert _until(lambda: b.robots_alive() == [])
+        _feed(a, route[4:8])  # frames 3-6 stored: b hears nothing of them
+        assert a.fleet_stats().places_served == 7 and b.map.n_places == 3
+        r2 = open_session(SessionConfig(listen=(e2,), connect=(e1,), mode="router"))  # healed
+        assert _until(lambda: b.robots_alive() == ["a"], 60)
+        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 7)
+        assert sorted(b.map.robots["a"].place_of) == list(range(7))
+    finally:
+        a.close(), b.close(), sa.close(), sb.close(), r2.close(), r1.close()
