@@ -171,11 +171,20 @@ class FleetNode:
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
             parts = str(sample.key_expr).split("/")
-            if len(parts) == 5 and parts[3] != self.config.robot:
-                alive = sample.kind == zenoh.SampleKind.PUT
-                if alive and not self._alive.get(parts[3]) and len(self._returned) < INBOX:
-                    self._returned.append(parts[3])
-                self._alive[parts[3]] = alive
+            robot = parts[3] if len(parts) == 5 else ""
+            if robot == self.config.robot or not TOKEN_PATTERN.fullmatch(robot):
+                return
+            if robot not in self._alive and len(self._alive) >= self.config.max_robots:
+                # As many robots as the map may hold: a robot that left makes room, else the newcomer
+                # is not followed (a peer cannot grow this without bound).
+                gone = next((r for r, up in list(self._alive.items()) if not up), None)
+                if gone is None:
+                    return
+                del self._alive[gone]
+            alive = sample.kind == zenoh.SampleKind.PUT
+            if alive and not self._alive.get(robot) and len(self._returned) < INBOX:
+                self._returned.append(robot)
+            self._alive[robot] = alive
         except Exception:  # noqa: BLE001
             pass
 

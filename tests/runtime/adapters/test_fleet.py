@@ -428,3 +428,23 @@ def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub
         assert np.allclose(result.relative_translation, centre / np.linalg.norm(centre), atol=0.01)
     finally:
         b.close(), sb.close()
+
+
+def test_a_peer_declaring_many_robots_cannot_grow_the_node_without_bound(hub):
+    sb, b = _robot(hub, "b", max_robots=4)
+    evil = _peer(hub)
+    tokens = [evil.liveliness().declare_token(fleet_key("test", f"r{i}", "alive")) for i in range(30)]
+    tokens.append(evil.liveliness().declare_token(fleet_key("test", "x" * 40, "alive")))  # not a robot id
+    try:
+        assert _until(lambda: len(b.robots_alive()) == 4)
+        assert len(b._alive) == 4 and len(b._returned) <= 4
+        b.process(np.zeros((480, 640), np.uint8), 0)  # catch-up queries to the robots it holds: no crash
+        followed = b.robots_alive()
+        tokens.pop(int(followed[0][1:])).undeclare()  # one of them leaves: a newcomer takes its room
+        newcomer = evil.liveliness().declare_token(fleet_key("test", "late", "alive"))
+        tokens.append(newcomer)
+        assert _until(lambda: "late" in b.robots_alive()) and len(b._alive) == 4
+    finally:
+        for t in tokens:
+            t.undeclare()
+        b.close(), sb.close(), evil.close()
