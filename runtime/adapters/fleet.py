@@ -15,9 +15,9 @@ When a robot's liveliness token appears (again), the next frame asks that robot 
 summaries after the latest frame it offered (``.../summaries?after=N``, answered without
 waiting); a robot that joins asks everyone for everything once (`join`).
 
-Threads: Zenoh's callbacks only append to the inbox, flip liveliness flags and read `_served`
-(a dict the frame thread replaces entries of; single dict operations are atomic in CPython);
-the detector and the FleetMap are touched by the frame thread alone.
+Threads: Zenoh's callbacks only append to the inbox, flip liveliness flags, read `_served`
+(a dict the frame thread replaces entries of; single dict operations are atomic in CPython) and
+bump counters under a lock; the detector and the FleetMap are touched by the frame thread alone.
 """
 
 from __future__ import annotations
@@ -80,7 +80,8 @@ class FleetNode:
         self.out = FleetStats(fleet=config.name, robot=config.robot)
         self._frames = 0
         self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
-        self._drops_lock = threading.Lock()  # guards what Zenoh threads count: _drops, _replied
+        self._unreadable = 0  # samples that could not be read, likewise
+        self._drops_lock = threading.Lock()  # guards what Zenoh threads count: _drops, _unreadable, _replied
         self._handles: list = []
         self._serve_stored()
         try:
@@ -119,10 +120,16 @@ class FleetNode:
         return n
 
     def _on_summary(self, sample: zenoh.Sample) -> None:
-        try:  # a Zenoh thread: never raise
+        self._take_safely(sample)
+
+    def _take_safely(self, sample: zenoh.Sample) -> None:
+        """`_take` from a Zenoh thread: never raises; a failure is counted as malformed (the
+        frame thread moves the count into the map)."""
+        try:
             self._take(str(sample.key_expr), sample.payload.to_bytes())
         except Exception:  # noqa: BLE001 - a peer's message must never take the node down
-            self.map.refused_elsewhere["malformed"] = self.map.refused_elsewhere.get("malformed", 0) + 1
+            with self._drops_lock:
+                self._unreadable += 1
 
     def _take(self, key: str, data: bytes) -> None:
         parts = key.split("/")
@@ -215,12 +222,8 @@ class FleetNode:
         return asked
 
     def _on_catch_up_reply(self, reply: zenoh.Reply) -> None:
-        try:  # a Zenoh thread: never raise
-            if reply.ok is not None:
-                self._take(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
-        except Exception:  # noqa: BLE001 - a peer's message must never take the node down
-            with self._drops_lock:
-                self._drops += 1
+        if reply.ok is not None:
+            self._take_safely(reply.ok)
 
     def fetch(self, robot: str, frame: int) -> PlaceKeypoints | None:
         """The keypoints of another robot's place, or None (timeout, bad reply, robot gone); counted."""
@@ -288,9 +291,10 @@ class FleetNode:
     def _drain(self) -> None:
         with self._drops_lock:
             drops, self._drops = self._drops, 0
-        if drops:
-            self.map.refused_elsewhere["too_large_or_inbox_full"] = (
-                self.map.refused_elsewhere.get("too_large_or_inbox_full", 0) + drops)
+            unreadable, self._unreadable = self._unreadable, 0
+        for reason, n in (("too_large_or_inbox_full", drops), ("malformed", unreadable)):
+            if n:
+                self.map.refused_elsewhere[reason] = self.map.refused_elsewhere.get(reason, 0) + n
         while self._inbox:
             robot, data = self._inbox.popleft()
             try:
