@@ -110,17 +110,14 @@ def _check_fleet_options(args: argparse.Namespace):
 def _join_fleet(args: argparse.Namespace, detector, config, stack):
     """Open the session and join the fleet (closed by `stack`); the FleetNode wrapping detector."""
     from aefabmap.cli.run import fleet_session, warn_exposure
-    from aefabmap.runtime.adapters.fleet import FleetNode
+    from aefabmap.runtime.adapters.fleet import join_fleet
     from aefabmap.runtime.adapters.zenoh_transport import cli_session_config, open_session
 
     sc = fleet_session(cli_session_config("listen", connect=args.connect, listen=args.listen,
                                           config_file=args.config, allow_exposure=args.allow_exposure), config)
     warn_exposure(sc, log)
     session = stack.enter_context(open_session(sc))
-    node = stack.enter_context(FleetNode(session, detector, config))
-    n = node.join()
-    log.info("fleet %s: robot %s joined, %d places offered by the others", config.name, config.robot, n)
-    return node
+    return stack.enter_context(join_fleet(session, detector, config))
 
 
 def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:

@@ -419,6 +419,19 @@ class FleetNode:
         self.close()
 
 
+def join_fleet(session: zenoh.Session, detector, config: FleetConfig) -> FleetNode:
+    """A FleetNode that has asked the fleet for its places once, as
+    `run` and `replay --fleet` start; closed again when that fails. Logs how many places came."""
+    node = FleetNode(session, detector, config)
+    try:
+        n = node.join()
+    except BaseException:
+        node.close()
+        raise
+    log.info("fleet %s: robot %s joined, %d places offered by the others", config.name, config.robot, n)
+    return node
+
+
 def _after_frame(text: str | None) -> int | None:
     """The ``after`` parameter of a summaries query: -1 when absent, None when unreadable."""
     if text is None or text == "-1":

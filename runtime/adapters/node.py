@@ -24,7 +24,6 @@ holds the liveliness token ``aefabmap/runtime/<zid>`` and answers status queries
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections import deque
@@ -36,7 +35,7 @@ from typing import Any, Self
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.adapters.fleet import FleetNode
+from aefabmap.runtime.adapters.fleet import FleetNode, join_fleet
 from aefabmap.runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome
 from aefabmap.runtime.adapters.health import HealthEndpoint, StatusBoard, peak_rss_mb, rss_mb
 from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
@@ -57,8 +56,6 @@ from aefabmap.runtime.adapters.zenoh_transport import (
 )
 from aefabmap.runtime.core.fleet_map import FleetConfig
 from aefabmap.runtime.core.messages import FleetStats, LatencySummary, RunSummary, StatsMessage
-
-_log = logging.getLogger("aefabmap.node")
 
 __all__ = ["FrameProcessor", "NodeOptions", "RunStats", "RunSummary", "rss_mb", "run_node", "stop_on_signals"]
 
@@ -336,16 +333,8 @@ class _fleet:
         self.node: FleetNode | None = None
 
     def __enter__(self) -> FleetNode | None:
-        if self.config is None:
-            return None
-        self.node = FleetNode(self.session, self.detector, self.config)
-        try:
-            n = self.node.join()
-        except BaseException:
-            self.node.close()
-            raise
-        _log.info("fleet %s: robot %s joined, %d places offered by the others", self.config.name,
-                  self.config.robot, n)
+        if self.config is not None:
+            self.node = join_fleet(self.session, self.detector, self.config)
         return self.node
 
     def __exit__(self, *exc_info) -> None:
