@@ -176,7 +176,7 @@ class LoopClosureDetector:
         self.extractor = FeatureExtractor(extract)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
-        self.scorer: Scorer = self.new_scorer()
+        self.scorer: Scorer = self._build_scorer()
         self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
         self.store: KeypointStore | None = None
         if v.enabled:
@@ -201,12 +201,16 @@ class LoopClosureDetector:
         self.last_input: tuple[np.ndarray, int, Features | None] | None = None
 
     def new_scorer(self) -> Scorer:
-        """An empty scorer of this detector's kind and settings: the one place that knows which
-        scorer it is (runtime/core/scorer.py); other robots' places get one each (fleet_map.py)."""
+        """An empty scorer like the own map's; other robots' places get one each (fleet_map.py).
+        A FAB-MAP scorer shares the own one's read-only tables and new-place model."""
+        if isinstance(self.scorer, FabMapScorer):
+            return FabMapScorer(self.scorer.fabmap.empty_like(), self.config.fabmap_score)
+        return self._build_scorer()
+
+    def _build_scorer(self) -> Scorer:
+        """A new empty scorer of this detector's kind and settings, built from the bundle: the one
+        place that knows which scorer it is (runtime/core/scorer.py)."""
         c, bundle = self.config, self.bundle
-        if c.scorer == "fabmap" and isinstance(getattr(self, "scorer", None), FabMapScorer):
-            # The model's tables and new-place index are read-only: shared, not built again.
-            return FabMapScorer(self.scorer.fabmap.empty_like(), c.fabmap_score)
         if c.scorer == "fabmap":
             det = bundle.word_detection
             fabmap = FabMap2(bundle.tree, bundle.training_observations, pzge=det["pzge"], pzgne=det["pzgne"],
