@@ -392,40 +392,28 @@ def test_places_stored_during_a_network_partition_arrive_once_it_heals(route):
 def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub, tmp_path):
     """Two views of one 3-D point cloud (tests/runtime/core/test_candidates.py): a's place, b's
     query; with --camera the remote loop carries b's camera pose in a's place frame."""
-    import cv2
-
-    from aefabmap.runtime.core.features import Features
     from aefabmap.runtime.core.verification import VerificationConfig
+    from tests.runtime.core.test_candidates import CAMERA, calibrated_scene
     from tests.runtime.core.test_verification import _detector
 
-    rng = np.random.default_rng(2)
-    n = 300
-    X = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 25, n)]
-    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
-    K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
-    R_pq, _ = cv2.Rodrigues(np.array([0.02, 0.25, 0.0]))
-
-    def frame(points):
-        x = points @ K.T
-        return Features((x[:, :2] / x[:, 2:]).astype(np.float32), np.full(n, 31, np.float32), desc, (480, 640))
-
-    det = _detector(tmp_path, verification=VerificationConfig(camera=(400.0, 400.0, 320.0, 240.0), min_inliers_h=1000))
-    words = np.arange(n) % det.bundle.vocabulary_size
+    scene = calibrated_scene()
+    det = _detector(tmp_path, verification=VerificationConfig(camera=CAMERA, min_inliers_h=1000))
+    words = np.arange(scene.n) % det.bundle.vocabulary_size
     sb = _peer(hub)
     b = FleetNode(sb, det, FleetConfig(name="test", robot="b"))
     try:
         b.map.add(PlaceSummary("a", b.identity, 7, 0, np.unique(words), epoch=5))
-        b.map._cache[("a", 7)] = det.store.pack(frame(X).keypoints, words, desc, (480, 640))  # fetched before
-        centre = np.array([1.2, 0.0, 0.4])
-        query = frame((X - centre) @ R_pq)
+        place = scene.frame(scene.points)
+        b.map._cache[("a", 7)] = det.store.pack(place.keypoints, words, place.descriptors, (480, 640))  # fetched before
+        query = scene.frame(scene.query)
         result = det.process_words(words, features=query)
         assert not result.verified  # b's own map is empty
         b._match_remote(result, words, query, words)
         assert result.verified and result.verified_robot == "a" and result.verified_frame == 7
         assert result.geometry_model == "E" and result.relative_rotation is not None
         R = np.asarray(result.relative_rotation)  # as for the own places (test_candidates.py)
-        assert np.degrees(np.arccos(np.clip((np.trace(R.T @ R_pq) - 1) / 2, -1, 1))) < 0.5
-        assert np.allclose(result.relative_translation, centre / np.linalg.norm(centre), atol=0.01)
+        assert np.degrees(np.arccos(np.clip((np.trace(R.T @ scene.rotation) - 1) / 2, -1, 1))) < 0.5
+        assert np.allclose(result.relative_translation, scene.centre / np.linalg.norm(scene.centre), atol=0.01)
     finally:
         b.close(), sb.close()
 

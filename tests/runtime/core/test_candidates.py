@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -51,31 +52,46 @@ def test_inlier_points_on_request_fit_the_accepted_geometry(tmp_path):
     assert np.median(err) < 5.0
 
 
-def test_a_calibrated_verified_loop_carries_the_query_pose_relative_to_the_place(tmp_path):
-    """Two frames of one 3-D point cloud (not planar: the essential matrix wins), fed as keypoints:
-    the result's relative_rotation / relative_translation are the query camera's pose in the place frame."""
+#: Pinhole intrinsics (fx, fy, cx, cy) of `calibrated_scene`'s camera, as `--camera` gives them.
+CAMERA = (400.0, 400.0, 320.0, 240.0)
+
+
+def calibrated_scene(seed: int = 2) -> SimpleNamespace:
+    """One 3-D point cloud (not planar: the essential matrix wins) seen by the CAMERA: `frame(points)`
+    gives its keypoints (Features) from `points`; the place sees `points`, the query `query` (the
+    camera turned by `rotation` and moved to `centre`); `rng` goes on drawing after the scene."""
     from aefabmap.runtime.core.features import Features
 
-    rng = np.random.default_rng(2)
+    rng = np.random.default_rng(seed)
     n = 300
-    X = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 25, n)]
+    points = np.c_[rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(5, 25, n)]
     desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
-    K = np.array([[400.0, 0, 320], [0, 400.0, 240], [0, 0, 1]])
-    R_pq, _ = cv2.Rodrigues(np.array([0.02, 0.25, 0.0]))
+    fx, fy, cx, cy = CAMERA
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    rotation, _ = cv2.Rodrigues(np.array([0.02, 0.25, 0.0]))
     centre = np.array([1.2, 0.0, 0.4])
 
-    def frame(points, d=desc):
-        x = points @ K.T
-        xy = (x[:, :2] / x[:, 2:]).astype(np.float32)
-        return Features(xy, np.full(n, 31, np.float32), d, (480, 640))
+    def frame(pts, d=desc):
+        x = pts @ K.T
+        return Features((x[:, :2] / x[:, 2:]).astype(np.float32), np.full(n, 31, np.float32), d, (480, 640))
+
+    return SimpleNamespace(rng=rng, n=n, points=points, descriptors=desc, rotation=rotation, centre=centre,
+                           query=(points - centre) @ rotation, frame=frame)
+
+
+def test_a_calibrated_verified_loop_carries_the_query_pose_relative_to_the_place(tmp_path):
+    """Two frames of `calibrated_scene`, fed as keypoints: the result's relative_rotation /
+    relative_translation are the query camera's pose in the place frame."""
+    scene = calibrated_scene()
+    n, rng, frame, X, R_pq, centre = scene.n, scene.rng, scene.frame, scene.points, scene.rotation, scene.centre
 
     # min_inliers_h=1000: no homography, the epipolar model decides (exclude 2: the third frame sees the first).
-    det = _detector(tmp_path, verification=VerificationConfig(camera=(400.0, 400.0, 320.0, 240.0), min_inliers_h=1000))
+    det = _detector(tmp_path, verification=VerificationConfig(camera=CAMERA, min_inliers_h=1000))
     words = np.arange(n) % det.bundle.vocabulary_size
     det.process_words(words, features=frame(X))
     other = det.process_words(words, features=frame(X, rng.integers(0, 256, (n, 32), dtype=np.uint8)))
     assert other.relative_rotation is None  # nothing verified
-    r = det.process_words(words, features=frame((X - centre) @ R_pq))
+    r = det.process_words(words, features=frame(scene.query))
     assert r.verified and r.verified_frame == 0 and r.geometry_model == "E"
     R = np.asarray(r.relative_rotation)
     assert np.degrees(np.arccos(np.clip((np.trace(R.T @ R_pq) - 1) / 2, -1, 1))) < 0.5
