@@ -140,12 +140,23 @@ def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_di
         except (OSError, ValueError, KeyError):
             pass  # unreadable cache entry: extract again and overwrite it
     per_image = extract_training_vectors(files, features, show_progress)
-    Path(cache_dir).mkdir(parents=True, exist_ok=True)
-    tmp = entry.with_suffix(".tmp.npz")
     flat = np.concatenate(per_image) if per_image else features.spec.empty()
-    np.savez(tmp, descriptors=flat, counts=np.array([len(a) for a in per_image]))
-    tmp.replace(entry)
+    write_cache_entry(entry, descriptors=flat, counts=np.array([len(a) for a in per_image]))
     return per_image
+
+
+def write_cache_entry(entry: Path, **arrays: np.ndarray) -> None:
+    """Write arrays to the .npz cache entry `entry` atomically: through a temporary file of this
+    writer's own, so that trainings sharing a cache directory never rename each other's files."""
+    entry.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(dir=entry.parent, prefix=entry.stem + ".", suffix=".tmp.npz")
+    tmp = Path(name)
+    try:
+        with open(fd, "wb") as f:
+            np.savez(f, **arrays)
+        tmp.replace(entry)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def cached_match_pairs(files: list[Path], features: FeatureConfig, cache_dir: Path | None, *, warp_images: int,
@@ -171,10 +182,7 @@ def cached_match_pairs(files: list[Path], features: FeatureConfig, cache_dir: Pa
         except (OSError, ValueError, KeyError):
             pass  # unreadable cache entry: build again and overwrite it
     pairs = build()
-    Path(cache_dir).mkdir(parents=True, exist_ok=True)
-    tmp = entry.with_suffix(".tmp.npz")
-    np.savez(tmp, a=pairs.a, b=pairs.b, group=pairs.group)
-    tmp.replace(entry)
+    write_cache_entry(entry, a=pairs.a, b=pairs.b, group=pairs.group)
     return pairs
 
 

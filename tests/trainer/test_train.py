@@ -44,6 +44,26 @@ def test_kmeans_bundle_and_cache(image_dir, tmp_path, monkeypatch):
         train_bundle(config(image_dir, tmp_path / "c", cache_dir=cache, features=FeatureConfig("orb", 150)))
 
 
+def test_cache_entries_of_writers_sharing_a_directory_do_not_collide(tmp_path, monkeypatch):
+    # Two trainings extracting into one cache: a second writer of the same entry finishes while
+    # the first is between writing its temporary file and renaming it.
+    entry = tmp_path / "cache" / "features-orb-0123.npz"
+    real_replace = type(entry).replace
+    state = {"nested": False}
+
+    def replace_after_another_writer(self, target):
+        if not state["nested"]:
+            state["nested"] = True
+            train_mod.write_cache_entry(entry, x=np.arange(3))
+        return real_replace(self, target)
+
+    monkeypatch.setattr(type(entry), "replace", replace_after_another_writer)
+    train_mod.write_cache_entry(entry, x=np.arange(3))
+    with np.load(entry) as z:
+        assert z["x"].tolist() == [0, 1, 2]
+    assert [p.name for p in entry.parent.iterdir()] == [entry.name]  # no temporary file left behind
+
+
 @pytest.mark.slow
 def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     pytest.importorskip("torch")
