@@ -160,7 +160,9 @@ def markdown(report: dict) -> str:
         cells.append(f"{e[f'cost_{var}']['cpu_ms']:.1f}")
         cells.append(_pct(e.get("int8_agreement_lip6")))
         t = e.get("train")
-        cells.append("-" if not t else f"{t['seconds']:.0f} / {t['epochs']} ({t['stop_reason']})")
+        # Manifests of bundles trained before wall-clock times left them carry "seconds".
+        secs = "-" if not t or t.get("seconds") is None else f"{t['seconds']:.0f}"
+        cells.append("-" if not t else f"{secs} / {t['epochs']} ({t['stop_reason']})")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

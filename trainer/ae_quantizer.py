@@ -1,7 +1,9 @@
 """Trainer entry for the AE-VQ quantiser (`aefabmap train --quantizer ae`).
 
 train autoencoder -> k-means on latent codes -> ONE fp32 ONNX graph -> static QDQ int8 copy,
-and a JSON-able manifest entry describing both files.
+and a JSON-able manifest entry describing both files. With the "assign" objective
+(trainer/assign_objective.py) the encoder and its K words are trained together and the trained
+codebook is exported as it is (no k-means afterwards).
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ import numpy as np
 from aefabmap.errors import ConfigError, InputError
 
 if TYPE_CHECKING:  # torch stays a lazy import: the runtime never loads this module
+    from aefabmap.trainer.assign_objective import AssignConfig
     from aefabmap.trainer.autoencoder import AeConfig
     from aefabmap.trainer.match_pairs import MatchPairs
+    from aefabmap.trainer.multiview import Tracks
 
 FP32_NAME = "quantizer_fp32.onnx"
 INT8_NAME = "quantizer_int8.onnx"
@@ -25,6 +29,8 @@ AGREEMENT_SAMPLE = 20_000
 # Share of matching-pair groups (source images / frame pairs) held out for early stopping and
 # for the pair word agreement reported in the manifest.
 PAIR_VAL_FRACTION = 0.15
+# Training objectives: reconstruction (+ matching term) then k-means on codes; or word assignment.
+OBJECTIVES = ("recon", "assign")
 
 
 def build_ae_quantizer(
@@ -39,6 +45,9 @@ def build_ae_quantizer(
     kmeans_iterations: int = 25,
     progress=None,
     pairs: MatchPairs | None = None,
+    objective: str = "recon",
+    tracks: Tracks | None = None,
+    assign: AssignConfig | None = None,
 ) -> dict:
     """Train the AE-VQ quantiser on training descriptor vectors and write its ONNX files.
 
@@ -50,7 +59,11 @@ def build_ae_quantizer(
     pairs: matching descriptor pairs (trainer/match_pairs.py); split by group into training
         pairs (matching term, when config.match_weight > 0) and held-out pairs (early stopping,
         and "pair_word_agreement": the share of held-out pairs whose two descriptors get one word).
-    Returns the manifest entry: {"type": "ae", "files": {...}, "latent_dim", "train", "int8_agreement", ...}.
+    objective: "recon" (config's reconstruction [+ matching] loss, then k-means on the codes) or
+        "assign" (encoder and codebook trained on `tracks`, trainer/multiview.py, split by source
+        image into training and held-out tracks; `assign`: AssignConfig, None -> defaults).
+    Returns the manifest entry: {"type": "ae", "files": {...}, "latent_dim", "train", "int8_agreement", ...},
+    plus "timings" (seconds per stage), which the caller takes out before it writes the manifest.
     Same inputs and seed -> byte-identical files.
     """
     from aefabmap.export.onnx_export import export_quantizer_onnx
@@ -80,25 +93,42 @@ def build_ae_quantizer(
     train_pairs = val_pairs = None
     if pairs is not None and len(pairs):
         train_pairs, val_pairs = pairs.split(PAIR_VAL_FRACTION, seed)
-    result = train_autoencoder(
-        vectors, feature_kind=feature_kind, seed=seed, config=config,
-        pairs=None if train_pairs is None else (train_pairs.a, train_pairs.b),
-        val_pairs=None if val_pairs is None else (val_pairs.a, val_pairs.b),
-        pair_groups=None if train_pairs is None else train_pairs.group,
-    )
-    timings["train_s"] = time.perf_counter() - t0
-    encoder = result.model.encoder
+    if objective not in OBJECTIVES:
+        raise ConfigError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    if objective == "assign":
+        from aefabmap.trainer.assign_objective import train_assign
 
-    t0 = time.perf_counter()
-    stage("latent k-means")
-    vocab = fit_latent_vocabulary(
-        encoder, vectors, words, seed=seed, max_iterations=kmeans_iterations, threads=result.config.threads
-    )
-    timings["kmeans_s"] = time.perf_counter() - t0
+        if tracks is None or len(tracks) < 4:
+            raise InputError("the assign objective needs multi-view tracks")
+        train_tracks, val_tracks = tracks.split(PAIR_VAL_FRACTION, seed)
+        result = train_assign(vectors, train_tracks, val_tracks, words=words, feature_kind=feature_kind, seed=seed,
+                              config=config, assign=assign)
+        codebook = result.codebook
+        vocab_entry = {"codebook": "trained", "objective": "assign", "seed": seed}
+        timings["train_s"] = time.perf_counter() - t0
+        encoder = result.model.encoder
+    else:
+        result = train_autoencoder(
+            vectors, feature_kind=feature_kind, seed=seed, config=config,
+            pairs=None if train_pairs is None else (train_pairs.a, train_pairs.b),
+            val_pairs=None if val_pairs is None else (val_pairs.a, val_pairs.b),
+            pair_groups=None if train_pairs is None else train_pairs.group,
+        )
+        timings["train_s"] = time.perf_counter() - t0
+        encoder = result.model.encoder
+
+        t0 = time.perf_counter()
+        stage("latent k-means")
+        vocab = fit_latent_vocabulary(
+            encoder, vectors, words, seed=seed, max_iterations=kmeans_iterations, threads=result.config.threads
+        )
+        codebook = vocab.codebook
+        vocab_entry = {"iterations": kmeans_iterations, "n_clustered": vocab.n_clustered, "seed": seed}
+        timings["kmeans_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     stage("onnx export")
-    fp32_path = export_quantizer_onnx(encoder, vocab.codebook, out_dir / FP32_NAME)
+    fp32_path = export_quantizer_onnx(encoder, codebook, out_dir / FP32_NAME)
     calib = vectors if calibration_vectors is None else calibration_vectors
     int8_path = quantize_int8(fp32_path, out_dir / INT8_NAME, calib, seed=seed)
     timings["export_s"] = time.perf_counter() - t0
@@ -132,7 +162,7 @@ def build_ae_quantizer(
         "descriptor_length": int(d),
         "vocabulary_size": int(words),
         "train": result.summary(),
-        "kmeans": {"iterations": kmeans_iterations, "n_clustered": vocab.n_clustered, "seed": seed},
+        ("kmeans" if objective == "recon" else "vocabulary"): vocab_entry,
         "int8_agreement": round(agreement, 6),
         "agreement_sample": int(sample.shape[0]),
         "words_used_fraction": round(float(np.mean(used > 0)), 6),

@@ -312,7 +312,8 @@ class TrainResult:
     n_pairs_val: int = 0
 
     def summary(self) -> dict:
-        """JSON-able training summary for the bundle manifest (history included: the loss curve)."""
+        """JSON-able training summary for the bundle manifest (history included: the loss curve; no
+        wall-clock times)."""
         return {
             "loss": "bce" if self.config.match_weight == 0 else "bce+match",
             "val_loss": round(float(self.best_val_loss), 6),
@@ -325,10 +326,15 @@ class TrainResult:
             "n_val": self.n_val,
             "n_pairs_train": self.n_pairs_train,
             "n_pairs_val": self.n_pairs_val,
-            "seconds": round(self.seconds, 1),
             "config": self.config.to_dict(),
-            "history": [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in h.items()} for h in self.history],
+            "history": manifest_history(self.history),
         }
+
+
+def manifest_history(history: list[dict]) -> list[dict]:
+    """Per-epoch history as the manifest keeps it: floats rounded, wall-clock "seconds" left out
+    (the same command must give the same bundle bytes; the train command prints its timings)."""
+    return [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in h.items() if k != "seconds"} for h in history]
 
 
 @contextmanager

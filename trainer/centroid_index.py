@@ -13,7 +13,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, route_packed
+from aefabmap.runtime.core.quantizer import route_packed
 from aefabmap.trainer.kmeans import KMeansConfig, assign, fit_kmeans
 
 

@@ -18,6 +18,7 @@ from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
 from aefabmap.runtime.core.feature_kinds import FeatureKind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.quantizer import quantize_raw
+from aefabmap.trainer.ae_quantizer import OBJECTIVES
 from aefabmap.trainer.chow_liu import fit_chow_liu
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
@@ -43,6 +44,7 @@ class TrainConfig:
     ae_epochs / ae_descriptors: autoencoder training budget (quantizer "ae" only).
     ae_arch / ae_latent: "paper" conv stack or "light" MLP; latent size (None: the arch's default).
     ae_patience / ae_budget_s: early-stopping patience (epochs) and wall-clock training budget.
+    ae_learning_rate: the AE's Adam learning rate.
     ae_threads: torch and onnxruntime threads of the AE stages (on a loaded machine 1 thread
         trains far faster than 2 that keep waiting for each other; docs/results.md,
         "Autoencoder vs k-means").
@@ -50,6 +52,17 @@ class TrainConfig:
     ae_warp_images / ae_frame_pairs: sources of matching pairs (synthetic homography warps of
         training images; consecutive frames of the drives among them), built whenever either is
         > 0: they train the matching term and give the held-out pair word agreement.
+    ae_objective: "recon" (reconstruction [+ matching term], then k-means on the codes) or "assign"
+        (encoder and words trained so that views of one scene point share a word,
+        trainer/assign_objective.py; light arch only).
+    ae_views / ae_track_images: objective "assign": views per scene point (the image and
+        ae_views - 1 warped, photometrically changed copies; a point is kept when seen in >= 3)
+        and how many training images (outside the test split) give tracks.
+    ae_balance_weight / ae_recon_weight: objective "assign": weights of the word-usage and
+        reconstruction terms.
+    ae_init: objective "assign": "random" encoder, or "kmeans" (the encoder starts as the
+        projection onto the descriptors' principal axes, the words as k-means of it,
+        assign_objective.init_linear_pca).
     cache_dir: where extracted training features are kept between runs (None: no cache);
         entries are keyed by the feature settings and the image list, so a stale entry is
         never reused.
@@ -73,11 +86,18 @@ class TrainConfig:
     ae_latent: int | None = None
     ae_patience: int = 2
     ae_budget_s: float | None = None
+    ae_learning_rate: float = 2e-3
     ae_match_weight: float = 0.0
     ae_warp_images: int = 0
     ae_frame_pairs: int = 0
     ae_threads: int = 2
     ae_match_negatives: str = "batch"
+    ae_objective: str = "recon"
+    ae_views: int = 4
+    ae_track_images: int = 1500
+    ae_balance_weight: float = 1.0
+    ae_recon_weight: float = 0.0
+    ae_init: str = "random"
     cache_dir: Path | None = None
     show_progress: bool = True
 
@@ -94,6 +114,12 @@ class TrainConfig:
             raise ConfigError("--index-buckets and --vocabulary-from apply to --quantizer kmeans")
         if self.max_descriptors < self.words:
             raise ConfigError(f"max_descriptors ({self.max_descriptors}) must be >= words ({self.words})")
+        if self.ae_objective not in OBJECTIVES:
+            raise ConfigError(f"--ae-objective must be one of {OBJECTIVES}, got {self.ae_objective!r}")
+        if self.ae_objective == "assign" and (self.ae_arch != "light" or self.ae_views < 3 or self.ae_track_images < 2):
+            raise ConfigError("--ae-objective assign needs --ae-arch light, --ae-views >= 3 and --ae-track-images >= 2")
+        if self.ae_init not in ("random", "kmeans") or (self.ae_init != "random" and self.ae_objective != "assign"):
+            raise ConfigError(f"--ae-init must be 'random' or 'kmeans' (with --ae-objective assign), got {self.ae_init!r}")
 
 
 def find_training_images(dirs) -> list[Path]:
@@ -123,26 +149,24 @@ def extract_training_vectors(files: list[Path], features: FeatureConfig, show_pr
     ]
 
 
-def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_dir: Path | None, show_progress: bool) -> list[np.ndarray]:
-    """extract_training_vectors, reusing a cache entry for the same settings and images."""
-    if cache_dir is None:
-        return extract_training_vectors(files, features, show_progress)
-    key = hashlib.sha256(
-        (repr(sorted(features.to_dict().items())) + "\n" + "\n".join(f"{f}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files)).encode()
-    ).hexdigest()[:20]
-    entry = Path(cache_dir) / f"features-{features.kind}-{key}.npz"
-    if entry.is_file():
-        try:
-            with np.load(entry, allow_pickle=False) as z:
-                flat, counts = z["descriptors"], z["counts"]
-            if counts.size == len(files) and counts.sum() == flat.shape[0]:
-                return np.split(flat, np.cumsum(counts)[:-1])
-        except (OSError, ValueError, KeyError):
-            pass  # unreadable cache entry: extract again and overwrite it
-    per_image = extract_training_vectors(files, features, show_progress)
-    flat = np.concatenate(per_image) if per_image else features.spec.empty()
-    write_cache_entry(entry, descriptors=flat, counts=np.array([len(a) for a in per_image]))
-    return per_image
+def cache_entry(cache_dir: Path, prefix: str, features: FeatureConfig, files: list[Path], settings: str = "") -> Path:
+    """The .npz cache entry of `prefix` data built from `files` with these feature settings and
+    further `settings`: keyed by both and by each image's path, size and modification time, so a
+    stale entry is never reused."""
+    text = (repr(sorted(features.to_dict().items())) + (f"\n{settings}\n" if settings else "\n")
+            + "\n".join(f"{f}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files))
+    return Path(cache_dir) / f"{prefix}-{features.kind}-{hashlib.sha256(text.encode()).hexdigest()[:20]}.npz"
+
+
+def read_cache_entry(entry: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] | None:
+    """The named arrays of a cache entry, or None when it is missing or unreadable (then built again)."""
+    if not entry.is_file():
+        return None
+    try:
+        with np.load(entry, allow_pickle=False) as z:
+            return {n: z[n] for n in names}
+    except (OSError, ValueError, KeyError):
+        return None
 
 
 def write_cache_entry(entry: Path, **arrays: np.ndarray) -> None:
@@ -159,31 +183,56 @@ def write_cache_entry(entry: Path, **arrays: np.ndarray) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_dir: Path | None, show_progress: bool) -> list[np.ndarray]:
+    """extract_training_vectors, reusing a cache entry for the same settings and images."""
+    if cache_dir is None:
+        return extract_training_vectors(files, features, show_progress)
+    entry = cache_entry(cache_dir, "features", features, files)
+    cached = read_cache_entry(entry, ("descriptors", "counts"))
+    if cached is not None:
+        flat, counts = cached["descriptors"], cached["counts"]
+        if counts.size == len(files) and counts.sum() == flat.shape[0]:
+            return np.split(flat, np.cumsum(counts)[:-1])
+    per_image = extract_training_vectors(files, features, show_progress)
+    flat = np.concatenate(per_image) if per_image else features.spec.empty()
+    write_cache_entry(entry, descriptors=flat, counts=np.array([len(a) for a in per_image]))
+    return per_image
+
+
 def cached_match_pairs(files: list[Path], features: FeatureConfig, cache_dir: Path | None, *, warp_images: int,
                        frame_pairs: int, seed: int, show_progress: bool):
     """trainer.match_pairs.build_match_pairs, reusing a cache entry for the same settings and images."""
     from aefabmap.trainer.match_pairs import MatchPairs, build_match_pairs
 
-    def build():
-        return build_match_pairs(files, FeatureExtractor(features), warp_images=warp_images,
-                                 frame_pairs=frame_pairs, seed=seed, progress=show_progress)
-
-    if cache_dir is None:
-        return build()
-    key = hashlib.sha256(
-        (repr(sorted(features.to_dict().items())) + f"\n{warp_images}:{frame_pairs}:{seed}\n"
-         + "\n".join(f"{f}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files)).encode()
-    ).hexdigest()[:20]
-    entry = Path(cache_dir) / f"pairs-{features.kind}-{key}.npz"
-    if entry.is_file():
-        try:
-            with np.load(entry, allow_pickle=False) as z:
-                return MatchPairs(z["a"], z["b"], z["group"])
-        except (OSError, ValueError, KeyError):
-            pass  # unreadable cache entry: build again and overwrite it
-    pairs = build()
-    write_cache_entry(entry, a=pairs.a, b=pairs.b, group=pairs.group)
+    entry = None
+    if cache_dir is not None:
+        entry = cache_entry(cache_dir, "pairs", features, files, f"{warp_images}:{frame_pairs}:{seed}")
+        cached = read_cache_entry(entry, ("a", "b", "group"))
+        if cached is not None:
+            return MatchPairs(**cached)
+    pairs = build_match_pairs(files, FeatureExtractor(features), warp_images=warp_images, frame_pairs=frame_pairs,
+                              seed=seed, progress=show_progress)
+    if entry is not None:
+        write_cache_entry(entry, a=pairs.a, b=pairs.b, group=pairs.group)
     return pairs
+
+
+def cached_tracks(files: list[Path], features: FeatureConfig, cache_dir: Path | None, *, images: int, views: int,
+                  seed: int, show_progress: bool):
+    """trainer.multiview.build_tracks, reusing a cache entry for the same settings and images."""
+    from aefabmap.trainer.multiview import Tracks, build_tracks
+
+    entry = None
+    if cache_dir is not None:
+        entry = cache_entry(cache_dir, "tracks", features, files, f"tracks:{images}:{views}:{seed}")
+        cached = read_cache_entry(entry, ("x", "mask", "group"))
+        if cached is not None:
+            return Tracks(**cached)
+    tracks = build_tracks(files, FeatureExtractor(features), images=images, views=views, seed=seed,
+                          progress=show_progress)
+    if entry is not None:
+        write_cache_entry(entry, x=tracks.x, mask=tracks.mask, group=tracks.group)
+    return tracks
 
 
 def sample_vectors(per_image: list[np.ndarray], kind: FeatureKind, n: int, seed: int) -> np.ndarray:
@@ -258,6 +307,17 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                                            frame_pairs=config.ae_frame_pairs, seed=config.seed,
                                            show_progress=config.show_progress)
                 timings["match_pairs_s"] = time.perf_counter() - t1
+            tracks = assign = None
+            if config.ae_objective == "assign":
+                from aefabmap.trainer.assign_objective import AssignConfig
+
+                t1 = time.perf_counter()
+                tracks = cached_tracks(files, config.features, config.cache_dir, images=config.ae_track_images,
+                                       views=config.ae_views, seed=config.seed, show_progress=config.show_progress)
+                timings["tracks_s"] = time.perf_counter() - t1
+                assign = AssignConfig(balance_weight=config.ae_balance_weight, recon_weight=config.ae_recon_weight,
+                                      init=config.ae_init,
+                                      init_kmeans_iterations=config.kmeans_iterations if config.ae_init == "kmeans" else 10)
             q_manifest = build_ae_quantizer(
                 sample,
                 words=config.words,
@@ -271,13 +331,19 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                     max_descriptors=config.ae_descriptors,
                     patience=config.ae_patience,
                     max_seconds=config.ae_budget_s,
+                    learning_rate=config.ae_learning_rate,
                     match_weight=config.ae_match_weight,
                     match_negatives=config.ae_match_negatives,
                     threads=config.ae_threads,
                     progress=config.show_progress,
                 ),
                 pairs=pairs,
+                objective=config.ae_objective,
+                tracks=tracks,
+                assign=assign,
             )
+            # Wall-clock times go to the printed timings, not into the bundle: same command, same bytes.
+            timings.update({f"ae_{k}": v for k, v in q_manifest.pop("timings").items()})
             q_files = {name: Path(work) / name for name in q_manifest["files"].values()}
             quantizer = OnnxQuantizer(
                 Path(work) / q_manifest["files"]["fp32"],

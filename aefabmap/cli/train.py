@@ -44,6 +44,7 @@ def register(sub) -> None:
     p.add_argument("--ae-arch", choices=("paper", "light"), default="paper",
                    help="autoencoder: the paper's 1-D conv stack or a light MLP (fast to train and run)")
     p.add_argument("--ae-latent", type=int, default=None, help="latent code size (default: paper D/2, light 32)")
+    p.add_argument("--ae-learning-rate", type=float, default=2e-3, help="autoencoder Adam learning rate (default 0.002)")
     p.add_argument("--ae-patience", type=int, default=2, help="epochs without held-out improvement before stopping")
     p.add_argument("--ae-budget-s", type=float, default=None, help="wall-clock budget for autoencoder training (s)")
     p.add_argument("--ae-match-weight", type=float, default=0.0,
@@ -54,6 +55,20 @@ def register(sub) -> None:
                    help="training images warped by random homographies to give matching pairs")
     p.add_argument("--ae-frame-pairs", type=int, default=0,
                    help="consecutive-frame pairs of the training drives matched to give matching pairs")
+    p.add_argument("--ae-objective", choices=("recon", "assign"), default="recon",
+                   help="recon: reconstruction (+ --ae-match-weight) then k-means on the codes (default); assign: "
+                   "train encoder and words so that views of one scene point share a word (--ae-arch light)")
+    p.add_argument("--ae-views", type=int, default=4,
+                   help="--ae-objective assign: views per scene point (image + warped, darkened copies; default 4)")
+    p.add_argument("--ae-track-images", type=int, default=1500,
+                   help="--ae-objective assign: training images that give multi-view tracks (default 1500)")
+    p.add_argument("--ae-balance-weight", type=float, default=1.0,
+                   help="--ae-objective assign: weight of the word-usage term (default 1)")
+    p.add_argument("--ae-init", choices=("random", "kmeans"), default="random",
+                   help="--ae-objective assign: start from a random encoder, or from the principal axes of the "
+                   "descriptors and k-means words on them (default random)")
+    p.add_argument("--ae-recon-weight", type=float, default=0.0,
+                   help="--ae-objective assign: weight of the reconstruction term (default 0)")
     p.add_argument("--ae-threads", type=int, default=2, help="threads of the autoencoder stages (training, ONNX)")
     p.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
     p.add_argument("--no-progress", action="store_true")
@@ -90,11 +105,18 @@ def run(args) -> int:
         ae_latent=args.ae_latent,
         ae_patience=args.ae_patience,
         ae_budget_s=args.ae_budget_s,
+        ae_learning_rate=args.ae_learning_rate,
         ae_match_weight=args.ae_match_weight,
         ae_warp_images=args.ae_warp_images,
         ae_frame_pairs=args.ae_frame_pairs,
         ae_threads=args.ae_threads,
         ae_match_negatives=args.ae_match_negatives,
+        ae_objective=args.ae_objective,
+        ae_views=args.ae_views,
+        ae_track_images=args.ae_track_images,
+        ae_balance_weight=args.ae_balance_weight,
+        ae_recon_weight=args.ae_recon_weight,
+        ae_init=args.ae_init,
         show_progress=not args.no_progress,
     )
     result = train_bundle(config)

@@ -14,18 +14,26 @@ def _files(bundle: Path) -> dict[str, bytes]:
     return {str(p.relative_to(bundle)): p.read_bytes() for p in sorted(bundle.rglob("*")) if p.is_file()}
 
 
+# The word-assignment AE, small enough for a test: its manifest keeps a per-epoch history.
+AE_ASSIGN = ["--quantizer", "ae", "--ae-objective", "assign", "--ae-arch", "light", "--ae-recon-weight", "1",
+             "--ae-epochs", "2", "--ae-descriptors", "4000", "--ae-track-images", "12", "--ae-threads", "1"]
+
+
 @pytest.mark.data
 @pytest.mark.slow
-def test_same_command_from_empty_caches_gives_identical_bytes(train_images, tmp_path):
+@pytest.mark.parametrize("quantizer", [["--quantizer", "kmeans"], AE_ASSIGN], ids=["kmeans", "ae-assign"])
+def test_same_command_from_empty_caches_gives_identical_bytes(train_images, tmp_path, quantizer):
     """40 CamVid frames, 64 words, trained twice, each from its own empty feature cache, then
     once more from the first (now warm) cache: every file of the three bundles is identical."""
+    if quantizer[1] == "ae":
+        pytest.importorskip("torch")
     images = tmp_path / "images"
     images.mkdir()
     for p in train_images[::17][:40]:
         shutil.copy(p, images / p.name)
 
     def train(out: str, cache: str) -> Path:
-        args = ["train", "--images", str(images), "--features", "orb", "--quantizer", "kmeans", "--words", "64",
+        args = ["train", "--images", str(images), "--features", "orb", *quantizer, "--words", "64",
                 "--seed", "0", "--out", str(tmp_path / out), "--cache", str(tmp_path / cache), "--no-progress"]
         assert main(args) == 0
         return tmp_path / out
@@ -33,6 +41,7 @@ def test_same_command_from_empty_caches_gives_identical_bytes(train_images, tmp_
     first, second = train("a", "cache_a"), train("b", "cache_b")
     warm = train("c", "cache_a")
     a = _files(first)
-    assert "manifest.json" in a and "vocabulary.npy" in a and len(a) >= 7
+    assert "manifest.json" in a and len(a) >= 7
+    assert ("quantizer_int8.onnx" if quantizer[1] == "ae" else "vocabulary.npy") in a
     assert a == _files(second)
     assert a == _files(warm)
