@@ -13,7 +13,10 @@ groups held out; the assign objective's tracks may share images with them), spli
 frames. Word usage: perplexity (exp of the entropy of word frequencies, in words) and share of
 words used, over the test images' descriptors.
 
-    python scripts/ae_pair_words.py --data DATA [--cache DIR] --out OUT.json BUNDLE [...]
+    python scripts/ae_pair_words.py --data DATA [--cache DIR] --out OUT.json [--plot CURVES.png] BUNDLE [...]
+
+--plot draws the held-out curves of the word-assignment bundles among them (share of held-out
+view pairs on one word, and word perplexity, per epoch; from each manifest's history).
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ def main() -> None:
     ap.add_argument("--warp-images", type=int, default=600, help="old pair settings (ae_matrix.sh: 600)")
     ap.add_argument("--frame-pairs", type=int, default=400, help="(ae_matrix.sh: 400)")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--plot", type=Path, default=None, help="PNG of the assign bundles' held-out curves")
     args = ap.parse_args()
 
     files = find_training_images([args.data / "train" / "camvid", args.data / "train" / "scene15"])
@@ -91,12 +95,16 @@ def main() -> None:
             quant = b.quantizer(var, threads=1)
             entry[var] = {name: pair_words(quant.quantize, s.get(name)) for name in SETS}
             entry[var]["usage"] = usage(quant.quantize(s["viewpoint"].a), k)
+        if entry["objective"] == "assign":
+            entry["history"] = q["train"].get("history", [])
         report["bundles"][path.name] = entry
         print(path.name, json.dumps(entry), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=1))
     print(markdown(report))
     print(f"wrote {args.out}")
+    if args.plot is not None and plot_curves(report, args.plot):
+        print(f"wrote {args.plot}")
 
 
 def markdown(report: dict) -> str:
@@ -111,6 +119,34 @@ def markdown(report: dict) -> str:
             cells += [f"{r['usage']['perplexity']:.0f}", f"{100 * r['usage']['used']:.1f}"]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def plot_curves(report: dict, out: Path) -> bool:
+    """Held-out view agreement (%) and word perplexity per epoch of the assign bundles; False
+    when there are none."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = {n: e["history"] for n, e in report["bundles"].items() if e.get("history")}
+    if not runs:
+        return False
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for name, h in runs.items():
+        ep = [r["epoch"] for r in h]
+        axes[0].plot(ep, [100 * r["val_agreement"] for r in h], marker=".", label=name)
+        axes[1].plot(ep, [r["val_perplexity"] for r in h], marker=".", label=name)
+    axes[0].set(title="held-out view pairs on one word (%)", xlabel="epoch (0: start)")
+    axes[1].set(title="held-out word perplexity (words)", xlabel="epoch (0: start)")
+    for a in axes:
+        a.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return True
 
 
 if __name__ == "__main__":
