@@ -49,8 +49,8 @@ from aefabmap.trainer.autoencoder import (
     Autoencoder,
     _check_train_vectors,
     deterministic_torch,
+    held_out_descriptors,
     manifest_history,
-    subsample,
 )
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 from aefabmap.trainer.multiview import Tracks
@@ -369,12 +369,8 @@ def train_assign(
     if not isinstance(words, int) or words < 2 or words > min(vectors.shape[0] // 2, acfg.restart_sample):
         raise ConfigError(f"words must be an integer in [2, min(N / 2, restart_sample)], got {words!r}")
     t0 = time.perf_counter()
-    data = subsample(vectors, cfg.max_descriptors, seed)
-    rng = np.random.default_rng(seed + 1)
-    perm = rng.permutation(data.shape[0])
-    n_val = max(1, int(round(cfg.val_fraction * data.shape[0])))
-    val = torch.from_numpy(data[perm[:n_val]].copy())
-    train = torch.from_numpy(data[perm[n_val:]].copy())
+    train, val = held_out_descriptors(vectors, cfg, seed)
+    n_val = int(val.shape[0])
     restart = train[: acfg.restart_sample]  # rows already in random order
     tx = torch.from_numpy(np.ascontiguousarray(tracks.x, np.float32))
     tm = torch.from_numpy(np.ascontiguousarray(tracks.mask, bool))

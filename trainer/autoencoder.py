@@ -337,6 +337,15 @@ def manifest_history(history: list[dict]) -> list[dict]:
     return [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in h.items() if k != "seconds"} for h in history]
 
 
+def held_out_descriptors(vectors: np.ndarray, cfg: AeConfig, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(train, val) float32 tensors: up to cfg.max_descriptors rows of vectors (N, D) (seeded
+    subsample), shuffled, cfg.val_fraction of them (at least one) held out for early stopping."""
+    data = subsample(vectors, cfg.max_descriptors, seed)
+    perm = np.random.default_rng(seed + 1).permutation(data.shape[0])
+    n_val = max(1, int(round(cfg.val_fraction * data.shape[0])))
+    return torch.from_numpy(data[perm[n_val:]].copy()), torch.from_numpy(data[perm[:n_val]].copy())
+
+
 @contextmanager
 def deterministic_torch(threads: int):
     """Deterministic algorithms and a fixed thread count inside the block; restores the caller's settings."""
@@ -412,12 +421,8 @@ def train_autoencoder(
     if cfg.match_weight > 0 and (pa.shape[0] < 2 or va.shape[0] < 2):
         raise InputError("match_weight > 0 needs at least 2 training and 2 held-out matching pairs")
     t0 = time.perf_counter()
-    data = subsample(vectors, cfg.max_descriptors, seed)
-    rng = np.random.default_rng(seed + 1)
-    perm = rng.permutation(data.shape[0])
-    n_val = max(1, int(round(cfg.val_fraction * data.shape[0])))
-    val = torch.from_numpy(data[perm[:n_val]].copy())
-    train = torch.from_numpy(data[perm[n_val:]].copy())
+    train, val = held_out_descriptors(vectors, cfg, seed)
+    n_val = int(val.shape[0])
     pa_t, pb_t = torch.from_numpy(pa), torch.from_numpy(pb)
     if cfg.match_negatives == "image":
         if pair_groups is None or len(pair_groups) != pa.shape[0]:

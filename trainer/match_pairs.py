@@ -23,6 +23,16 @@ from aefabmap.errors import InputError
 from aefabmap.runtime.core.features import FeatureExtractor, Features
 
 
+def held_out_groups(group: np.ndarray, val_fraction: float, seed: int) -> np.ndarray:
+    """(N,) bool: the rows whose group is among the val_fraction of groups drawn (seeded) for
+    held-out use; none when there is a single group."""
+    groups = np.unique(group)
+    rng = np.random.default_rng(seed)
+    n_val = max(1, int(round(val_fraction * groups.size))) if groups.size > 1 else 0
+    val_groups = rng.choice(groups, size=n_val, replace=False) if n_val else np.zeros(0, group.dtype)
+    return np.isin(group, val_groups)
+
+
 @dataclass
 class MatchPairs:
     """a, b: (P, D) float32 descriptor vectors of matched keypoints; group: (P,) int32 source index
@@ -37,11 +47,7 @@ class MatchPairs:
 
     def split(self, val_fraction: float, seed: int) -> tuple["MatchPairs", "MatchPairs"]:
         """(train, val) split by whole groups (seeded)."""
-        groups = np.unique(self.group)
-        rng = np.random.default_rng(seed)
-        n_val = max(1, int(round(val_fraction * groups.size))) if groups.size > 1 else 0
-        val_groups = rng.choice(groups, size=n_val, replace=False) if n_val else np.zeros(0, self.group.dtype)
-        is_val = np.isin(self.group, val_groups)
+        is_val = held_out_groups(self.group, val_fraction, seed)
         return self.subset(~is_val), self.subset(is_val)
 
     def subset(self, mask: np.ndarray) -> "MatchPairs":

@@ -23,7 +23,7 @@ import numpy as np
 
 from aefabmap.errors import InputError
 from aefabmap.runtime.core.features import FeatureExtractor
-from aefabmap.trainer.match_pairs import MatchPairs, random_homography, warp_pairs
+from aefabmap.trainer.match_pairs import MatchPairs, held_out_groups, random_homography, warp_pairs
 
 # One image in TEST_MODULUS (by a hash of its file name) is kept for the test pairs.
 TEST_MODULUS = 10
@@ -78,11 +78,7 @@ class Tracks:
 
     def split(self, val_fraction: float, seed: int) -> tuple["Tracks", "Tracks"]:
         """(train, val) split by whole source images (seeded), as MatchPairs.split."""
-        groups = np.unique(self.group)
-        rng = np.random.default_rng(seed)
-        n_val = max(1, int(round(val_fraction * groups.size))) if groups.size > 1 else 0
-        val_groups = rng.choice(groups, size=n_val, replace=False) if n_val else np.zeros(0, self.group.dtype)
-        is_val = np.isin(self.group, val_groups)
+        is_val = held_out_groups(self.group, val_fraction, seed)
         return self.subset(~is_val), self.subset(is_val)
 
     def subset(self, rows: np.ndarray) -> "Tracks":

@@ -159,7 +159,8 @@ def cache_entry(cache_dir: Path, prefix: str, features: FeatureConfig, files: li
 
 
 def read_cache_entry(entry: Path, names: tuple[str, ...]) -> dict[str, np.ndarray] | None:
-    """The named arrays of a cache entry, or None when it is missing or unreadable (then built again)."""
+    """The named arrays of a cache entry, or None when it is missing or unreadable (then built
+    again; callers also rebuild an entry whose arrays do not fit together)."""
     if not entry.is_file():
         return None
     try:
@@ -208,7 +209,8 @@ def cached_match_pairs(files: list[Path], features: FeatureConfig, cache_dir: Pa
     if cache_dir is not None:
         entry = cache_entry(cache_dir, "pairs", features, files, f"{warp_images}:{frame_pairs}:{seed}")
         cached = read_cache_entry(entry, ("a", "b", "group"))
-        if cached is not None:
+        if cached is not None and cached["a"].ndim == 2 and cached["a"].shape == cached["b"].shape \
+                and cached["group"].shape == cached["a"].shape[:1]:
             return MatchPairs(**cached)
     pairs = build_match_pairs(files, FeatureExtractor(features), warp_images=warp_images, frame_pairs=frame_pairs,
                               seed=seed, progress=show_progress)
@@ -226,7 +228,8 @@ def cached_tracks(files: list[Path], features: FeatureConfig, cache_dir: Path | 
     if cache_dir is not None:
         entry = cache_entry(cache_dir, "tracks", features, files, f"tracks:{images}:{views}:{seed}")
         cached = read_cache_entry(entry, ("x", "mask", "group"))
-        if cached is not None:
+        if cached is not None and cached["x"].ndim == 3 and cached["mask"].shape == cached["x"].shape[:2] \
+                and cached["mask"].dtype == bool and cached["group"].shape == cached["x"].shape[:1]:
             return Tracks(**cached)
     tracks = build_tracks(files, FeatureExtractor(features), images=images, views=views, seed=seed,
                           progress=show_progress)

@@ -145,3 +145,25 @@ def test_light_ae_with_matching_term_bundle(image_dir, tmp_path):
     assert [h["epoch"] for h in t["history"]] == list(range(1, t["epochs"] + 1))  # the loss curve
     assert 0.0 <= q["pair_word_agreement"]["fp32"] <= 1.0
     assert len(list(cache.glob("pairs-orb-*.npz"))) == 1  # pairs are cached like features
+
+
+@pytest.mark.parametrize("arrays", [
+    dict(x=np.zeros((5, 256), np.float32), mask=np.ones((5, 4), bool), group=np.zeros(5, np.int32)),  # 2-D x
+    dict(x=np.zeros((5, 4, 256), np.float32), mask=np.ones((5, 3), bool), group=np.zeros(5, np.int32)),
+    dict(x=np.zeros((5, 4, 256), np.float32), mask=np.ones((5, 4), bool), group=np.zeros(2, np.int32)),
+    dict(x=np.zeros((5, 4, 256), np.float32), mask=np.ones((5, 4), np.float32), group=np.zeros(5, np.int32)),
+    dict(y=np.zeros(3)),  # not a tracks entry at all
+])
+def test_a_tracks_cache_entry_that_does_not_fit_together_is_built_again(image_dir, tmp_path, monkeypatch, arrays):
+    from aefabmap.trainer import multiview
+
+    files = train_mod.find_training_images([image_dir])
+    features = FeatureConfig("orb", 200)
+    entry = train_mod.cache_entry(tmp_path, "tracks", features, files, "tracks:4:4:0")
+    train_mod.write_cache_entry(entry, **arrays)
+    built = multiview.Tracks(np.zeros((2, 4, 256), np.float32), np.ones((2, 4), bool), np.zeros(2, np.int32))
+    monkeypatch.setattr(multiview, "build_tracks", lambda *a, **k: built)
+    got = train_mod.cached_tracks(files, features, tmp_path, images=4, views=4, seed=0, show_progress=False)
+    assert got is built
+    with np.load(entry) as z:  # the bad entry was replaced
+        assert z["x"].shape == (2, 4, 256)
