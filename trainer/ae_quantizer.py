@@ -31,6 +31,8 @@ AGREEMENT_SAMPLE = 20_000
 PAIR_VAL_FRACTION = 0.15
 # Training objectives: reconstruction (+ matching term) then k-means on codes; or word assignment.
 OBJECTIVES = ("recon", "assign")
+# Starts of the assign objective (assign_objective.AssignConfig.init).
+ASSIGN_INITS = ("random", "kmeans")
 
 
 def build_ae_quantizer(

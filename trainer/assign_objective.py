@@ -44,11 +44,13 @@ import torch
 from torch import nn
 
 from aefabmap.errors import ConfigError, InputError
+from aefabmap.trainer.ae_quantizer import ASSIGN_INITS
 from aefabmap.trainer.autoencoder import (
     AeConfig,
     Autoencoder,
     _check_train_vectors,
     deterministic_torch,
+    evaluate_loss,
     held_out_descriptors,
     manifest_history,
 )
@@ -104,8 +106,8 @@ class AssignConfig:
     def __post_init__(self) -> None:
         if not (self.temperature_start > 0 and self.temperature_end > 0):
             raise ConfigError("temperatures must be > 0")
-        if self.init not in ("random", "kmeans"):
-            raise ConfigError(f"init must be 'random' or 'kmeans', got {self.init!r}")
+        if self.init not in ASSIGN_INITS:
+            raise ConfigError(f"init must be one of {ASSIGN_INITS}, got {self.init!r}")
         if self.codebook_update not in ("ema", "gradient") or not 0.0 <= self.codebook_decay < 1.0:
             raise ConfigError("codebook_update must be 'ema' or 'gradient' and codebook_decay in [0, 1)")
         if not 0.0 <= self.usage_momentum < 1.0:
@@ -370,7 +372,6 @@ def train_assign(
         raise ConfigError(f"words must be an integer in [2, min(N / 2, restart_sample)], got {words!r}")
     t0 = time.perf_counter()
     train, val = held_out_descriptors(vectors, cfg, seed)
-    n_val = int(val.shape[0])
     restart = train[: acfg.restart_sample]  # rows already in random order
     tx = torch.from_numpy(np.ascontiguousarray(tracks.x, np.float32))
     tm = torch.from_numpy(np.ascontiguousarray(tracks.mask, bool))
@@ -393,17 +394,12 @@ def train_assign(
         opt = torch.optim.Adam(params, lr=cfg.learning_rate, weight_decay=cfg.weight_decay)
         bce = nn.BCEWithLogitsLoss()
         model.eval()
-        ev = evaluate_assign(model, codebook.detach(), vx, vm, acfg.temperature_end,
-                             codebook_spacing(codebook.detach()), acfg.balance_weight)
-        val_recon, val_loss = held_out_total(model, ev, val, acfg.recon_weight)
         # Epoch 0: the initial encoder and its k-means words, a candidate like any epoch.
-        best, best_epoch, bad = val_loss, 0, 0
+        history: list[dict] = [epoch_record(model, codebook.detach(), vx, vm, val, acfg, epoch=0, temperature=None,
+                                            train_loss=None, restarted=0, seconds=0.0)]
+        best, best_epoch, bad = history[0]["val_loss"], 0, 0
         best_state = (copy.deepcopy(model.state_dict()), codebook.detach().clone())
         usage = torch.full((words,), 1.0 / words)  # running soft word usage (balance term)
-        history: list[dict] = [{"epoch": 0, "temperature": None, "train_loss": None, "val_loss": val_loss,
-                                "val_consistency": ev["consistency"], "val_balance": ev["balance"], "val_recon": val_recon,
-                                "val_match": None, "val_agreement": ev["agreement"],
-                                "val_perplexity": ev["perplexity"], "restarted": 0, "seconds": 0.0}]
         epochs_run, stop = 0, "max_epochs"
         n_steps = math.ceil(tx.shape[0] / acfg.track_batch)
         for epoch in range(1, cfg.max_epochs + 1):
@@ -460,15 +456,11 @@ def train_assign(
             bar.close()
             model.eval()
             restarted = refreshed + _refresh_words(model, codebook, restart, ema_n, ema_sum)
-            spacing = codebook_spacing(codebook.detach())
-            ev = evaluate_assign(model, codebook.detach(), vx, vm, acfg.temperature_end, spacing, acfg.balance_weight)
-            val_recon, val_loss = held_out_total(model, ev, val, acfg.recon_weight)
             epochs_run = epoch
-            history.append({"epoch": epoch, "temperature": round(tau, 6), "train_loss": total / max(count, 1),
-                            "val_loss": val_loss, "val_consistency": ev["consistency"], "val_balance": ev["balance"],
-                            "val_recon": val_recon, "val_match": None, "val_agreement": ev["agreement"],
-                            "val_perplexity": ev["perplexity"], "restarted": restarted,
-                            "seconds": round(time.perf_counter() - te, 2)})
+            history.append(epoch_record(model, codebook.detach(), vx, vm, val, acfg, epoch=epoch,
+                                        temperature=round(tau, 6), train_loss=total / max(count, 1),
+                                        restarted=restarted, seconds=round(time.perf_counter() - te, 2)))
+            val_loss = history[-1]["val_loss"]
             if val_loss < best - cfg.min_delta:
                 best, best_epoch, bad = val_loss, epoch, 0
                 best_state = (copy.deepcopy(model.state_dict()), codebook.detach().clone())
@@ -480,20 +472,22 @@ def train_assign(
         model.load_state_dict(best_state[0])
         model.eval()
     return AssignResult(model, best_state[1].numpy().astype(np.float32), cfg, acfg, best, best_epoch, epochs_run,
-                        int(train.shape[0]), int(n_val), len(tracks), len(val_tracks),
+                        int(train.shape[0]), int(val.shape[0]), len(tracks), len(val_tracks),
                         time.perf_counter() - t0, history, stop)
 
 
-def held_out_total(model: Autoencoder, ev: dict, val: torch.Tensor, recon_weight: float) -> tuple[float | None, float]:
-    """(held-out reconstruction loss or None, total held-out loss): evaluate_assign's loss plus
-    recon_weight times the BCE reconstruction of the held-out descriptors `val` (N, D), the same
-    sum at every epoch, the initial one included."""
-    if recon_weight <= 0:
-        return None, ev["loss"]
-    from aefabmap.trainer.autoencoder import evaluate_loss
-
-    recon = evaluate_loss(model, val, 2048)
-    return recon, ev["loss"] + recon_weight * recon
+def epoch_record(model: Autoencoder, codebook: torch.Tensor, vx: torch.Tensor, vm: torch.Tensor, val: torch.Tensor,
+                 acfg: AssignConfig, **fields) -> dict:
+    """One history entry: `fields` (epoch, temperature, train_loss, restarted, seconds) and the
+    held-out figures of the model as it stands, the same at every epoch, the initial one
+    included: evaluate_assign on the held-out tracks vx (T, V, D) / vm (T, V) at the final
+    temperature, plus, with a reconstruction term, recon_weight times the BCE reconstruction
+    of the held-out descriptors val (N, D), in "val_loss"."""
+    ev = evaluate_assign(model, codebook, vx, vm, acfg.temperature_end, codebook_spacing(codebook), acfg.balance_weight)
+    recon = evaluate_loss(model, val, 2048) if acfg.recon_weight > 0 else None
+    return {**fields, "val_loss": ev["loss"] + (acfg.recon_weight * recon if recon is not None else 0.0),
+            "val_consistency": ev["consistency"], "val_balance": ev["balance"], "val_recon": recon,
+            "val_match": None, "val_agreement": ev["agreement"], "val_perplexity": ev["perplexity"]}
 
 
 @torch.no_grad()

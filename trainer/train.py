@@ -18,7 +18,7 @@ from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
 from aefabmap.runtime.core.feature_kinds import FeatureKind
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.quantizer import quantize_raw
-from aefabmap.trainer.ae_quantizer import OBJECTIVES
+from aefabmap.trainer.ae_quantizer import ASSIGN_INITS, OBJECTIVES
 from aefabmap.trainer.chow_liu import fit_chow_liu
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 
@@ -118,8 +118,8 @@ class TrainConfig:
             raise ConfigError(f"--ae-objective must be one of {OBJECTIVES}, got {self.ae_objective!r}")
         if self.ae_objective == "assign" and (self.ae_arch != "light" or self.ae_views < 3 or self.ae_track_images < 2):
             raise ConfigError("--ae-objective assign needs --ae-arch light, --ae-views >= 3 and --ae-track-images >= 2")
-        if self.ae_init not in ("random", "kmeans") or (self.ae_init != "random" and self.ae_objective != "assign"):
-            raise ConfigError(f"--ae-init must be 'random' or 'kmeans' (with --ae-objective assign), got {self.ae_init!r}")
+        if self.ae_init not in ASSIGN_INITS or (self.ae_init != "random" and self.ae_objective != "assign"):
+            raise ConfigError(f"--ae-init must be one of {ASSIGN_INITS} (with --ae-objective assign), got {self.ae_init!r}")
 
 
 def find_training_images(dirs) -> list[Path]:
@@ -318,9 +318,10 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                 tracks = cached_tracks(files, config.features, config.cache_dir, images=config.ae_track_images,
                                        views=config.ae_views, seed=config.seed, show_progress=config.show_progress)
                 timings["tracks_s"] = time.perf_counter() - t1
+                # A k-means start clusters as the k-means quantiser does; a random one keeps AssignConfig's count.
+                start = {"init_kmeans_iterations": config.kmeans_iterations} if config.ae_init == "kmeans" else {}
                 assign = AssignConfig(balance_weight=config.ae_balance_weight, recon_weight=config.ae_recon_weight,
-                                      init=config.ae_init,
-                                      init_kmeans_iterations=config.kmeans_iterations if config.ae_init == "kmeans" else 10)
+                                      init=config.ae_init, **start)
             q_manifest = build_ae_quantizer(
                 sample,
                 words=config.words,
