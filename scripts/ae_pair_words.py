@@ -124,28 +124,15 @@ def markdown(report: dict) -> str:
 def plot_curves(report: dict, out: Path) -> bool:
     """Held-out view agreement (%) and word perplexity per epoch of the assign bundles; False
     when there are none."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ae_report import plot_epoch_panels  # a sibling script: this one runs from scripts/
 
     runs = {n: e["history"] for n, e in report["bundles"].items() if e.get("history")}
     if not runs:
         return False
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for name, h in runs.items():
-        ep = [r["epoch"] for r in h]
-        axes[0].plot(ep, [100 * r["val_agreement"] for r in h], marker=".", label=name)
-        axes[1].plot(ep, [r["val_perplexity"] for r in h], marker=".", label=name)
-    axes[0].set(title="held-out view pairs on one word (%)", xlabel="epoch (0: start)")
-    axes[1].set(title="held-out word perplexity (words)", xlabel="epoch (0: start)")
-    for a in axes:
-        a.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
+    plot_epoch_panels(runs, [
+        ("held-out view pairs on one word (%)", lambda r: 100 * r["val_agreement"]),
+        ("held-out word perplexity (words)", lambda r: r["val_perplexity"]),
+    ], "epoch (0: start)", out)
     return True
 
 

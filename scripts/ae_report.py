@@ -167,30 +167,40 @@ def markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
-def plot_curves(report: dict, out: Path) -> None:
-    """Held-out reconstruction BCE and matching loss per epoch of every AE bundle."""
+def plot_epoch_panels(runs: dict[str, list[dict]], panels: list[tuple[str, object]], xlabel: str, out: Path) -> None:
+    """One line per run in each panel: panels are (title, value of one history record) pairs,
+    runs map a name to its per-epoch history (a manifest's quantizer.train.history)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    aes = {n: e for n, e in report["bundles"].items() if e["type"] == "ae" and e.get("history") and not e.get("search")}
-    if not aes:
-        return
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for name, e in aes.items():
-        h = e["history"]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4))
+    for name, h in runs.items():
         ep = [r["epoch"] for r in h]
-        axes[0].plot(ep, [r["val_recon"] for r in h], marker=".", label=name)
-        axes[1].plot(ep, [r["val_match"] if r.get("val_match") is not None else np.nan for r in h], marker=".", label=name)
-    axes[0].set(title="held-out reconstruction BCE (nats/element)", xlabel="epoch")
-    axes[1].set(title="held-out matching loss (InfoNCE, 256-pair batches)", xlabel="epoch")
-    for a in axes:
-        a.grid(alpha=0.3)
+        for ax, (_, value) in zip(axes, panels):
+            ax.plot(ep, [value(r) for r in h], marker=".", label=name)
+    for ax, (title, _) in zip(axes, panels):
+        ax.set(title=title, xlabel=xlabel)
+        ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)
+    plt.close(fig)
+
+
+def plot_curves(report: dict, out: Path) -> None:
+    """Held-out reconstruction BCE and matching loss per epoch of every AE bundle."""
+    aes = {n: e["history"] for n, e in report["bundles"].items()
+           if e["type"] == "ae" and e.get("history") and not e.get("search")}
+    if not aes:
+        return
+    plot_epoch_panels(aes, [
+        ("held-out reconstruction BCE (nats/element)", lambda r: r["val_recon"]),
+        ("held-out matching loss (InfoNCE, 256-pair batches)",
+         lambda r: r["val_match"] if r.get("val_match") is not None else np.nan),
+    ], "epoch", out)
 
 
 if __name__ == "__main__":
