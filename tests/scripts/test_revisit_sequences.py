@@ -1,0 +1,53 @@
+"""scripts/revisit_sequences.py: the revisit order, its ground truth and the folders it writes."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+import revisit_sequences as rs  # noqa: E402
+
+
+@pytest.mark.parametrize("n, step", [(13, 4), (12, 6), (7, 2), (3, 6)])
+def test_every_second_pass_frame_revisits_exactly_its_first_pass_neighbours(n, step):
+    order, gt = rs.revisit_order(n, step)
+    assert sorted(order) == sorted(set(order)) and len(order) == len(range(0, n, step)) + len(range(step // 2, n, step))
+    n_first = len(range(0, n, step))
+    assert not np.triu(gt).any()  # a frame only revisits earlier frames
+    assert not gt[:n_first].any()  # the first pass revisits nothing
+    for i in range(n_first, len(order)):
+        revisited = {order[j] for j in np.flatnonzero(gt[i])}
+        expected = {f for f in (order[i] - step // 2, order[i] + step // 2) if f in order[:n_first]}
+        assert revisited == expected and revisited
+
+
+@pytest.mark.parametrize("step", [0, 1, 3, -2])
+def test_an_odd_or_too_small_step_is_refused(step):
+    with pytest.raises(ValueError, match="step"):
+        rs.revisit_order(10, step)
+
+
+def test_main_writes_one_sequence_per_drive_in_revisit_order(tmp_path):
+    camvid = tmp_path / "data" / "train" / "camvid"
+    camvid.mkdir(parents=True)
+    for drive, n in (("0001TP", 9), ("Seq05VD", 5)):
+        for f in range(n):
+            cv2.imwrite(str(camvid / f"{drive}_{f:05d}.png"), np.full((8, 8), 10 * f, np.uint8))
+    (camvid / "notes.txt").write_text("not an image")
+    rs.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"), "--step", "4"])
+    for drive, n in (("0001TP", 9), ("Seq05VD", 5)):
+        seq = tmp_path / "out" / drive
+        order, gt = rs.revisit_order(n, 4)
+        files = sorted((seq / "images").iterdir())
+        assert [cv2.imread(str(p), 0)[0, 0] for p in files] == [10 * f for f in order]
+        assert np.array_equal(np.load(seq / "gt.npy"), gt)
+
+
+def test_main_without_camvid_says_so_in_one_line(tmp_path):
+    with pytest.raises(SystemExit, match="no CamVid training drives"):
+        rs.main(["--data", str(tmp_path), "--out", str(tmp_path / "out")])
