@@ -68,6 +68,10 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
                     help="raw FAB-MAP/BoW only: no geometric verification")
     vg.add_argument("--verify-top-k", type=int, default=None, metavar="K",
                     help=f"FAB-MAP candidates verified per frame (default {c.top_k})")
+    vg.add_argument("--verify-bruteforce", type=int, default=None, metavar="K",
+                    help="the best K FAB-MAP candidates are retried with all-pairs matching when same-word "
+                    f"matching fails (default {c.bruteforce_fallback}, every candidate of the default top "
+                    f"{c.top_k}; fewer cost less on frames that are not loops and find fewer loops)")
     vg.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
                     help=f"keypoints per frame extracted and matched for verification (default {v.keypoints}; "
                     "FAB-MAP observes the bundle's budget)")
@@ -81,7 +85,7 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
     the command has it). keep_inlier_points: the live view or failure images draw the inliers."""
     opts = vars(args)
     prof = get_profile(opts["profile"]) if opts.get("profile") is not None else None
-    d, v = DetectorConfig(), VerificationConfig()
+    d, c, v = DetectorConfig(), CandidateConfig(), VerificationConfig()
 
     def pick(name, default, from_profile=None):
         value = opts.get(name)
@@ -95,7 +99,8 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
         camera=opts.get("camera"),
         keep_inlier_points=keep_inlier_points,
     )
-    candidates = CandidateConfig(top_k=pick("verify_top_k", CandidateConfig().top_k))
+    candidates = CandidateConfig(top_k=pick("verify_top_k", c.top_k),
+                                 bruteforce_fallback=pick("verify_bruteforce", c.bruteforce_fallback))
     scorer = pick("scorer", d.scorer)
     detector = DetectorConfig(
         scorer=scorer if scorer in SCORERS else d.scorer,  # eval's "both" picks per run
@@ -140,8 +145,9 @@ def apply_process_settings(config: RunConfig) -> None:
 
 def logged_run_config(logged: dict) -> RunConfig:
     """The RunConfig a run wrote into its log's run metadata (`logged`: that record). Logs written
-    before the whole configuration was kept carry only the map caps and the camera; ConfigError
-    when the record is malformed."""
+    before the whole configuration was kept carry only the map caps and the camera (they ran
+    without chains and retried only FAB-MAP's best candidate); ConfigError when the record is
+    malformed."""
     if not isinstance(logged, dict):
         raise ConfigError("the log's run configuration is not an object")
     if RUN_CONFIG_KEY in logged:
@@ -153,7 +159,8 @@ def logged_run_config(logged: dict) -> RunConfig:
     legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
     camera = logged.get("camera")
     doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
-           "detector": {**legacy, "verification": {"camera": camera}, **_BEFORE_CHAINS}}
+           "detector": {**legacy, "verification": {"camera": camera}, **_BEFORE_CHAINS,
+                        "candidates": {"bruteforce_fallback": 1}}}
     return RunConfig.from_dict(doc)
 
 

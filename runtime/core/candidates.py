@@ -27,14 +27,16 @@ SOURCES = ("track", "fabmap", "island")
 
 @dataclass(frozen=True)
 class CandidateConfig:
-    """Which places a query is verified against (every pair passes the same geometric test, so
-    these settings cost time or recall, never precision).
+    """Which places a query is verified against. Every pair passes the same geometric test, but
+    each extra check is one more chance for a wrong loop (chance, or real structure far down the
+    same street: docs/results.md, "Candidate policy").
 
     top_k: FAB-MAP candidates (best log-likelihood first) tried per frame; the first that passes
         is taken, so a true loop usually costs one check.
     bruteforce_fallback: the best `bruteforce_fallback` FAB-MAP candidates get a second try with
         all-pairs descriptor matching when same-word matching did not pass (true matches split
-        across words by quantisation).
+        across words by quantisation, the more so under viewpoint and light change). The default
+        retries every candidate of `top_k`.
     bruteforce_track: the same retry for every tracked place (see `track`).
     track: temporal prior: when the previous query was verified to stored frame f, the stored
         frames f+1, ..., f+`track`, then f, are tried before FAB-MAP's candidates. 0 disables.
@@ -51,7 +53,7 @@ class CandidateConfig:
     """
 
     top_k: int = 5
-    bruteforce_fallback: int = 1
+    bruteforce_fallback: int = 5
     bruteforce_track: bool = True
     track: int = 2
     track_memory: int = 3

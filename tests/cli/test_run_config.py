@@ -20,11 +20,21 @@ def test_sequence_frames_option():
         _run("--sequence-frames", "1")
 
 
+def test_verify_bruteforce_option_sets_the_retried_candidates_and_is_logged_whole():
+    assert _run().detector.candidates.bruteforce_fallback == 5  # every FAB-MAP candidate of the top 5
+    cfg = _run("--verify-bruteforce", "1", "--verify-top-k", "4")
+    assert (cfg.detector.candidates.bruteforce_fallback, cfg.detector.candidates.top_k) == (1, 4)
+    assert logged_run_config({RUN_CONFIG_KEY: cfg.to_dict()}).detector.candidates.bruteforce_fallback == 1
+    with pytest.raises(ConfigError, match="bruteforce_fallback"):
+        _run("--verify-bruteforce", "-1")
+
+
 def test_logs_written_before_chains_replay_without_them():
     doc = _run().to_dict()
     assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.frames == 2
     del doc["detector"]["sequence"]
     assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.frames == 0
-    assert logged_run_config({"max_places": 5}).detector.sequence.frames == 0  # before the whole config was kept
+    legacy = logged_run_config({"max_places": 5}).detector  # before the whole config was kept
+    assert legacy.sequence.frames == 0 and legacy.candidates.bruteforce_fallback == 1
     with pytest.raises(ConfigError):
         logged_run_config({RUN_CONFIG_KEY: {**doc, "detector": "x"}})

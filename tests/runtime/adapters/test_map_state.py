@@ -287,7 +287,11 @@ def test_replay_builds_a_map_offline_and_continues_it(bundle, tmp_path, capsys):
     _write_log(tmp_path / "all.mcap", images, 0)
     _write_log(tmp_path / "a.mcap", images[:60], 0)
     _write_log(tmp_path / "b.mcap", images[60:], 60)
-    whole = replay(load_detector(bundle, DetectorConfig()), tmp_path / "all.mcap", out_path=tmp_path / "all_out.mcap")
+    from aefabmap.cli.run_config import logged_run_config
+
+    # These logs carry no run configuration, so `replay` runs them as such logs ran (logged_run_config).
+    as_logged = logged_run_config({}).detector
+    whole = replay(load_detector(bundle, as_logged), tmp_path / "all.mcap", out_path=tmp_path / "all_out.mcap")
     assert whole.frames_processed == 70
     for name in ("a", "b"):
         args = cli_args("replay", tmp_path / f"{name}.mcap", "--model", bundle, "--out", tmp_path / f"{name}_out.mcap",
