@@ -52,7 +52,7 @@ from aefabmap.trainer.autoencoder import (
     deterministic_torch,
     evaluate_loss,
     held_out_descriptors,
-    manifest_history,
+    training_summary,
 )
 from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
 from aefabmap.trainer.multiview import Tracks
@@ -323,25 +323,11 @@ class AssignResult:
     def summary(self) -> dict:
         """JSON-able training summary for the bundle manifest (same keys as TrainResult.summary, plus
         "objective" and "assign")."""
-        return {
-            "loss": "assign" + ("+bce" if self.assign.recon_weight > 0 else ""),
-            "objective": "assign",
-            "val_loss": round(float(self.best_val_loss), 6),
-            "train_loss": self.history[self.best_epoch]["train_loss"] if self.history else None,
-            "best_epoch": self.best_epoch,
-            "epochs": self.epochs_run,
-            "stop_reason": self.stop_reason,
-            "n_descriptors": self.n_train + self.n_val,
-            "n_train": self.n_train,
-            "n_val": self.n_val,
-            "n_pairs_train": self.n_tracks_train,
-            "n_pairs_val": self.n_tracks_val,
-            "n_tracks_train": self.n_tracks_train,
-            "n_tracks_val": self.n_tracks_val,
-            "config": self.config.to_dict(),
-            "assign": self.assign.to_dict(),
-            "history": manifest_history(self.history),
-        }
+        train_loss = self.history[self.best_epoch]["train_loss"] if self.history else None
+        loss = "assign" + ("+bce" if self.assign.recon_weight > 0 else "")
+        return {**training_summary(self, loss, train_loss, self.n_tracks_train, self.n_tracks_val),
+                "objective": "assign", "n_tracks_train": self.n_tracks_train, "n_tracks_val": self.n_tracks_val,
+                "assign": self.assign.to_dict()}
 
 
 def train_assign(

@@ -314,21 +314,29 @@ class TrainResult:
     def summary(self) -> dict:
         """JSON-able training summary for the bundle manifest (history included: the loss curve; no
         wall-clock times)."""
-        return {
-            "loss": "bce" if self.config.match_weight == 0 else "bce+match",
-            "val_loss": round(float(self.best_val_loss), 6),
-            "train_loss": round(float(self.history[self.best_epoch - 1]["train_loss"]), 6) if self.history else None,
-            "best_epoch": self.best_epoch,
-            "epochs": self.epochs_run,
-            "stop_reason": self.stop_reason,
-            "n_descriptors": self.n_train + self.n_val,
-            "n_train": self.n_train,
-            "n_val": self.n_val,
-            "n_pairs_train": self.n_pairs_train,
-            "n_pairs_val": self.n_pairs_val,
-            "config": self.config.to_dict(),
-            "history": manifest_history(self.history),
-        }
+        train_loss = round(float(self.history[self.best_epoch - 1]["train_loss"]), 6) if self.history else None
+        return training_summary(self, "bce" if self.config.match_weight == 0 else "bce+match", train_loss,
+                                self.n_pairs_train, self.n_pairs_val)
+
+
+def training_summary(result, loss: str, train_loss: float | None, n_pairs_train: int, n_pairs_val: int) -> dict:
+    """The manifest's training summary keys both AE objectives share, from a result with best_val_loss,
+    best_epoch, epochs_run, stop_reason, n_train, n_val, config and history."""
+    return {
+        "loss": loss,
+        "val_loss": round(float(result.best_val_loss), 6),
+        "train_loss": train_loss,
+        "best_epoch": result.best_epoch,
+        "epochs": result.epochs_run,
+        "stop_reason": result.stop_reason,
+        "n_descriptors": result.n_train + result.n_val,
+        "n_train": result.n_train,
+        "n_val": result.n_val,
+        "n_pairs_train": n_pairs_train,
+        "n_pairs_val": n_pairs_val,
+        "config": result.config.to_dict(),
+        "history": manifest_history(result.history),
+    }
 
 
 def manifest_history(history: list[dict]) -> list[dict]:

@@ -145,9 +145,8 @@ def apply_process_settings(config: RunConfig) -> None:
 
 def logged_run_config(logged: dict) -> RunConfig:
     """The RunConfig a run wrote into its log's run metadata (`logged`: that record). Logs written
-    before the whole configuration was kept carry only the map caps and the camera (they ran
-    without chains and retried only FAB-MAP's best candidate); ConfigError when the record is
-    malformed."""
+    before the whole configuration was kept carry only the map caps and the camera (they ran as
+    _BEFORE_WHOLE_CONFIG says); ConfigError when the record is malformed."""
     if not isinstance(logged, dict):
         raise ConfigError("the log's run configuration is not an object")
     if RUN_CONFIG_KEY in logged:
@@ -159,10 +158,11 @@ def logged_run_config(logged: dict) -> RunConfig:
     legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
     camera = logged.get("camera")
     doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
-           "detector": {**legacy, "verification": {"camera": camera}, **_BEFORE_CHAINS,
-                        "candidates": {"bruteforce_fallback": 1}}}
+           "detector": {**legacy, "verification": {"camera": camera}, **_BEFORE_WHOLE_CONFIG}}
     return RunConfig.from_dict(doc)
 
 
 #: Logs written before evidence over consecutive frames existed ran without it.
 _BEFORE_CHAINS = {"sequence": {"frames": 0}}
+#: Logs written before the whole configuration was kept also retried only FAB-MAP's best candidate.
+_BEFORE_WHOLE_CONFIG = {**_BEFORE_CHAINS, "candidates": {"bruteforce_fallback": 1}}
