@@ -9,6 +9,10 @@ Pairs, all from DATA/train:
 - synthetic scale changes: the same image resized 0.5/0.75/1.5/2 times about its centre, in a
   canvas of the original size (cropped or padded with black).
 
+With `--night`, the second image of every pair (negatives included) is seen at the fixed
+synthetic night of the vocabulary's test pairs (trainer/multiview.NIGHT: darker, gamma, sensor
+noise, blur): a day map revisited at night, under the same viewpoint and scale changes.
+
 Each pair is verified as the runtime's brute-force retry verifies a loop candidate (no words:
 all descriptors matched with the ratio test, then the a-contrario test), and each front-end
 gets a row: the share of true pairs accepted per setting, the negatives accepted (must stay 0),
@@ -17,11 +21,14 @@ and the median milliseconds of one extraction and of one pair's verification.
 
     python scripts/pair_benchmark.py orb orb-teblid akaze sift --per-drive 6 --warps-per-setting 24 \
         --long-side 160 --json pairs_160.json
+    python scripts/pair_benchmark.py orb orb-stretch --per-drive 6 --night --json pairs_night.json
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -42,6 +49,7 @@ from calibrate_verification import GAPS, training_pairs  # noqa: E402
 from aefabmap.runtime.adapters.frames import load_image  # noqa: E402
 from aefabmap.runtime.core import verification as V  # noqa: E402
 from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features  # noqa: E402
+from aefabmap.trainer.multiview import NIGHT, darken  # noqa: E402
 
 ANGLES = (10, 20, 30, 40)  # degrees of out-of-plane rotation
 SCALES = (0.5, 0.75, 1.5, 2.0)
@@ -119,10 +127,12 @@ def make_front_end(name: str) -> FrontEnd:
 
 @dataclass(frozen=True)
 class View:
-    """One image of a pair: a file, optionally warped: ("rotate", degrees) or ("scale", factor)."""
+    """One image of a pair: a file, optionally warped: ("rotate", degrees) or ("scale", factor),
+    and optionally seen at night (NIGHT, after the warp)."""
 
     path: Path
     warp: tuple = ()
+    night: bool = False
 
 
 def rotation_homography(shape_hw: tuple[int, int], degrees: float) -> np.ndarray:
@@ -167,19 +177,23 @@ def shrink(gray: np.ndarray, long_side: int | None) -> np.ndarray:
 
 
 def render(view: View, long_side: int | None) -> np.ndarray:
-    """The grayscale uint8 pixels of a view: loaded, shrunk to `long_side`, then warped."""
+    """The grayscale uint8 pixels of a view: loaded, shrunk to `long_side`, warped, then darkened
+    (the night's noise seeded by the view, so a view renders the same every time)."""
     gray = shrink(load_image(view.path), long_side)
-    if not view.warp:
-        return gray
-    how, amount = view.warp
-    return rotate_view(gray, amount) if how == "rotate" else scale_about_centre(gray, amount)
+    if view.warp:
+        how, amount = view.warp
+        gray = rotate_view(gray, amount) if how == "rotate" else scale_about_centre(gray, amount)
+    if view.night:
+        seed = int(hashlib.sha256(repr((view.path.name, view.warp)).encode()).hexdigest()[:8], 16)
+        gray = darken(gray, np.random.default_rng(seed), **NIGHT)
+    return gray
 
 
-def benchmark_pairs(train: Path, seed: int, per_drive: int, warps_per_setting: int) -> list[tuple]:
+def benchmark_pairs(train: Path, seed: int, per_drive: int, warps_per_setting: int, night: bool = False) -> list[tuple]:
     """(group, setting, View a, View b) rows: group "gap" (setting: frames apart), "angle" (degrees),
     "scale" (factor) or "negative" (setting None). Warps use the same `warps_per_setting` source
     images in every setting (half CamVid, half Scene-15, drawn with `seed`); the rotation's
-    direction alternates from image to image."""
+    direction alternates from image to image. `night`: every View b is seen at night."""
     pos, neg = training_pairs(train, seed=seed, per_drive=per_drive)
     rows = [("gap", gap, View(a), View(b)) for gap in GAPS for a, b in pos[gap]]
     rng = random.Random(seed)
@@ -191,6 +205,8 @@ def benchmark_pairs(train: Path, seed: int, per_drive: int, warps_per_setting: i
         rows += [("angle", a, View(p), View(p, ("rotate", a if i % 2 == 0 else -a))) for a in ANGLES]
         rows += [("scale", s, View(p), View(p, ("scale", s))) for s in SCALES]
     rows += [("negative", None, View(a), View(b)) for a, b in neg]
+    if night:
+        rows = [(g, s, a, dataclasses.replace(b, night=True)) for g, s, a, b in rows]
     return rows
 
 
@@ -275,10 +291,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--warps-per-setting", type=int, default=24, help="source images warped at every angle and scale")
     ap.add_argument("--long-side", type=int, default=None,
                     help="downsize every image to this long side (px) before anything (default: as stored)")
+    ap.add_argument("--night", action="store_true",
+                    help="the second image of every pair at the synthetic night (trainer/multiview.NIGHT)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, help="also write the numbers here")
     args = ap.parse_args(argv)
-    rows = benchmark_pairs(args.data / "train", args.seed, args.per_drive, args.warps_per_setting)
+    rows = benchmark_pairs(args.data / "train", args.seed, args.per_drive, args.warps_per_setting, args.night)
     results, seconds = {}, {}
     for name in args.front_ends:
         try:
@@ -290,7 +308,8 @@ def main(argv: list[str] | None = None) -> None:
         results[name] = measure(front, rows, args.long_side)
         seconds[name] = time.perf_counter() - t0
         print(f"{name}: {seconds[name]:.0f} s", file=sys.stderr, flush=True)
-    print(f"{len(rows)} pairs from {args.data / 'train'}, long side {args.long_side or 'as stored'}; "
+    print(f"{len(rows)} pairs from {args.data / 'train'}, long side {args.long_side or 'as stored'}"
+          f"{', second image at night' if args.night else ''}; "
           f"per setting: {next(iter(results.values()))['pairs_per_setting'] if results else {}}")
     print(table(results))
     if args.json:

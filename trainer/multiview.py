@@ -3,7 +3,9 @@ test pairs (viewpoint, night) on which vocabularies are compared.
 
 A track is one keypoint of a training image seen in V views: view 0 is the image itself, views
 1..V-1 are random homography warps of it (trainer/match_pairs.random_homography), each with a
-random photometric change (darkening, gamma, sensor noise, blur; `photometric`). A keypoint of
+random photometric change (darkening, gamma, sensor noise, blur; `photometric`); the last
+`light_views` of them may instead be the unwarped image at a random night (`night`), so that
+the views also hold pairs that differ in light alone, as a revisit at night does. A keypoint of
 view 0 is seen in a warped view when that view has a keypoint that is its mutual nearest
 neighbour in position within `tolerance_px` of its projection (match_pairs.warp_pairs): ground
 truth by construction. A track is kept when it is seen in at least `min_views` views.
@@ -48,14 +50,19 @@ def darken(img: np.ndarray, rng: np.random.Generator, *, gain: float, gamma: flo
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
+def night(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A random synthetic night of a uint8 image: gain 0.15-0.5, gamma 1.5-2.5, noise 2-6 grey
+    levels, blur 0.5-1.2 px (the range holds the test pairs' NIGHT)."""
+    p = dict(gain=rng.uniform(0.15, 0.5), gamma=rng.uniform(1.5, 2.5), noise=rng.uniform(2, 6), blur=rng.uniform(0.5, 1.2))
+    return darken(img, rng, **p)
+
+
 def photometric(img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A random photometric change of a uint8 image: with probability 1/2 "night" (gain 0.15-0.5,
-    gamma 1.5-2.5, noise 2-6 grey levels, blur 0.5-1.2 px), else "day" (gain 0.7-1.1, gamma
-    0.8-1.25, noise 0-2, no blur)."""
+    """A random photometric change of a uint8 image: with probability 1/2 `night`, else "day"
+    (gain 0.7-1.1, gamma 0.8-1.25, noise 0-2, no blur)."""
     if rng.random() < 0.5:
-        p = dict(gain=rng.uniform(0.15, 0.5), gamma=rng.uniform(1.5, 2.5), noise=rng.uniform(2, 6), blur=rng.uniform(0.5, 1.2))
-    else:
-        p = dict(gain=rng.uniform(0.7, 1.1), gamma=rng.uniform(0.8, 1.25), noise=rng.uniform(0, 2), blur=0.0)
+        return night(img, rng)
+    p = dict(gain=rng.uniform(0.7, 1.1), gamma=rng.uniform(0.8, 1.25), noise=rng.uniform(0, 2), blur=0.0)
     return darken(img, rng, **p)
 
 
@@ -86,14 +93,18 @@ class Tracks:
 
 
 def build_tracks(files: list[Path], extractor: FeatureExtractor, *, images: int, views: int, seed: int,
-                 min_views: int = 3, load=None, tolerance_px: float = 2.0, progress: bool = False) -> Tracks:
+                 min_views: int = 3, light_views: int = 0, load=None, tolerance_px: float = 2.0,
+                 progress: bool = False) -> Tracks:
     """Tracks from `images` (seeded choice) training images outside the test split, each image
-    seen in `views` views (the image + views - 1 warped, photometrically changed copies); a track
-    is kept when found in at least `min_views` >= 3 of them."""
+    seen in `views` views (the image + views - 1 copies: warped and photometrically changed, the
+    last `light_views` of them unwarped at night); a track is kept when found in at least
+    `min_views` >= 3 of them."""
     from tqdm import tqdm
 
     if not 3 <= min_views <= views:
         raise InputError(f"tracks need 3 <= min_views <= views, got min_views={min_views}, views={views}")
+    if not 0 <= light_views < views:
+        raise InputError(f"tracks need 0 <= light_views < views, got light_views={light_views}, views={views}")
     if load is None:
         from aefabmap.runtime.adapters.frames import load_image as load
     kind = extractor.kind
@@ -108,10 +119,14 @@ def build_tracks(files: list[Path], extractor: FeatureExtractor, *, images: int,
         img = load(pool[i])
         fa = extractor.extract(img)
         matched = []
-        for _ in range(views - 1):
-            h = random_homography(img.shape[:2], rng)
-            warped = cv2.warpPerspective(img, h, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR)
-            fb = extractor.extract(photometric(warped, rng))
+        for v in range(1, views):
+            if v < views - light_views:
+                h = random_homography(img.shape[:2], rng)
+                warped = cv2.warpPerspective(img, h, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR)
+                fb = extractor.extract(photometric(warped, rng))
+            else:
+                h = np.eye(3)
+                fb = extractor.extract(night(img, rng))
             idx = warp_pairs(fa, fb, h, tolerance_px)
             to_b = np.full(len(fa), -1, np.int64)
             to_b[idx[:, 0]] = idx[:, 1]

@@ -58,6 +58,8 @@ class TrainConfig:
     ae_views / ae_track_images: objective "assign": views per scene point (the image and
         ae_views - 1 warped, photometrically changed copies; a point is kept when seen in >= 3)
         and how many training images (outside the test split) give tracks.
+    ae_light_views: objective "assign": how many of those copies are the unwarped image at a
+        random night instead (trainer/multiview.build_tracks), < ae_views.
     ae_balance_weight / ae_recon_weight: objective "assign": weights of the word-usage and
         reconstruction terms.
     ae_init: objective "assign": "random" encoder, or "kmeans" (the encoder starts as the
@@ -95,6 +97,7 @@ class TrainConfig:
     ae_objective: str = "recon"
     ae_views: int = 4
     ae_track_images: int = 1500
+    ae_light_views: int = 0
     ae_balance_weight: float = 1.0
     ae_recon_weight: float = 0.0
     ae_init: str = "random"
@@ -118,6 +121,8 @@ class TrainConfig:
             raise ConfigError(f"--ae-objective must be one of {OBJECTIVES}, got {self.ae_objective!r}")
         if self.ae_objective == "assign" and (self.ae_arch != "light" or self.ae_views < 3 or self.ae_track_images < 2):
             raise ConfigError("--ae-objective assign needs --ae-arch light, --ae-views >= 3 and --ae-track-images >= 2")
+        if not 0 <= self.ae_light_views < self.ae_views:
+            raise ConfigError(f"--ae-light-views must be >= 0 and below --ae-views ({self.ae_views}), got {self.ae_light_views}")
         if self.ae_init not in ASSIGN_INITS or (self.ae_init != "random" and self.ae_objective != "assign"):
             raise ConfigError(f"--ae-init must be one of {ASSIGN_INITS} (with --ae-objective assign), got {self.ae_init!r}")
 
@@ -220,19 +225,20 @@ def cached_match_pairs(files: list[Path], features: FeatureConfig, cache_dir: Pa
 
 
 def cached_tracks(files: list[Path], features: FeatureConfig, cache_dir: Path | None, *, images: int, views: int,
-                  seed: int, show_progress: bool):
+                  seed: int, show_progress: bool, light_views: int = 0):
     """trainer.multiview.build_tracks, reusing a cache entry for the same settings and images."""
     from aefabmap.trainer.multiview import Tracks, build_tracks
 
     entry = None
     if cache_dir is not None:
-        entry = cache_entry(cache_dir, "tracks", features, files, f"tracks:{images}:{views}:{seed}")
+        light = f":light{light_views}" if light_views else ""  # entries made before the option keep their key
+        entry = cache_entry(cache_dir, "tracks", features, files, f"tracks:{images}:{views}:{seed}{light}")
         cached = read_cache_entry(entry, ("x", "mask", "group"))
         if cached is not None and cached["x"].ndim == 3 and cached["mask"].shape == cached["x"].shape[:2] \
                 and cached["mask"].dtype == bool and cached["group"].shape == cached["x"].shape[:1]:
             return Tracks(**cached)
     tracks = build_tracks(files, FeatureExtractor(features), images=images, views=views, seed=seed,
-                          progress=show_progress)
+                          light_views=light_views, progress=show_progress)
     if entry is not None:
         write_cache_entry(entry, x=tracks.x, mask=tracks.mask, group=tracks.group)
     return tracks
@@ -316,7 +322,8 @@ def train_bundle(config: TrainConfig) -> TrainResult:
 
                 t1 = time.perf_counter()
                 tracks = cached_tracks(files, config.features, config.cache_dir, images=config.ae_track_images,
-                                       views=config.ae_views, seed=config.seed, show_progress=config.show_progress)
+                                       views=config.ae_views, seed=config.seed, show_progress=config.show_progress,
+                                       light_views=config.ae_light_views)
                 timings["tracks_s"] = time.perf_counter() - t1
                 # A k-means start clusters as the k-means quantiser does; a random one keeps AssignConfig's count.
                 start = {"init_kmeans_iterations": config.kmeans_iterations} if config.ae_init == "kmeans" else {}
@@ -376,6 +383,9 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             "quantizer": config.quantizer,
             "words": config.words,
         }
+        if config.quantizer == "ae" and config.ae_objective == "assign":  # the views it was trained on
+            summary |= {"ae_views": config.ae_views, "ae_light_views": config.ae_light_views,
+                        "ae_track_images": config.ae_track_images}
         if config.index_buckets:
             summary |= {"index_buckets": config.index_buckets, "index_entries": int(quantizer.words.size)}
         if config.vocabulary_from is not None:

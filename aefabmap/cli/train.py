@@ -60,6 +60,9 @@ def register(sub) -> None:
                    "train encoder and words so that views of one scene point share a word (--ae-arch light)")
     p.add_argument("--ae-views", type=int, default=4,
                    help="--ae-objective assign: views per scene point (image + warped, darkened copies; default 4)")
+    p.add_argument("--ae-light-views", type=int, default=0,
+                   help="--ae-objective assign: how many of the copies are the unwarped image at a random night "
+                   "(pairs that differ in light alone; default 0)")
     p.add_argument("--ae-track-images", type=int, default=1500,
                    help="--ae-objective assign: training images that give multi-view tracks (default 1500)")
     p.add_argument("--ae-balance-weight", type=float, default=1.0,
@@ -114,6 +117,7 @@ def run(args) -> int:
         ae_objective=args.ae_objective,
         ae_views=args.ae_views,
         ae_track_images=args.ae_track_images,
+        ae_light_views=args.ae_light_views,
         ae_balance_weight=args.ae_balance_weight,
         ae_recon_weight=args.ae_recon_weight,
         ae_init=args.ae_init,

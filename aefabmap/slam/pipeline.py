@@ -21,6 +21,7 @@ import numpy as np
 
 from aefabmap.errors import ConfigError
 from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
+from aefabmap.runtime.core.messages import FrameResult
 from aefabmap.slam.loops import LoopEdge, exclusion_frames, loop_edge, proposal_edge
 from aefabmap.slam.odometry import OdometryConfig, OrbExtractor, run_odometry
 from aefabmap.slam.pose_graph import Edge, PoseGraphConfig, optimize
@@ -56,11 +57,11 @@ class SlamConfig:
         copies at one location still count once): the 2-D test only proposes loops, and a
         proposal becomes an edge only if the place's metric 3-D points confirm it. Not fitted to
         any sequence.
-    proposals: when the two-view test gave a frame no edge, up to this many of the detector's
-        candidates for it (best FAB-MAP rank first) are checked in 3-D (`loops.proposal_edge`,
-        the detector's significance bar); the first confirmed one becomes the frame's edge.
-        0: edges from two-view verified loops only. The detector's own top_k (5) by default: the
-        places it would verify itself.
+    proposals: when the two-view test gave a frame no edge, up to this many places are checked
+        in 3-D (`loops.proposal_edge`, the detector's significance bar; `proposal_frames`: the
+        two-view verified place first, then the detector's candidates by FAB-MAP rank); the
+        first confirmed one becomes the frame's edge. 0: edges from two-view verified loops
+        only. The detector's own top_k (5) by default: the places it would verify itself.
     """
 
     min_gap_s: float = 10.0
@@ -146,24 +147,16 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
         return extractor(seq.gray(i), seq.depth_m(i))
 
     for res in results:
-        q, tried = res.sequence, set()
+        q = res.sequence
         if res.verified:
             verified += 1
-            tried.add(res.verified_frame)
             e = loop_edge(res, features(q), features(res.verified_frame), K, c.odometry)
             if e is not None:
                 edges.append(e)
                 if e.T_place_query is not None:
                     continue
-        n_tested = 0
-        for cand in sorted(res.candidates, key=lambda cd: cd.rank):
-            if n_tested >= c.proposals:
-                break
-            if cand.frame in tried:
-                continue
-            tried.add(cand.frame)
-            n_tested += 1
-            e = proposal_edge(q, cand.frame, features(q), features(cand.frame), K, c.odometry,
+        for place in proposal_frames(res, c.proposals):
+            e = proposal_edge(q, place, features(q), features(place), K, c.odometry,
                               verification.max_log10_nfa, verification.duplicate_radius)
             tested += 1
             if e.T_place_query is not None:
@@ -194,6 +187,16 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     }
     return SlamRun(odo.poses, graph.poses, edges, verified, exclude, odo.failed, timings, graph.loop_weights,
                    proposals_tested=tested, run_config=run_config.to_dict())
+
+
+def proposal_frames(res: FrameResult, limit: int) -> list[int]:
+    """Places to check in 3-D for a frame whose two-view test gave no edge, at most `limit`, no
+    repeats: the two-view verified place first (its few two-view inliers may not carry a PnP
+    pose, while the 3-D check matches the frames' odometry features), then the detector's
+    candidates by FAB-MAP rank."""
+    order = [res.verified_frame] if res.verified and res.verified_frame is not None else []
+    order += [cand.frame for cand in sorted(res.candidates, key=lambda cd: cd.rank)]
+    return list(dict.fromkeys(order))[:limit]
 
 
 def check_edges(run: SlamRun, gt: np.ndarray, config: SlamConfig) -> list[dict]:

@@ -92,3 +92,29 @@ def test_command_on_a_tiny_training_tree(tmp_path):
     assert result["negatives"] == 2 * 2 + 3 and result["negatives_accepted"] == 0
     assert result["gap"]["1"] == 100.0 and result["extract_ms"] > 0
     assert "| orb | 100% |" in pb.table({"orb": result})
+
+
+def test_night_darkens_the_second_view_the_same_way_every_time(tmp_path):
+    path = tmp_path / "a.png"
+    cv2.imwrite(str(path), texture((120, 160), seed=3))
+    day = pb.render(pb.View(path), None)
+    night = pb.render(pb.View(path, night=True), None)
+    assert night.shape == day.shape and night.mean() < 0.5 * day.mean()
+    assert np.array_equal(night, pb.render(pb.View(path, night=True), None))
+    turned = pb.render(pb.View(path, ("rotate", 20), night=True), None)
+    assert not np.array_equal(turned, pb.rotate_view(day, 20)) and turned.mean() < 0.5 * day.mean()
+
+
+def test_night_pairs_keep_the_first_view_by_day(tmp_path):
+    train = tmp_path / "train"
+    for d, drive in enumerate(("0001TP", "0006R0")):
+        (train / "camvid").mkdir(parents=True, exist_ok=True)
+        for k in range(12):
+            cv2.imwrite(str(train / "camvid" / f"{drive}_{k:06d}.jpg"), texture((60, 80), seed=30 + 12 * d + k))
+    (train / "scene15" / "street").mkdir(parents=True)
+    for k in range(4):
+        cv2.imwrite(str(train / "scene15" / "street" / f"image_{k:04d}.jpg"), texture((60, 80), seed=60 + k))
+    day = pb.benchmark_pairs(train, 0, 1, 2)
+    night = pb.benchmark_pairs(train, 0, 1, 2, night=True)
+    assert [(g, s, a, b.path, b.warp) for g, s, a, b in day] == [(g, s, a, b.path, b.warp) for g, s, a, b in night]
+    assert not any(a.night for _, _, a, _ in night) and all(b.night for _, _, _, b in night)

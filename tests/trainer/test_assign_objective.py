@@ -175,6 +175,8 @@ def test_bad_inputs_raise():
 @pytest.mark.parametrize("settings", [
     dict(ae_objective="assign"),  # the paper's conv stack cannot take the objective
     dict(ae_objective="assign", ae_arch="light", ae_views=2),
+    dict(ae_objective="assign", ae_arch="light", ae_views=4, ae_light_views=4),
+    dict(ae_objective="assign", ae_arch="light", ae_light_views=-1),
     dict(ae_objective="other"),
     dict(ae_init="kmeans"),  # a start for the assign objective only
     dict(ae_objective="assign", ae_arch="light", ae_init="pca"),
@@ -235,6 +237,29 @@ def test_tracks_need_three_views_and_keep_the_test_split_out(tmp_path):
     assert set(np.unique(t.group)) <= {0, 1, 2}
     with pytest.raises(InputError):
         build_tracks(files, fx, images=2, views=4, min_views=2, seed=0, load=load)
+
+
+def test_light_views_are_the_unwarped_image_at_night(tmp_path):
+    """The last light_views copies keep the image's geometry: nearly every keypoint of the image is
+    found again there, and their descriptors are nearer to the image's than a warped view's are."""
+    names = [f"img_{i:03d}.png" for i in range(40)]
+    files = [tmp_path / n for n in names if not is_test_image(Path(n))][:3]
+    fx = FeatureExtractor(FeatureConfig(kind="orb", long_side=None, contrast_stretch=True))
+
+    def load(p):
+        return textured_image(names.index(p.name))
+
+    plain = build_tracks(files, fx, images=3, views=4, seed=0, load=load)
+    same = build_tracks(files, fx, images=3, views=4, seed=0, light_views=0, load=load)
+    assert np.array_equal(plain.x, same.x) and np.array_equal(plain.mask, same.mask)
+    t = build_tracks(files, fx, images=3, views=4, seed=0, light_views=1, load=load)
+    assert len(t) > 20
+    bits = lambda a, b: np.abs(a - b).sum(-1)  # noqa: E731 - Hamming distance of 0/1 vectors
+    light = bits(t.x[t.mask[:, 3], 0], t.x[t.mask[:, 3], 3])
+    warped = bits(t.x[t.mask[:, 1], 0], t.x[t.mask[:, 1], 1])
+    assert t.mask[:, 3].mean() > t.mask[:, 1].mean() and np.median(light) < np.median(warped)
+    with pytest.raises(InputError):
+        build_tracks(files, fx, images=3, views=4, seed=0, light_views=4, load=load)
 
 
 def test_test_pairs_come_from_the_test_split_only(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -45,3 +46,8 @@ def test_same_command_from_empty_caches_gives_identical_bytes(train_images, tmp_
     assert ("quantizer_int8.onnx" if quantizer[1] == "ae" else "vocabulary.npy") in a
     assert a == _files(second)
     assert a == _files(warm)
+    training = json.loads(a["manifest.json"])["training"]
+    if quantizer[1] == "ae":  # the views the words were trained on are part of the bundle's record
+        assert (training["ae_views"], training["ae_light_views"], training["ae_track_images"]) == (4, 0, 12)
+    else:
+        assert "ae_views" not in training
