@@ -36,7 +36,7 @@ for name in "$@"; do
     esac
     echo "== train $name" >&2
     "${cli[@]}" train --images "$data/train/camvid" "$data/train/scene15" --features "$features" \
-      --quantizer ae --words "$words" --seed 0 --max-descriptors 250000 --ae-descriptors 250000 \
+      --quantizer ae --ae-objective recon --words "$words" --seed 0 --max-descriptors 250000 --ae-descriptors 250000 \
       --ae-epochs 200 --ae-patience 3 --ae-budget-s "${AE_BUDGET_S:-600}" --ae-threads 1 \
       --ae-warp-images 600 --ae-frame-pairs 400 "${extra[@]}" \
       --out "$bundles/$name" --cache "$bundles/cache" --no-progress

@@ -36,13 +36,15 @@ def register(sub) -> None:
                    help="kmeans-tree on a binary kind: mean (float) centres and L2 on unpacked bits instead of "
                    "bit centres and popcount (slower; for comparison)")
     p.add_argument("--words", type=int, default=2000, help="vocabulary size K")
-    p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering")
+    p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering (--quantizer ae: at least --ae-descriptors)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
-    p.add_argument("--ae-epochs", type=int, default=3, help="autoencoder epochs (--quantizer ae)")
-    p.add_argument("--ae-descriptors", type=int, default=100_000, help="descriptors the autoencoder trains on")
-    p.add_argument("--ae-arch", choices=("paper", "light"), default="paper",
-                   help="autoencoder: the paper's 1-D conv stack or a light MLP (fast to train and run)")
+    p.add_argument("--ae-epochs", type=int, default=8, help="autoencoder epochs (--quantizer ae; default 8)")
+    p.add_argument("--ae-descriptors", type=int, default=250_000,
+                   help="descriptors the autoencoder trains on (default 250000)")
+    p.add_argument("--ae-arch", choices=("paper", "light"), default="light",
+                   help="autoencoder: a light MLP (default; fast to train and run) or the paper's 1-D conv stack "
+                   "(with --ae-objective recon)")
     p.add_argument("--ae-latent", type=int, default=None, help="latent code size (default: paper D/2, light 32)")
     p.add_argument("--ae-learning-rate", type=float, default=2e-3, help="autoencoder Adam learning rate (default 0.002)")
     p.add_argument("--ae-patience", type=int, default=2, help="epochs without held-out improvement before stopping")
@@ -55,11 +57,11 @@ def register(sub) -> None:
                    help="training images warped by random homographies to give matching pairs")
     p.add_argument("--ae-frame-pairs", type=int, default=0,
                    help="consecutive-frame pairs of the training drives matched to give matching pairs")
-    p.add_argument("--ae-objective", choices=("recon", "assign"), default="recon",
-                   help="recon: reconstruction (+ --ae-match-weight) then k-means on the codes (default); assign: "
-                   "train encoder and words so that views of one scene point share a word (--ae-arch light)")
-    p.add_argument("--ae-views", type=int, default=4,
-                   help="--ae-objective assign: views per scene point (image + warped, darkened copies; default 4)")
+    p.add_argument("--ae-objective", choices=("recon", "assign"), default="assign",
+                   help="assign (default): train encoder and words so that views of one scene point share a word "
+                   "(--ae-arch light); recon: reconstruction (+ --ae-match-weight) then k-means on the codes")
+    p.add_argument("--ae-views", type=int, default=6,
+                   help="--ae-objective assign: views per scene point (image + warped, darkened copies; default 6)")
     p.add_argument("--ae-light-views", type=int, default=0,
                    help="--ae-objective assign: how many of the copies are the unwarped image at a random night "
                    "(pairs that differ in light alone; default 0)")
@@ -70,9 +72,10 @@ def register(sub) -> None:
     p.add_argument("--ae-init", choices=("random", "kmeans"), default="random",
                    help="--ae-objective assign: start from a random encoder, or from the principal axes of the "
                    "descriptors and k-means words on them (default random)")
-    p.add_argument("--ae-recon-weight", type=float, default=0.0,
-                   help="--ae-objective assign: weight of the reconstruction term (default 0)")
-    p.add_argument("--ae-threads", type=int, default=2, help="threads of the autoencoder stages (training, ONNX)")
+    p.add_argument("--ae-recon-weight", type=float, default=1.0,
+                   help="--ae-objective assign: weight of the reconstruction term (default 1)")
+    p.add_argument("--ae-threads", type=int, default=1,
+                   help="threads of the autoencoder stages (training, ONNX; default 1)")
     p.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)

@@ -55,7 +55,7 @@ def test_ae_bundle_fp32_and_int8(tmp_path):
     images = tmp_path / "imgs"
     make_demo_sequence(images, n_frames=8, seed=7, size=(320, 240), config=SyntheticConfig(laps=1))
     res = train_bundle(TrainConfig(images=(images,), out=tmp_path / "ae", features=FeatureConfig("orb", 200),
-                                   quantizer="ae", words=16, max_descriptors=1000, ae_epochs=1,
+                                   quantizer="ae", ae_objective="recon", words=16, max_descriptors=1000, ae_epochs=1,
                                    ae_descriptors=1000, show_progress=False))
     fp32 = _bench(tmp_path, "--model", str(res.path), "--all-cores")
     int8 = _bench(tmp_path, "--model", str(res.path), "--variant", "int8", "--all-cores")

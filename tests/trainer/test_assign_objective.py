@@ -173,12 +173,12 @@ def test_bad_inputs_raise():
 
 
 @pytest.mark.parametrize("settings", [
-    dict(ae_objective="assign"),  # the paper's conv stack cannot take the objective
+    dict(ae_arch="paper"),  # the paper's conv stack cannot take the (default) objective
     dict(ae_objective="assign", ae_arch="light", ae_views=2),
     dict(ae_objective="assign", ae_arch="light", ae_views=4, ae_light_views=4),
     dict(ae_objective="assign", ae_arch="light", ae_light_views=-1),
     dict(ae_objective="other"),
-    dict(ae_init="kmeans"),  # a start for the assign objective only
+    dict(ae_objective="recon", ae_init="kmeans"),  # a start for the assign objective only
     dict(ae_objective="assign", ae_arch="light", ae_init="pca"),
 ])
 def test_train_config_refuses_bad_assign_settings(settings, tmp_path):

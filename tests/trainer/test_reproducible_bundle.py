@@ -15,9 +15,8 @@ def _files(bundle: Path) -> dict[str, bytes]:
     return {str(p.relative_to(bundle)): p.read_bytes() for p in sorted(bundle.rglob("*")) if p.is_file()}
 
 
-# The word-assignment AE, small enough for a test: its manifest keeps a per-epoch history.
-AE_ASSIGN = ["--quantizer", "ae", "--ae-objective", "assign", "--ae-arch", "light", "--ae-recon-weight", "1",
-             "--ae-epochs", "2", "--ae-descriptors", "4000", "--ae-track-images", "12", "--ae-threads", "1"]
+# The default AE (word-assignment objective), small enough for a test: its manifest keeps a per-epoch history.
+AE_ASSIGN = ["--quantizer", "ae", "--ae-epochs", "2", "--ae-descriptors", "4000", "--ae-track-images", "12"]
 
 
 @pytest.mark.data
@@ -48,6 +47,6 @@ def test_same_command_from_empty_caches_gives_identical_bytes(train_images, tmp_
     assert a == _files(warm)
     training = json.loads(a["manifest.json"])["training"]
     if quantizer[1] == "ae":  # the views the words were trained on are part of the bundle's record
-        assert (training["ae_views"], training["ae_light_views"], training["ae_track_images"]) == (4, 0, 12)
+        assert (training["ae_views"], training["ae_light_views"], training["ae_track_images"]) == (6, 0, 12)
     else:
         assert "ae_views" not in training

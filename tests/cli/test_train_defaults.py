@@ -1,0 +1,22 @@
+"""`aefabmap train`'s option defaults are TrainConfig's: one default per setting."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from aefabmap.cli.main import build_parser
+from aefabmap.trainer.train import TrainConfig
+
+
+def test_every_train_option_defaults_to_the_config_default():
+    args = vars(build_parser().parse_args(["train", "--images", "imgs", "--out", "b"]))
+    shared = [f for f in dataclasses.fields(TrainConfig) if f.name in args and f.default is not dataclasses.MISSING]
+    assert len(shared) >= 20  # words, seed, descriptors and every --ae-* option
+    assert {f.name: args[f.name] for f in shared} == {f.name: f.default for f in shared}
+
+
+def test_the_default_autoencoder_is_the_assign_objective_measured_best():
+    c = TrainConfig(images=(), out="b", quantizer="ae")
+    # docs/results.md, "The word-assignment objective": 6 views a track, reconstruction weight 1, 8 epochs.
+    assert (c.ae_objective, c.ae_arch, c.ae_views, c.ae_light_views, c.ae_recon_weight, c.ae_epochs) == \
+        ("assign", "light", 6, 0, 1.0, 8)
