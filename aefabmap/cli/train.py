@@ -36,7 +36,8 @@ def register(sub) -> None:
                    help="kmeans-tree on a binary kind: mean (float) centres and L2 on unpacked bits instead of "
                    "bit centres and popcount (slower; for comparison)")
     p.add_argument("--words", type=int, default=2000, help="vocabulary size K")
-    p.add_argument("--max-descriptors", type=int, default=200_000, help="descriptors sampled for clustering (--quantizer ae: at least --ae-descriptors)")
+    p.add_argument("--max-descriptors", type=int, default=200_000,
+                   help="descriptors sampled for clustering (--quantizer ae: at least --ae-descriptors)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
     p.add_argument("--ae-epochs", type=int, default=8, help="autoencoder epochs (--quantizer ae; default 8)")
