@@ -56,9 +56,9 @@ class TrainConfig:
     ae_objective: "recon" (reconstruction [+ matching term], then k-means on the codes) or "assign"
         (encoder and words trained so that views of one scene point share a word,
         trainer/assign_objective.py; light arch only). The AE defaults (assign, light, 6 views,
-        reconstruction weight 1, 8 epochs) are the AE measured best against k-means
-        (docs/results.md, "The word-assignment objective"); the paper's conv stack is
-        ae_objective "recon" with ae_arch "paper".
+        reconstruction weight 1, 8 epochs) are the best AE measured (docs/results.md, "The
+        word-assignment objective"); the paper's conv stack is ae_objective "recon" with
+        ae_arch "paper".
     ae_views / ae_track_images: objective "assign": views per scene point (the image and
         ae_views - 1 warped, photometrically changed copies; a point is kept when seen in >= 3)
         and how many training images (outside the test split) give tracks.
