@@ -5,11 +5,12 @@ Positives: CamVid frames of one drive 1, 2, 3, 5 and 10 frames apart (about 1-10
 frames of two different drives, Scene-15 pairs and CamVid-vs-Scene-15 pairs. Each pair is
 verified as the brute-force retry verifies a loop candidate (all descriptors matched with the
 ratio test, the a-contrario test), and the acceptance rate is printed per gap for each setting
-of `VerificationConfig.method`, `independence` and `ratio_bruteforce`, with the lowest log10 NFA of the
-negatives (how close the nearest unrelated pair came to the -4 bar).
+of `VerificationConfig.method`, `independence`, `ratio_bruteforce` and `upright` (the retry with
+upright descriptors when the oriented one fails), with the lowest log10 NFA of the negatives (how
+close the nearest unrelated pair came to the -4 bar).
 
     python scripts/calibrate_verification.py --data DATA --features orb --keypoints 1000 \
-        --method lo-ransac magsac --ratio-bruteforce 0.7 0.8 0.9 --per-drive 36
+        --method lo-ransac magsac --ratio-bruteforce 0.7 0.8 0.9 --upright 0 1 --per-drive 36
 """
 
 from __future__ import annotations
@@ -70,10 +71,12 @@ def main() -> None:
     ap.add_argument("--ratio-bruteforce", type=float, nargs="+", default=[V.VerificationConfig().ratio_bruteforce])
     ap.add_argument("--method", nargs="+", default=[V.VerificationConfig().method], choices=V.GEOMETRY_METHODS,
                     help="model estimators to compare (default: the runtime's)")
+    ap.add_argument("--upright", type=int, nargs="+", default=[int(V.VerificationConfig().upright)], choices=(0, 1),
+                    help="1: retry failed pairs with upright descriptors, 0: oriented only (default: the runtime's)")
     ap.add_argument("--per-drive", type=int, default=12, help="pairs per gap and CamVid drive (default 12)")
     args = ap.parse_args()
     kind = get_kind(args.features)
-    extractor = FeatureExtractor(FeatureConfig(kind=args.features, max_features=args.keypoints))
+    extractor = FeatureExtractor(FeatureConfig(kind=args.features, max_features=args.keypoints), upright=True)
     cache: dict[Path, object] = {}
 
     def features(p: Path):
@@ -89,16 +92,19 @@ def main() -> None:
         radius = V.independence_radius(kind.window_radius(fa.sizes), config)
         return V.verify_pair(fa.keypoints, none_a, fa.descriptors, fa.image_shape, fb.keypoints, none_b,
                              fb.descriptors, fb.image_shape, config, bruteforce=True, distance=kind.distance,
-                             radius=radius)
+                             radius=radius, q_upright=fa.upright, p_upright=fb.upright)
 
     pos, neg = training_pairs(args.data / "train", per_drive=args.per_drive)
-    for method, independence, ratio in itertools.product(args.method, args.independence, args.ratio_bruteforce):
-        config = replace(V.VerificationConfig(), method=method, independence=independence, ratio_bruteforce=ratio)
+    for method, independence, ratio, upright in itertools.product(args.method, args.independence,
+                                                                  args.ratio_bruteforce, args.upright):
+        config = replace(V.VerificationConfig(), method=method, independence=independence, ratio_bruteforce=ratio,
+                         upright=bool(upright))
         rates = {gap: np.mean([verify(a, b, config).verified for a, b in pairs]) for gap, pairs in pos.items()}
         negatives = [verify(a, b, config) for a, b in neg]
         wrong = sum(g.verified for g in negatives)
         closest = min((g.nfa for g in negatives if g.nfa is not None), default=float("inf"))
-        print(f"{args.features} {args.keypoints} keypoints, {method}, independence {independence}, ratio {ratio}: "
+        print(f"{args.features} {args.keypoints} keypoints, {method}, independence {independence}, ratio {ratio}, "
+              f"upright {upright}: "
               "positives accepted " + " / ".join(f"{g} frames apart {100 * r:.0f}%" for g, r in rates.items())
               + f" (n={len(pos[GAPS[0]])} per gap); negatives accepted {wrong} of {len(neg)}, "
               f"lowest log10 NFA {closest:.1f}", flush=True)

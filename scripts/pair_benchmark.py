@@ -54,7 +54,8 @@ from aefabmap.trainer.multiview import NIGHT, darken  # noqa: E402
 ANGLES = (10, 20, 30, 40)  # degrees of out-of-plane rotation
 SCALES = (0.5, 0.75, 1.5, 2.0)
 KEYPOINTS = 1000  # the runtime's verification budget (VerificationConfig.keypoints)
-FRONT_ENDS = ("orb", "orb-teblid", "orb-beblid", "akaze", "sift", "orb-native", "orb-levels12", "orb-fast10", "orb-fast5", "orb-clahe", "orb-stretch")
+FRONT_ENDS = ("orb", "orb-teblid", "orb-beblid", "akaze", "sift", "orb-native", "orb-levels12", "orb-fast10", "orb-fast5", "orb-clahe", "orb-stretch",
+              "orb-stretch-upright")
 #: AKAZE's detector threshold: OpenCV's default (0.001) finds 200-1300 keypoints on 640-px CamVid
 #: frames, so the 1000-keypoint cap would rarely bind; at 0.0001 it finds 1000-4500.
 AKAZE_THRESHOLD = 1e-4
@@ -102,8 +103,10 @@ def make_front_end(name: str) -> FrontEnd:
         ex = FeatureExtractor(FeatureConfig(kind="sift", max_features=KEYPOINTS, rootsift=True))
         return FrontEnd(name, ex, "l2", ex.kind.window_scale)
     native = name == "orb-native"
+    # orb-stretch-upright: the runtime's default (contrast stretch, the retry with upright descriptors).
     ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=KEYPOINTS, long_side=None if native else 640,
-                                        clahe=name == "orb-clahe", contrast_stretch=name == "orb-stretch"))
+                                        clahe=name == "orb-clahe", contrast_stretch=name.startswith("orb-stretch")),
+                          upright=name == "orb-stretch-upright")
     window = ex.kind.window_scale
     if name in ("orb-teblid", "orb-beblid"):
         x2d = getattr(cv2, "xfeatures2d", None)
@@ -120,7 +123,7 @@ def make_front_end(name: str) -> FrontEnd:
         ex._detector = cv2.ORB_create(nfeatures=KEYPOINTS, nlevels=12)
     elif name.startswith("orb-fast"):
         ex._detector = cv2.ORB_create(nfeatures=KEYPOINTS, fastThreshold=int(name[len("orb-fast"):]))
-    elif name not in ("orb", "orb-native", "orb-clahe", "orb-stretch") and not name.startswith("orb-fast"):
+    elif name not in ("orb", "orb-native", "orb-clahe", "orb-stretch", "orb-stretch-upright") and not name.startswith("orb-fast"):
         raise ValueError(f"unknown front-end {name!r}; choose from {FRONT_ENDS}")
     return FrontEnd(name, ex, "hamming", window)
 
@@ -211,14 +214,15 @@ def benchmark_pairs(train: Path, seed: int, per_drive: int, warps_per_setting: i
 
 
 def verify(fa: Features, fb: Features, front: FrontEnd, config: V.VerificationConfig) -> V.GeometryResult:
-    """Verify a pair as the runtime's brute-force retry does (no words: all-pairs matching), as
-    calibrate_verification.py does, with the front-end's distance and descriptor window."""
+    """Verify a pair as the runtime's brute-force retry does (no words: all-pairs matching, then
+    upright descriptors where the front-end has them), as calibrate_verification.py does, with the
+    front-end's distance and descriptor window."""
     none_a, none_b = np.full(len(fa), V.NO_WORD, np.int64), np.full(len(fb), V.NO_WORD, np.int64)
     cv2.setRNGSeed(0)  # USAC's sampling: the same pairs give the same verdicts
     radius = V.independence_radius(np.asarray(fa.sizes, np.float64) * front.window_scale, config)
     return V.verify_pair(fa.keypoints, none_a, fa.descriptors, fa.image_shape, fb.keypoints, none_b,
                          fb.descriptors, fb.image_shape, config, bruteforce=True, distance=front.distance,
-                         radius=radius)
+                         radius=radius, q_upright=fa.upright, p_upright=fb.upright)
 
 
 def measure(front: FrontEnd, rows: list[tuple], long_side: int | None) -> dict:

@@ -75,6 +75,9 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
     vg.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
                     help=f"keypoints per frame extracted and matched for verification (default {v.keypoints}; "
                     "FAB-MAP observes the bundle's budget)")
+    vg.add_argument("--no-verify-upright", dest="verify_upright", action="store_false", default=None,
+                    help="no upright descriptors: the brute-force retry matches the oriented ones only "
+                    "(less time and memory per place; fewer loops where a robot passes a place aside)")
     vg.add_argument("--camera", default=None, metavar="FX,FY,CX,CY",
                     help="pinhole intrinsics in pixels of the images: verify with an essential matrix "
                     "(cheirality-checked) instead of a fundamental matrix")
@@ -96,6 +99,7 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
     verification = VerificationConfig(
         enabled=not opts.get("no_verify"),
         keypoints=pick("verify_keypoints", v.keypoints),
+        upright=bool(pick("verify_upright", v.upright)),
         camera=opts.get("camera"),
         keep_inlier_points=keep_inlier_points,
     )
@@ -153,16 +157,23 @@ def logged_run_config(logged: dict) -> RunConfig:
         doc = logged[RUN_CONFIG_KEY]
         detector = doc.get("detector") if isinstance(doc, dict) else None
         if isinstance(detector, dict) and "sequence" not in detector:
-            doc = {**doc, "detector": {**detector, **_BEFORE_CHAINS}}
+            detector = {**detector, **_BEFORE_CHAINS}
+        verification = detector.get("verification") if isinstance(detector, dict) else None
+        if isinstance(verification, dict) and "upright" not in verification:
+            detector = {**detector, "verification": {**verification, **_BEFORE_UPRIGHT}}
+        if isinstance(detector, dict):
+            doc = {**doc, "detector": detector}
         return RunConfig.from_dict(doc)
     legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
     camera = logged.get("camera")
     doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
-           "detector": {**legacy, "verification": {"camera": camera}, **_BEFORE_WHOLE_CONFIG}}
+           "detector": {**legacy, "verification": {"camera": camera, **_BEFORE_UPRIGHT}, **_BEFORE_WHOLE_CONFIG}}
     return RunConfig.from_dict(doc)
 
 
 #: Logs written before evidence over consecutive frames existed ran without it.
 _BEFORE_CHAINS = {"sequence": {"frames": 0}}
+#: Logs written before upright descriptors existed retried with the oriented ones alone.
+_BEFORE_UPRIGHT = {"upright": False}
 #: Logs written before the whole configuration was kept also retried only FAB-MAP's best candidate.
 _BEFORE_WHOLE_CONFIG = {**_BEFORE_CHAINS, "candidates": {"bruteforce_fallback": 1}}

@@ -3,8 +3,9 @@ appended as it is processed, so that a failing disk or a kill -9 loses only what
 written.
 
 What is journaled: the detector's *inputs*, not its state. A frame record holds the frame's
-sequence number, stamp, keypoint words and keypoints (positions, sizes, raw descriptors, image
-shape): ``detector.process_words`` over them makes exactly the state changes the frame made
+sequence number, stamp, keypoint words and keypoints (positions, sizes, raw descriptors, the
+upright descriptors when the frame has them (format 2), image shape):
+``detector.process_words`` over them makes exactly the state changes the frame made
 (insertion queue, places, evictions, keypoint store, last-used order, track prior, temporal
 and chain history), so loading = the current snapshot, then the journal's frames replayed.
 
@@ -46,10 +47,12 @@ from aefabmap.errors import InputError, StateError
 from aefabmap.runtime.core.features import Features
 
 FORMAT = "aefabmap-map-journal"
-FORMAT_VERSION = 1
+#: 2: a frame record may hold upright descriptors (its features flag is 2); 1 is still read.
+FORMAT_VERSION = 2
 SEGMENT_RE = re.compile(r"^journal-(\d{12})$")
 _RECORD = struct.Struct("<II")  # payload length (bytes), crc32 of the payload
-_FRAME = struct.Struct("<cqqIBII")  # b"F", sequence, stamp (ns), keypoints, has features, height, width (px)
+# b"F", sequence, stamp (ns), keypoints, features (0: none, 1: yes, 2: with upright), height, width (px)
+_FRAME = struct.Struct("<cqqIBII")
 _MAX_HEADER_BYTES = 1 << 20
 #: Largest frame record read (bytes): above 100 000 SIFT keypoints, the extractor's limit.
 MAX_RECORD_BYTES = 64 << 20
@@ -110,12 +113,15 @@ def encode_frame(detector, seq: int) -> bytes:
         head = _FRAME.pack(b"F", seq, stamp_ns, n, 0, 0, 0)
         return head + np.asarray(words, "<i4").tobytes()
     h, w = feats.image_shape
+    dtype = _descriptor_dtype(detector)
+    upright = () if feats.upright is None else (np.ascontiguousarray(feats.upright, dtype).tobytes(),)
     return b"".join((
-        _FRAME.pack(b"F", seq, stamp_ns, n, 1, int(h), int(w)),
+        _FRAME.pack(b"F", seq, stamp_ns, n, 1 + bool(upright), int(h), int(w)),
         np.asarray(words, "<i4").tobytes(),
         np.asarray(feats.keypoints, "<f4").tobytes(),
         np.asarray(feats.sizes, "<f4").tobytes(),
-        np.ascontiguousarray(feats.descriptors, _descriptor_dtype(detector)).tobytes(),
+        np.ascontiguousarray(feats.descriptors, dtype).tobytes(),
+        *upright,
     ))
 
 
@@ -126,8 +132,8 @@ def decode_frame(payload: bytes, detector, label: str) -> tuple[int, np.ndarray,
         raise StateError(f"{label}: not a frame record")
     _, seq, stamp_ns, n, has, height, width = _FRAME.unpack_from(payload)
     dtype, cols = _descriptor_dtype(detector), int(detector.kind.width)
-    per_kp = 4 + (2 * 4 + 4 + cols * dtype.itemsize if has else 0)
-    if has > 1 or len(payload) != _FRAME.size + n * per_kp:
+    per_kp = 4 + (2 * 4 + 4 + has * cols * dtype.itemsize if has else 0)
+    if has > 2 or len(payload) != _FRAME.size + n * per_kp:
         raise StateError(f"{label}: frame record of {len(payload)} bytes does not hold {n} keypoints "
                          "of this bundle's feature kind")
     at = _FRAME.size
@@ -141,12 +147,16 @@ def decode_frame(payload: bytes, detector, label: str) -> tuple[int, np.ndarray,
     xy = np.frombuffer(payload, "<f4", 2 * n, at).reshape(n, 2).astype(np.float32)
     sizes = np.frombuffer(payload, "<f4", n, at + 8 * n).astype(np.float32)
     desc = np.frombuffer(payload, dtype, n * cols, at + 12 * n).reshape(n, cols).astype(detector.kind.dtype)
+    upright = None
+    if has == 2:
+        at += 12 * n + n * cols * dtype.itemsize
+        upright = np.frombuffer(payload, dtype, n * cols, at).reshape(n, cols).astype(detector.kind.dtype)
     inside = np.all((xy >= -1) & (xy[:, :1] <= width + 1) & (xy[:, 1:] <= height + 1))
     if not (np.isfinite(xy).all() and inside and np.isfinite(sizes).all() and np.all(sizes >= 0)):
         raise StateError(f"{label}: keypoints outside the image or not finite")
-    if desc.dtype.kind == "f" and not np.isfinite(desc).all():
+    if desc.dtype.kind == "f" and not (np.isfinite(desc).all() and (upright is None or np.isfinite(upright).all())):
         raise StateError(f"{label}: descriptors not finite")
-    return seq, words, stamp_ns, Features(xy, sizes, desc, (height, width))
+    return seq, words, stamp_ns, Features(xy, sizes, desc, (height, width), upright)
 
 
 def _check_words(words: np.ndarray, detector, observed: int, label: str) -> None:

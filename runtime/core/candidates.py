@@ -80,10 +80,11 @@ class CandidateConfig:
             raise ConfigError(f"candidates max_bruteforce must be None or >= 0, got {self.max_bruteforce}")
 
 
-#: check(place id, bruteforce, retry_only) -> the pair's GeometryResult, or None when the place
-#: holds no keypoints. retry_only: the place's same-word check already failed in this query, only
-#: the brute-force retry is new.
-PairCheck = Callable[[int, bool, bool], "GeometryResult | None"]
+#: check(place id, bruteforce, retry_only, upright) -> the pair's GeometryResult, or None when the
+#: place holds no keypoints. retry_only: the place's same-word check already failed in this query,
+#: only the brute-force retry is new. upright: a failed brute-force retry is retried with upright
+#: descriptors (VerificationConfig.upright); the policy asks it for tracked places only.
+PairCheck = Callable[[int, bool, bool, bool], "GeometryResult | None"]
 
 
 @dataclass
@@ -158,7 +159,12 @@ class _Query:
             return False
         self.tried[pid] = bruteforce
         retry_only = done is False
-        g = self.check(pid, bruteforce, retry_only)
+        # Upright descriptors only extend a verified loop (its track's window and reach): a new
+        # loop is opened by the oriented test alone. On repetitive structure seen from the same
+        # viewpoint (door frames along a corridor), upright descriptors of different places match
+        # more often than the a-contrario background assumes (docs/results.md, "Upright
+        # descriptors in the retry").
+        g = self.check(pid, bruteforce, retry_only, source == "track")
         if g is None:
             return False
         s.bruteforce += bruteforce

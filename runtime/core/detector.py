@@ -40,8 +40,8 @@ from aefabmap.runtime.core.verification import (
     distinct_kernel,
     independence_radius,
     more_significant,
+    retry_bruteforce,
     verify_pair,
-    verify_pair_bruteforce,
 )
 from aefabmap.runtime.core.word_matches import same_word_kernel
 
@@ -173,7 +173,7 @@ class LoopClosureDetector:
         extract = bundle.features
         if v.enabled and v.keypoints is not None and v.keypoints > extract.max_features:
             extract = replace(extract, max_features=v.keypoints)
-        self.extractor = FeatureExtractor(extract)
+        self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
         self.scorer: Scorer = self._build_scorer()
@@ -264,7 +264,8 @@ class LoopClosureDetector:
             raise ConfigError("verification is off: this detector stores no keypoints")
         if not (0 <= place < self._id_range()) or not self.scorer.alive[place]:
             raise InputError(f"place {place} is not in the map")
-        self.store.put(place, self.store.pack(features.keypoints, words, features.descriptors, features.image_shape))
+        self.store.put(place, self.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
+                                              features.upright))
 
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""
@@ -307,7 +308,8 @@ class LoopClosureDetector:
         query_kps = None
         if self.store is not None:
             if features is not None:
-                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape)
+                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
+                                            features.upright)
             verdict = self._verify(seq, features, words, ranked.order, top)
             loop = verdict.verified
         else:
@@ -386,30 +388,34 @@ class LoopClosureDetector:
         """The policy's PairCheck for this query: verify it against one stored place."""
         verify = self.place_check(features, words)
 
-        def check(pid: int, bruteforce: bool, retry_only: bool) -> GeometryResult | None:
+        def check(pid: int, bruteforce: bool, retry_only: bool, upright: bool) -> GeometryResult | None:
             place = self.store.get(pid)
             if place is None or len(place) == 0:
                 return None
-            return verify(place, bruteforce, retry_only)
+            return verify(place, bruteforce, retry_only, upright)
 
         return check
 
     def place_check(self, features: Features, words: np.ndarray, verification: VerificationConfig | None = None):
-        """check(place, bruteforce, retry_only) -> GeometryResult: this query (features, its
-        `words_of`) verified against the keypoints of a place (PlaceKeypoints), ours or another
-        robot's; retry_only: all-pairs matching alone (the reach's retry). verification: other
-        settings than the detector's (a stricter bar for other robots' places)."""
+        """check(place, bruteforce, retry_only, upright=False) -> GeometryResult: this query
+        (features, its `words_of`) verified against the keypoints of a place (PlaceKeypoints), ours
+        or another robot's; retry_only: all-pairs matching alone (the reach's retry); upright: a
+        failed all-pairs retry is retried with the upright descriptors when both sides have them.
+        verification: other settings than the detector's (a stricter bar for other robots' places)."""
         v = self.config.verification if verification is None else verification
         q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
         radius = independence_radius(self.kind.window_radius(features.sizes), v)
         distance = self.kind.distance
 
-        def check(place: PlaceKeypoints, bruteforce: bool, retry_only: bool = False) -> GeometryResult:
+        def check(place: PlaceKeypoints, bruteforce: bool, retry_only: bool = False,
+                  upright: bool = False) -> GeometryResult:
+            q_up, p_up = (features.upright, place.upright) if upright else (None, None)
             if retry_only:
-                return verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
-                                              v, distance=distance, radius=radius)
+                return retry_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
+                                        v, distance=distance, radius=radius, q_upright=q_up, p_upright=p_up)
             return verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
-                               place.image_shape, v, bruteforce=bruteforce, distance=distance, radius=radius)
+                               place.image_shape, v, bruteforce=bruteforce, distance=distance, radius=radius,
+                               q_upright=q_up, p_upright=p_up)
 
         return check
 

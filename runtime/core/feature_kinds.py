@@ -45,6 +45,11 @@ class FeatureKind:
         patch, so 0.5; SIFT's 4 x 4 histogram cells of 3 sigma each (size = 2 sigma), rotated,
         reach 3 * (size / 2) * sqrt(2) * (4 + 1) / 2 = 5.3 sizes. Verification counts matches
         whose windows mostly overlap as one piece of evidence (`VerificationConfig.independence`).
+    upright: verification also describes this kind's keypoints with orientation 0
+        (`Features.upright`, VerificationConfig.upright); its describer must turn its window by
+        KeyPoint.angle and ignore KeyPoint.class_id (ORB's and SIFT's do; AKAZE keeps its scale
+        level in class_id). On for ORB. Off for SIFT: a second SIFT description costs about 40 %
+        of its extraction (docs/results.md, "Upright descriptors in the retry").
     """
 
     name: str
@@ -52,6 +57,7 @@ class FeatureKind:
     create: Callable[[int], Any]
     options: tuple[str, ...] = ()
     window_scale: float = 0.5
+    upright: bool = False
 
     # Declared by the family (class attributes of the subclasses).
     dtype = np.dtype(np.uint8)
@@ -213,6 +219,6 @@ def kind_names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
-register(BinaryKind("orb", 32, lambda n: cv2.ORB_create(nfeatures=n)))
+register(BinaryKind("orb", 32, lambda n: cv2.ORB_create(nfeatures=n), upright=True))
 register(FloatKind("sift", 128, lambda n: cv2.SIFT_create(nfeatures=n), options=("rootsift",), window_scale=5.3))
 BUILTIN_KINDS = ("orb", "sift")

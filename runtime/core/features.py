@@ -152,12 +152,15 @@ class Features:
     descriptors: raw descriptors (N, width) of the kind's dtype: (N, 32) uint8 for ORB,
         (N, 128) float32 for SIFT.
     image_shape: (height, width) of the original image.
+    upright: None, or the descriptors of the same keypoints computed with their orientation set
+        to 0 (same shape and dtype as descriptors; `FeatureExtractor(upright=True)`).
     """
 
     keypoints: np.ndarray
     sizes: np.ndarray
     descriptors: np.ndarray
     image_shape: tuple[int, int]
+    upright: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
@@ -179,12 +182,18 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 class FeatureExtractor:
-    """Deterministic extractor (the kind's OpenCV detector) for one FeatureConfig (not thread-safe)."""
+    """Deterministic extractor (the kind's OpenCV detector) for one FeatureConfig (not thread-safe).
 
-    def __init__(self, config: FeatureConfig | None = None) -> None:
+    upright: also describe every kept keypoint with its orientation set to 0 (`Features.upright`,
+        for verification: VerificationConfig.upright), when the kind can (`FeatureKind.upright`).
+        The words come from the oriented descriptors, as in training.
+    """
+
+    def __init__(self, config: FeatureConfig | None = None, upright: bool = False) -> None:
         self.config = config or FeatureConfig()
         c = self.config
         self.kind = c.spec
+        self.upright = bool(upright) and self.kind.upright
         # Bucketing proposes more keypoints than it keeps, then spreads the budget over a grid.
         self._detector = self.kind.create(c.max_features * (c.bucket_oversample if c.bucket_grid else 1))
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if c.clahe else None
@@ -215,9 +224,9 @@ class FeatureExtractor:
         if self._clahe is not None:
             work = self._clahe.apply(work)
         kps, desc = self._detector.detectAndCompute(work, None)
-        return self._pack(kps, desc, scale, gray.shape, work.shape)
+        return self._pack(kps, desc, scale, gray.shape, work)
 
-    def _pack(self, kps, desc, scale: float, shape, work_shape) -> Features:
+    def _pack(self, kps, desc, scale: float, shape, work: np.ndarray) -> Features:
         c = self.config
         n = 0 if desc is None else len(kps)
         if n == 0:
@@ -235,12 +244,29 @@ class FeatureExtractor:
         resp = np.fromiter((k.response for k in kps), np.float32, n)
         order = np.lexsort((pts[:, 0], pts[:, 1], -resp))
         if c.bucket_grid:
-            order = order[_bucket_turns(pts[order], work_shape, c.bucket_grid)]
+            order = order[_bucket_turns(pts[order], work.shape, c.bucket_grid)]
         order = order[: c.max_features]
         pts = pts[order] / scale
         sizes = np.fromiter((k.size for k in kps), np.float32, n)[order] / scale
+        upright = self.kind.finish(self._upright(work, kps, order, desc), c.rootsift) if self.upright else None
         desc = self.kind.finish(desc[order], c.rootsift)
-        return Features(pts, sizes, desc, (int(shape[0]), int(shape[1])))
+        return Features(pts, sizes, desc, (int(shape[0]), int(shape[1])), upright)
+
+    def _upright(self, work: np.ndarray, kps, order: np.ndarray, desc: np.ndarray) -> np.ndarray:
+        """Raw descriptors of kps[order], in that order, computed with orientation 0 on the
+        detection image `work`. A keypoint the describer drops keeps its oriented descriptor."""
+        chosen = []
+        for j, i in enumerate(order.tolist()):
+            k = kps[i]
+            k.angle, k.class_id = 0.0, j  # class_id: the row, whatever order compute() returns
+            chosen.append(k)
+        got, raw = self._detector.compute(work, chosen)
+        out = desc[order].copy()
+        if raw is not None and len(got):
+            rows = np.fromiter((k.class_id for k in got), np.int64, len(got))
+            ok = (rows >= 0) & (rows < out.shape[0])
+            out[rows[ok]] = raw[ok]
+        return out
 
 
 #: contrast_stretch: the percentile (each end) mapped to black / white, and the largest gain (a

@@ -17,8 +17,10 @@ desc      B x uint8         the feature kind's store form (FeatureKind.compress)
 
 So an ORB keypoint costs 4 + 2 + 32 = 38 bytes (1000 keypoints, the verification default:
 38 000 bytes per place) and a SIFT keypoint 134 bytes, plus PLACE_OVERHEAD_BYTES per place for
-the array header, the image shape and the dictionary slot. `nbytes()` is kept as a running total so the
-detector's memory cap can ask for it on every insertion.
+the array header, the image shape and the dictionary slot. A place may also hold the upright
+descriptors of its keypoints (`PlaceKeypoints.upright`, same store form: 32 more bytes per ORB
+keypoint), which the brute-force retry matches when the oriented ones fail. `nbytes()` is kept
+as a running total so the detector's memory cap can ask for it on every insertion.
 """
 
 from __future__ import annotations
@@ -45,10 +47,13 @@ class PlaceKeypoints:
 
     records: structured (K,) array with fields xy (uint16 x2), word, desc (see module doc).
     image_shape: (height, width) of the original image in pixels.
+    upright: None, or (K, B) uint8: the keypoints' upright descriptors in store form
+        (`Features.upright`).
     """
 
     records: np.ndarray
     image_shape: tuple[int, int]
+    upright: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.records.shape[0])
@@ -73,7 +78,8 @@ class PlaceKeypoints:
 
     @property
     def nbytes(self) -> int:
-        return int(self.records.nbytes) + PLACE_OVERHEAD_BYTES
+        upright = 0 if self.upright is None else int(self.upright.nbytes)
+        return int(self.records.nbytes) + upright + PLACE_OVERHEAD_BYTES
 
 
 class KeypointStore:
@@ -107,14 +113,16 @@ class KeypointStore:
         """How a keypoint without a word is stored in the word field."""
         return int(self._no_word)
 
-    def pack(self, keypoints: np.ndarray, words: np.ndarray, descriptors: np.ndarray, image_shape) -> PlaceKeypoints:
+    def pack(self, keypoints: np.ndarray, words: np.ndarray, descriptors: np.ndarray, image_shape,
+             upright: np.ndarray | None = None) -> PlaceKeypoints:
         """Build the store form of one frame (not yet stored; see `put`).
 
         keypoints: (N, 2) float positions in original pixels; words: (N,) ids;
-        descriptors: (N, width) raw descriptors of the store's kind; image_shape: (height, width).
+        descriptors: (N, width) raw descriptors of the store's kind; image_shape: (height, width);
+        upright: None or (N, width) upright descriptors of the same keypoints (`Features.upright`).
         """
         n = int(keypoints.shape[0])
-        if words.shape[0] != n or descriptors.shape[0] != n:
+        if words.shape[0] != n or descriptors.shape[0] != n or (upright is not None and upright.shape[0] != n):
             raise InputError(f"keypoints ({n}), words ({words.shape[0]}) and descriptors ({descriptors.shape[0]}) differ in count")
         if self.max_keypoints is not None:
             n = min(n, self.max_keypoints)
@@ -126,7 +134,10 @@ class KeypointStore:
             w = np.asarray(words[:n], np.int64)
             rec["word"] = np.where(w == NO_WORD, self._no_word, w)
             rec["desc"] = self.kind.compress(descriptors[:n])
-        return PlaceKeypoints(rec, shape)
+        up = None
+        if upright is not None:
+            up = np.ascontiguousarray(self.kind.compress(upright[:n]), np.uint8).reshape(n, self.kind.store_bytes)
+        return PlaceKeypoints(rec, shape, up)
 
     def put(self, place_id: int, place: PlaceKeypoints) -> None:
         """Store (or replace) the keypoints of a place."""
@@ -165,12 +176,18 @@ class KeypointStore:
 
     def pack_places(self, places: list[PlaceKeypoints | None]) -> MapState:
         """Keypoints of several places (None: a frame without keypoints kept) as flat arrays:
-        has (P,) bool, image_shape (P, 2), ptr (P + 1,), xy (K, 2) uint16, word (K,), desc (K, B) uint8."""
+        has (P,) bool, image_shape (P, 2), ptr (P + 1,), xy (K, 2) uint16, word (K,), desc (K, B) uint8;
+        has_upright (P,) bool and upright (U, B) uint8: the upright descriptors of the places that
+        have them, in place order (each place's rows as many as its keypoints)."""
         st = MapState()
         st.arrays["has"] = np.array([p is not None for p in places], bool)
         st.arrays["image_shape"] = np.array([p.image_shape if p is not None else (0, 0) for p in places], np.int64).reshape(-1, 2)
         st.arrays["ptr"], rec = pack_ragged([None if p is None else p.records for p in places], self.dtype)
         st.arrays["xy"], st.arrays["word"], st.arrays["desc"] = rec["xy"].copy(), rec["word"].copy(), rec["desc"].copy()
+        ups = [None if p is None else p.upright for p in places]
+        st.arrays["has_upright"] = np.array([u is not None for u in ups], bool)
+        parts = [u for u in ups if u is not None and len(u)]
+        st.arrays["upright"] = np.concatenate(parts) if parts else np.zeros((0, self.kind.store_bytes), np.uint8)
         return st
 
     def unpack_places(self, st: MapState, n_places: int) -> list[PlaceKeypoints | None]:
@@ -189,10 +206,27 @@ class KeypointStore:
             raise StateError("map state: keypoint counts do not fit the store's settings")
         rec = np.zeros(k, self.dtype)
         rec["xy"], rec["word"], rec["desc"] = xy, word, desc
+        upright_ptr, upright = self._unpack_upright(st, has, counts)
         return [
-            PlaceKeypoints(rec[ptr[i]:ptr[i + 1]].copy(), (int(shape[i, 0]), int(shape[i, 1]))) if has[i] else None
+            PlaceKeypoints(rec[ptr[i]:ptr[i + 1]].copy(), (int(shape[i, 0]), int(shape[i, 1])),
+                           None if upright_ptr[i] < 0 else upright[upright_ptr[i]:upright_ptr[i] + counts[i]].copy())
+            if has[i] else None
             for i in range(n_places)
         ]
+
+    def _unpack_upright(self, st: MapState, has: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(first upright row of each place, -1 for none; the upright rows), checked. A state
+        written before places held upright descriptors has neither array: no place has them."""
+        n_places = has.size
+        if "has_upright" not in st.arrays and "upright" not in st.arrays:
+            return np.full(n_places, -1, np.int64), np.zeros((0, self.kind.store_bytes), np.uint8)
+        flags = st.array("has_upright", "b", (n_places,))
+        if np.any(flags & ~has):
+            raise StateError("map state: upright descriptors for a place without keypoints")
+        rows = counts * flags
+        upright = st.array("upright", "u", (int(rows.sum()), self.kind.store_bytes), as_int64=False)
+        first = (np.cumsum(rows) - rows).astype(np.int64)
+        return np.where(flags, first, -1), upright
 
     def load_state(self, st: MapState, n_places: int) -> None:
         """Replace the contents by a checked state; place ids must lie below ``n_places``."""

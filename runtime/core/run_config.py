@@ -156,7 +156,12 @@ def recorded_settings_differences(recorded: object, config: DetectorConfig) -> l
     points (they change what is drawn, never a decision); ["(unreadable record)"] when the
     text cannot be read."""
     try:
-        differ = settings_differences(json.loads(recorded), config.to_dict())
+        stored = json.loads(recorded)
+        verification = stored.get("verification") if isinstance(stored, dict) else None
+        if isinstance(verification, dict) and "upright" not in verification:
+            # Written before upright descriptors existed: those maps ran without them.
+            stored = {**stored, "verification": {**verification, "upright": False}}
+        differ = settings_differences(stored, config.to_dict())
     except (TypeError, ValueError, RecursionError):
         return ["(unreadable record)"]
     return [d for d in differ if not d.endswith("keep_inlier_points")]

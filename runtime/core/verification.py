@@ -36,7 +36,8 @@ docs/results.md, "Set on training pairs".
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -160,6 +161,19 @@ class VerificationConfig:
     confidence: RANSAC confidence.
     keep_inlier_points: return the inlier point pairs (`GeometryResult.inlier_points`), for
         evaluation evidence (match images); off in the runtime, where nothing reads them.
+    upright: every keypoint is also described with its orientation set to 0 and stored so;
+        when the brute-force retry of a tracked place fails (the candidate policy asks it for
+        the track's places only), it is retried once more with these upright descriptors
+        (`retry_bruteforce`), and that test's NFA counts both descriptor forms
+        (UPRIGHT_LOG10_TESTS). An oriented descriptor turns its window by an angle estimated
+        from the patch, which a small, blurred or strongly foreshortened patch gives poorly:
+        a true correspondence seen from a metre or two aside often gets two different angles
+        and no match. A camera that keeps its roll (on a robot, mostly) needs no turning, and
+        its upright descriptors of one scene point agree where the oriented ones do not; the
+        oriented test stays first, so views rolled against each other (a hand-held camera)
+        keep their matches. Measured on training pairs (docs/results.md, "Upright descriptors
+        in the retry"). Costs one more description of each frame, 32 bytes more per stored ORB
+        keypoint, and one more all-pairs match for each tracked place whose retry fails.
     """
 
     enabled: bool = True
@@ -189,6 +203,7 @@ class VerificationConfig:
     f_max_iters: int = 300
     confidence: float = 0.999
     keep_inlier_points: bool = False
+    upright: bool = True
 
     def __post_init__(self) -> None:
         if self.keypoints is not None and not (8 <= self.keypoints <= MAX_FEATURES):
@@ -440,6 +455,7 @@ def estimate_geometry(
     config: VerificationConfig | None = None,
     full: bool = False,
     radius: float | None = None,
+    log10_tests: float = 0.0,
 ) -> GeometryResult:
     """Fit H and F (or E with a camera) to matched points and decide acceptance.
 
@@ -447,6 +463,8 @@ def estimate_geometry(
     shape_q, shape_p: (height, width) of those images. Returned matrices are in original pixels.
     radius: matches closer than this (query pixels; the place side scaled by the image sizes)
     in either image count once (`independence_radius`); None: `duplicate_radius`.
+    log10_tests: added to every model's log10 NFA: the other tests of this pair the caller
+    made (e.g. the upright retry, one of two descriptor forms tried).
 
     A model is accepted when it is well conditioned (`conditioning.py`), its inliers are not
     explained by a line in either image, and its a-contrario significance (`acontrario.py`)
@@ -486,6 +504,8 @@ def estimate_geometry(
         """
         nonlocal best_key, best_matrix
         sig = significance(err, name, region[0], region[1], c.h_threshold if name == "H" else c.f_threshold)
+        if log10_tests:
+            sig = replace(sig, log10_nfa=sig.log10_nfa + log10_tests)
         mask = (err <= sig.eps) if sig.inliers else np.zeros(k, bool)
         n_in = int(mask.sum())
         if name == "H":
@@ -753,13 +773,17 @@ def verify_pair(
     *,
     distance: str,
     radius: float | None = None,
+    q_upright: np.ndarray | None = None,
+    p_upright: np.ndarray | None = None,
 ) -> GeometryResult:
     """Match a query with one place and verify the geometry.
 
     q_xy (N, 2) / p_xy (M, 2): keypoint positions in original pixels; *_words: word ids;
     *_desc: descriptors and distance: the feature kind's ("hamming" | "l2", see
     `match_keypoints`); shape_*: (height, width) of each image.
-    bruteforce: when same-word matching does not pass, retry with all-pairs matching.
+    bruteforce: when same-word matching does not pass, retry with all-pairs matching
+    (`retry_bruteforce`, with the upright descriptors q_upright (N, B) / p_upright (M, B) when
+    both are given).
     radius: the query's `independence_radius` (None: `duplicate_radius`).
     """
     c = config or VerificationConfig()
@@ -770,8 +794,40 @@ def verify_pair(
         _keep_points(res, pairs, q_xy, p_xy, c)
     if res.verified or not bruteforce:
         return res
-    retry = verify_pair_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius)
+    retry = retry_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius,
+                             q_upright=q_upright, p_upright=p_upright)
     return retry if more_significant(retry, res) else res
+
+
+#: log10 of the descriptor forms the upright retry is one of (oriented, upright): its NFA counts
+#: both tests of the pair (VerificationConfig.upright).
+UPRIGHT_LOG10_TESTS = math.log10(2)
+
+
+def retry_bruteforce(
+    q_xy: np.ndarray,
+    q_desc: np.ndarray,
+    shape_q: tuple[int, int],
+    p_xy: np.ndarray,
+    p_desc: np.ndarray,
+    shape_p: tuple[int, int],
+    config: VerificationConfig | None = None,
+    *,
+    distance: str,
+    radius: float | None = None,
+    q_upright: np.ndarray | None = None,
+    p_upright: np.ndarray | None = None,
+) -> GeometryResult:
+    """The brute-force retry of a pair: all-pairs matching of the descriptors; when that fails
+    and both sides have upright descriptors (and `config.upright`), all-pairs matching of those,
+    whose NFA counts the two forms tried. The more significant result. Arguments as `verify_pair`'s."""
+    c = config or VerificationConfig()
+    res = verify_pair_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius)
+    if res.verified or not c.upright or q_upright is None or p_upright is None:
+        return res
+    up = verify_pair_bruteforce(q_xy, q_upright, shape_q, p_xy, p_upright, shape_p, c, distance=distance,
+                                radius=radius, log10_tests=UPRIGHT_LOG10_TESTS)
+    return up if more_significant(up, res) else res
 
 
 def verify_pair_bruteforce(
@@ -785,19 +841,18 @@ def verify_pair_bruteforce(
     *,
     distance: str,
     radius: float | None = None,
+    log10_tests: float = 0.0,
 ) -> GeometryResult:
-    """The brute-force retry of `verify_pair` alone: all-pairs matching, then the geometry.
-
-    For a place whose same-word check already failed (its result is known), so that only the
-    retry is paid. Arguments as `verify_pair`'s.
-    """
+    """All-pairs matching of one descriptor form, then the geometry (`estimate_geometry`, whose
+    log10_tests this passes on). Arguments as `verify_pair`'s."""
     c = config or VerificationConfig()
     pairs = match_all(q_desc, p_desc, c, distance=distance)
     if pairs.shape[0] == 0:
         return GeometryResult()
     # Same criterion: the NFA grows with the number of matches, so the extra chance matches of
     # all-pairs matching raise the support a model needs by themselves.
-    res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c, radius=radius)
+    res = estimate_geometry(q_xy[pairs[:, 0]], p_xy[pairs[:, 1]], shape_q, shape_p, c, radius=radius,
+                            log10_tests=log10_tests)
     _keep_points(res, pairs, q_xy, p_xy, c)
     return res
 

@@ -29,6 +29,18 @@ def test_verify_bruteforce_option_sets_the_retried_candidates_and_is_logged_whol
         _run("--verify-bruteforce", "-1")
 
 
+def test_upright_option_and_logs_written_before_it_replay_without_it():
+    assert _run().detector.verification.upright
+    cfg = _run("--no-verify-upright")
+    assert not cfg.detector.verification.upright
+    assert not logged_run_config({RUN_CONFIG_KEY: cfg.to_dict()}).detector.verification.upright
+    doc = _run().to_dict()
+    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.verification.upright
+    del doc["detector"]["verification"]["upright"]
+    assert not logged_run_config({RUN_CONFIG_KEY: doc}).detector.verification.upright
+    assert not logged_run_config({"max_places": 5}).detector.verification.upright
+
+
 def test_logs_written_before_chains_replay_without_them():
     doc = _run().to_dict()
     assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.frames == 2

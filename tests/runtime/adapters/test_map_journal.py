@@ -3,6 +3,7 @@ a full disk loses only the frames it could not take, and hostile journals are re
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import os
 import struct
@@ -335,7 +336,15 @@ def test_journal_records_round_trip_the_detector_input(bundle, images):
     seq, w, s, f = map_journal.decode_frame(map_journal.encode_frame(det, 0), det, "r")
     assert (seq, s) == (0, 123) and np.array_equal(w, words) and f.image_shape == feats.image_shape
     assert all(np.array_equal(a, b) for a, b in ((f.keypoints, feats.keypoints), (f.sizes, feats.sizes),
-                                                   (f.descriptors, feats.descriptors)))
+                                                   (f.descriptors, feats.descriptors), (f.upright, feats.upright)))
+    # A frame of format 1 (no upright descriptors; features flag 1) still reads, without them.
+    det.last_input = (words, 123, dataclasses.replace(feats, upright=None))
+    old = map_journal.encode_frame(det, 0)
+    assert old[21] == 1  # after b"F", sequence, stamp and the keypoint count
+    _, _, _, f = map_journal.decode_frame(old, det, "r")
+    assert f.upright is None and np.array_equal(f.descriptors, feats.descriptors)
+    with pytest.raises(StateError, match="does not hold"):  # a flag of 2 without the upright rows
+        map_journal.decode_frame(old[:21] + b"\x02" + old[22:], det, "r")
 
 
 @pytest.mark.slow

@@ -15,10 +15,11 @@ class Script:
     """A PairCheck that passes the places in `passes` and records every call."""
 
     def __init__(self, passes=(), empty=()):
-        self.passes, self.empty, self.calls = set(passes), set(empty), []
+        self.passes, self.empty, self.calls, self.upright = set(passes), set(empty), [], []
 
-    def __call__(self, pid, bruteforce, retry_only):
+    def __call__(self, pid, bruteforce, retry_only, upright=False):
         self.calls.append((pid, bruteforce, retry_only))
+        self.upright.append(upright)
         if pid in self.empty:
             return None
         ok = pid in self.passes
@@ -60,6 +61,8 @@ def test_track_window_comes_first_then_the_reach():
     assert order[:4] == [5, 6, 4, 0]
     assert set(order[4:]) == {7, 8, 3, 2} and order[4] == 7 and not s.verified
     assert all(bf for pid, bf, _ in script.calls if pid != 0)
+    # Upright descriptors for the tracked places (window and reach) only, never for FAB-MAP's.
+    assert [up for (pid, _, _), up in zip(script.calls, script.upright)] == [pid != 0 for pid in order]
 
 
 def test_a_same_word_check_gets_only_the_retry_when_the_reach_comes_to_it():

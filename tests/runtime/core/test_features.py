@@ -161,3 +161,68 @@ def test_contrast_stretch_finds_corners_in_a_dark_frame_and_old_bundles_keep_it_
     assert FeatureConfig.from_dict(FeatureConfig(contrast_stretch=True).to_dict()).contrast_stretch is True
     with pytest.raises(ConfigError):
         FeatureConfig(contrast_stretch="yes")
+
+
+@pytest.mark.parametrize("kind", ["orb", "sift-upright-test"])
+def test_upright_descriptors_are_the_describers_own_at_orientation_zero(kind, sift_with_upright):
+    """Features.upright: each kept keypoint described by the kind's own describer with its angle
+    set to 0, row for row with the oriented descriptors (OpenCV's compute returns them in
+    another order); the oriented descriptors and keypoints are unchanged by asking for them."""
+    img = textured(seed=5)
+    plain = FeatureExtractor(FeatureConfig(kind, 150)).extract(img)
+    ex = FeatureExtractor(FeatureConfig(kind, 150), upright=True)
+    f = ex.extract(img)
+    assert plain.upright is None
+    np.testing.assert_array_equal(f.descriptors, plain.descriptors)
+    np.testing.assert_array_equal(f.keypoints, plain.keypoints)
+    assert f.upright.shape == f.descriptors.shape and f.upright.dtype == f.descriptors.dtype
+    work = cv2.resize(img, (640, 480), interpolation=cv2.INTER_LINEAR)
+    kps, _ = ex._detector.detectAndCompute(work, None)
+    by_position = {(np.float32(k.pt[0]) / np.float32(2), np.float32(k.pt[1]) / np.float32(2)): k for k in kps}
+    for row in (0, 7, len(f) - 1):
+        k = by_position[tuple(f.keypoints[row])]
+        up = cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave)
+        _, d = ex._detector.compute(work, [up])
+        expected = ex.kind.finish(d, False)[0]
+        np.testing.assert_array_equal(f.upright[row], expected)
+    # Oriented descriptors turn with the patch, upright ones do not: they differ for most rows.
+    assert np.mean(np.any(f.upright != f.descriptors, axis=1)) > 0.5
+
+
+def test_upright_descriptors_turn_with_the_camera_and_oriented_ones_do_not():
+    """Rolling the camera by 90 degrees moves every point; oriented descriptors of a point stay
+    close (they turn with the patch), upright ones do not: why the retry keeps the oriented
+    descriptors first."""
+    img = textured(seed=6, shape=(320, 320))
+    ex = FeatureExtractor(FeatureConfig("orb", 300), upright=True)
+    a, b = ex.extract(img), ex.extract(np.ascontiguousarray(np.rot90(img)))
+    # np.rot90 (counter-clockwise): (x, y) -> (y, W - 1 - x).
+    moved = np.c_[a.keypoints[:, 1], 319 - a.keypoints[:, 0]]
+    dist = np.linalg.norm(moved[:, None] - b.keypoints[None], axis=2)
+    i, j = np.nonzero(dist < 0.5)
+    assert i.size > 30
+    bits = np.unpackbits(a.descriptors[i] ^ b.descriptors[j], axis=1).sum(axis=1)
+    bits_up = np.unpackbits(a.upright[i] ^ b.upright[j], axis=1).sum(axis=1)
+    assert np.median(bits) + 30 < np.median(bits_up)
+
+
+@pytest.fixture
+def sift_with_upright():
+    """SIFT registered with upright descriptors on (the built-in SIFT has them off: cost)."""
+    from aefabmap.runtime.core.feature_kinds import FloatKind, register, unregister
+
+    register(FloatKind("sift-upright-test", 128, lambda n: cv2.SIFT_create(nfeatures=n), upright=True))
+    yield
+    unregister("sift-upright-test")
+
+
+@pytest.mark.parametrize("kind", ["sift", "akaze-upright-test"])
+def test_kinds_without_upright_descriptors_give_none(kind):
+    from aefabmap.runtime.core.feature_kinds import BinaryKind, register, unregister
+
+    register(BinaryKind("akaze-upright-test", 61, lambda n: cv2.AKAZE_create()))
+    try:
+        f = FeatureExtractor(FeatureConfig(kind, 100), upright=True).extract(textured())
+        assert len(f) and f.upright is None
+    finally:
+        unregister("akaze-upright-test")

@@ -139,3 +139,22 @@ def test_a_state_packs_the_map_it_was_taken_of_even_after_more_frames(bundle, ro
     taken.resolve()
     assert taken.arrays.keys() == now.arrays.keys()
     assert all(np.array_equal(taken.arrays[k], now.arrays[k]) for k in now.arrays)
+
+
+def test_settings_recorded_before_upright_descriptors_match_a_run_without_them():
+    """A map state or journal written before upright descriptors existed recorded no such
+    setting; those maps ran without them, so they resume with `--no-verify-upright` and are
+    named as different from a run with them."""
+    import dataclasses
+    import json
+
+    from aefabmap.runtime.core.run_config import recorded_settings_differences
+    from aefabmap.runtime.core.verification import VerificationConfig
+
+    now = DetectorConfig()
+    old = now.to_dict()
+    del old["verification"]["upright"]
+    without = dataclasses.replace(now, verification=VerificationConfig(upright=False))
+    assert recorded_settings_differences(json.dumps(old), without) == []
+    assert recorded_settings_differences(json.dumps(old), now) == ["verification.upright"]
+    assert recorded_settings_differences(json.dumps(now.to_dict()), now) == []

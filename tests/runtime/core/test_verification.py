@@ -155,6 +155,65 @@ def test_keypoint_store_round_trip_and_bytes():
     assert store.nbytes() == 0 and store.get(7) is None
 
 
+def test_keypoint_store_keeps_upright_descriptors_and_counts_their_bytes():
+    store = KeypointStore(get_kind("orb"), vocabulary_size=2000, max_keypoints=300)
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(0, [640, 480], (500, 2)).astype(np.float32)
+    words = rng.integers(0, 2000, 500)
+    desc, up = rng.integers(0, 256, (2, 500, 32), dtype=np.uint8)
+    place = store.pack(xy, words, desc, (480, 640), up)
+    assert np.array_equal(place.upright, up[:300]) and np.array_equal(place.descriptors, desc[:300])
+    store.put(3, place)
+    assert store.nbytes() == 300 * (38 + 32) + PLACE_OVERHEAD_BYTES
+    with pytest.raises(Exception, match="differ in count"):
+        store.pack(xy, words, desc, (480, 640), up[:10])
+
+
+def _places_with_and_without_upright():
+    store = KeypointStore(get_kind("orb"), vocabulary_size=100)
+    rng = np.random.default_rng(5)
+
+    def place(n, upright):
+        d = rng.integers(0, 256, (2, n, 32), dtype=np.uint8)
+        return store.pack(rng.uniform(0, 100, (n, 2)), rng.integers(0, 100, n), d[0], (100, 100),
+                          d[1] if upright else None)
+
+    return store, [place(4, True), None, place(3, False), place(5, True)]
+
+
+def test_upright_descriptors_survive_the_state_and_old_states_have_none():
+    store, places = _places_with_and_without_upright()
+    st = store.pack_places(places)
+    back = store.unpack_places(st, 4)
+    assert back[1] is None and back[2].upright is None
+    for i in (0, 3):
+        assert np.array_equal(back[i].upright, places[i].upright)
+        assert np.array_equal(back[i].descriptors, places[i].descriptors)
+    # A state written before places held upright descriptors: same places, none of them upright.
+    del st.arrays["upright"], st.arrays["has_upright"]
+    assert all(p is None or p.upright is None for p in store.unpack_places(st, 4))
+
+
+@pytest.mark.parametrize("damage", ["rows", "width", "flag_without_place", "flags_shape", "dtype", "one_array"])
+def test_hostile_upright_state_is_refused(damage):
+    store, places = _places_with_and_without_upright()
+    st = store.pack_places(places)
+    if damage == "rows":
+        st.arrays["upright"] = st.arrays["upright"][:-1]
+    elif damage == "width":
+        st.arrays["upright"] = st.arrays["upright"][:, :16]
+    elif damage == "flag_without_place":
+        st.arrays["has_upright"][1] = True
+    elif damage == "flags_shape":
+        st.arrays["has_upright"] = st.arrays["has_upright"][:3]
+    elif damage == "dtype":
+        st.arrays["upright"] = st.arrays["upright"].astype(np.float32)
+    else:
+        del st.arrays["has_upright"]
+    with pytest.raises(StateError):
+        store.unpack_places(st, 4)
+
+
 def test_geometry_only_keypoints_are_stored_and_skipped_by_same_word_matching(kernels):
     rng = np.random.default_rng(2)
     desc = rng.integers(0, 256, (6, 32), dtype=np.uint8)
@@ -416,7 +475,7 @@ def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_
     "each with the retry", whatever checked the place before."""
     from aefabmap.runtime.core import detector as detector_module
 
-    real, real_retry = detector_module.verify_pair, detector_module.verify_pair_bruteforce
+    real, real_retry = detector_module.verify_pair, detector_module.retry_bruteforce
     retries_alone: list[int] = []
 
     def same_word_fails(*args, bruteforce=False, **kw):
@@ -429,7 +488,7 @@ def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_
         return real_retry(*args, **kw)
 
     monkeypatch.setattr(detector_module, "verify_pair", same_word_fails)
-    monkeypatch.setattr(detector_module, "verify_pair_bruteforce", retry_alone)
+    monkeypatch.setattr(detector_module, "retry_bruteforce", retry_alone)
     # All words tie, so FAB-MAP ranks places 0, 1, 2, 3, 4; the track (expected frame 1) has
     # already tried 1, 2 and 0 with the retry; 3 and 4 get same-word checks only (ranks 3, 4).
     for reach, found in ((3, True), (0, False)):
@@ -511,3 +570,67 @@ def test_verification_config_is_validated():
                {"camera": "1,2,3"}, {"camera": (0.0, 1.0, 2.0, 3.0)}, {"camera": "a,b,c,d"}):
         with pytest.raises(ConfigError):
             VerificationConfig(**kw)
+
+
+def _upright_pair():
+    """A textured view and a warped view of it, with upright descriptors, as the detector extracts."""
+    ex = FeatureExtractor(FeatureConfig("orb", 1000), upright=True)
+    a = ex.extract(texture(21))
+    b = ex.extract(cv2.warpPerspective(texture(21), PERSPECTIVE, (480, 360)))
+    return a, b
+
+
+def test_extra_tests_raise_every_models_nfa_and_can_reject_it(kernels):
+    from aefabmap.runtime.core.verification import match_all
+
+    a, b = _upright_pair()
+    c = VerificationConfig()
+    pairs = match_all(a.descriptors, b.descriptors, c, distance="hamming")
+    args = (a.keypoints[pairs[:, 0]], b.keypoints[pairs[:, 1]], a.image_shape, b.image_shape, c)
+    cv2.setRNGSeed(0)
+    plain = estimate_geometry(*args)
+    cv2.setRNGSeed(0)
+    counted = estimate_geometry(*args, log10_tests=0.5)
+    assert plain.verified and counted.verified and counted.model == plain.model
+    assert counted.nfa == pytest.approx(plain.nfa + 0.5) and counted.inliers == plain.inliers
+    cv2.setRNGSeed(0)
+    beyond = estimate_geometry(*args, log10_tests=c.max_log10_nfa - plain.nfa + 0.1)
+    assert not beyond.verified and beyond.reason == "chance"
+
+
+def test_the_upright_retry_runs_only_when_the_oriented_one_fails_and_counts_both_forms(kernels):
+    from aefabmap.runtime.core.verification import (
+        UPRIGHT_LOG10_TESTS,
+        retry_bruteforce,
+        verify_pair_bruteforce,
+    )
+
+    a, b = _upright_pair()
+    shapes = (a.image_shape, b.image_shape)
+
+    def retry(q_desc, config=None, q_up=a.upright, p_up=b.upright):
+        cv2.setRNGSeed(0)
+        return retry_bruteforce(a.keypoints, q_desc, shapes[0], b.keypoints, b.descriptors, shapes[1], config,
+                                q_upright=q_up, p_upright=p_up, distance="hamming")
+
+    def alone(q_desc, p_desc):
+        cv2.setRNGSeed(0)
+        return verify_pair_bruteforce(a.keypoints, q_desc, shapes[0], b.keypoints, p_desc, shapes[1],
+                                      VerificationConfig(), distance="hamming")
+
+    oriented = alone(a.descriptors, b.descriptors)
+    assert oriented.verified
+    assert retry(a.descriptors).nfa == oriented.nfa  # passed: the upright form is not tried
+    # Oriented descriptors that match nothing (another image's): the upright retry decides,
+    # its NFA counting the two forms tried.
+    other = FeatureExtractor(FeatureConfig("orb", 1000)).extract(texture(99)).descriptors[: len(a)]
+    wrong = np.resize(other, a.descriptors.shape)
+    assert not alone(wrong, b.descriptors).verified
+    got = retry(wrong)
+    upright = alone(a.upright, b.upright)
+    assert got.verified and upright.verified
+    assert got.nfa == pytest.approx(upright.nfa + UPRIGHT_LOG10_TESTS) and got.inliers == upright.inliers
+    # Switched off, or a side without upright descriptors (a place stored before, another
+    # robot's place): oriented matching alone.
+    for result in (retry(wrong, VerificationConfig(upright=False)), retry(wrong, p_up=None), retry(wrong, q_up=None)):
+        assert not result.verified
