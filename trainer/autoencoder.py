@@ -334,7 +334,8 @@ def training_summary(result, loss: str, train_loss: float | None, n_pairs_train:
         "n_val": result.n_val,
         "n_pairs_train": n_pairs_train,
         "n_pairs_val": n_pairs_val,
-        "config": result.config.to_dict(),
+        # Progress bars change no weight: a run with them and one without give the same bytes.
+        "config": {k: v for k, v in result.config.to_dict().items() if k != "progress"},
         "history": manifest_history(result.history),
     }
 

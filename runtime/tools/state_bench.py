@@ -43,7 +43,9 @@ def fill_map(detector, places: int, keypoints: int, seed: int = 0) -> None:
         if detector.store is not None and keypoints:
             xy = rng.random((keypoints, 2)).astype(np.float32) * [w, h]
             desc = rng.integers(0, 256, (keypoints, detector.store.kind.store_bytes), dtype=np.uint8)
-            detector.store.put(pid, detector.store.pack(xy, kw, desc, (h, w)))
+            # Upright descriptors where the detector extracts them (VerificationConfig.upright).
+            upright = desc[::-1].copy() if detector.extractor.upright else None
+            detector.store.put(pid, detector.store.pack(xy, kw, desc, (h, w), upright))
     detector._sequence = places
 
 
