@@ -15,7 +15,7 @@ from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfi
 from aefabmap.runtime.core.fleet_map import FleetConfig
 from aefabmap.runtime.core.profiles import PROFILES, get_profile
 from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.run_config import RUN_CONFIG_FORMAT, RunConfig
+from aefabmap.runtime.core.run_config import RUN_CONFIG_FORMAT, RunConfig, settings_before_upright
 from aefabmap.runtime.core.verification import VerificationConfig
 
 VARIANTS = ("fp32", "int8", "flat", "flat-fp32")
@@ -158,22 +158,18 @@ def logged_run_config(logged: dict) -> RunConfig:
         detector = doc.get("detector") if isinstance(doc, dict) else None
         if isinstance(detector, dict) and "sequence" not in detector:
             detector = {**detector, **_BEFORE_CHAINS}
-        verification = detector.get("verification") if isinstance(detector, dict) else None
-        if isinstance(verification, dict) and "upright" not in verification:
-            detector = {**detector, "verification": {**verification, **_BEFORE_UPRIGHT}}
         if isinstance(detector, dict):
-            doc = {**doc, "detector": detector}
+            doc = {**doc, "detector": settings_before_upright(detector)}
         return RunConfig.from_dict(doc)
     legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
     camera = logged.get("camera")
+    detector = {**legacy, "verification": {"camera": camera}, **_BEFORE_WHOLE_CONFIG}
     doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
-           "detector": {**legacy, "verification": {"camera": camera, **_BEFORE_UPRIGHT}, **_BEFORE_WHOLE_CONFIG}}
+           "detector": settings_before_upright(detector)}
     return RunConfig.from_dict(doc)
 
 
 #: Logs written before evidence over consecutive frames existed ran without it.
 _BEFORE_CHAINS = {"sequence": {"frames": 0}}
-#: Logs written before upright descriptors existed retried with the oriented ones alone.
-_BEFORE_UPRIGHT = {"upright": False}
 #: Logs written before the whole configuration was kept also retried only FAB-MAP's best candidate.
 _BEFORE_WHOLE_CONFIG = {**_BEFORE_CHAINS, "candidates": {"bruteforce_fallback": 1}}

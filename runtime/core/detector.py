@@ -40,8 +40,8 @@ from aefabmap.runtime.core.verification import (
     distinct_kernel,
     independence_radius,
     more_significant,
-    retry_bruteforce,
     verify_pair,
+    verify_pair_bruteforce,
 )
 from aefabmap.runtime.core.word_matches import same_word_kernel
 
@@ -411,8 +411,8 @@ class LoopClosureDetector:
                   upright: bool = False) -> GeometryResult:
             q_up, p_up = (features.upright, place.upright) if upright else (None, None)
             if retry_only:
-                return retry_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
-                                        v, distance=distance, radius=radius, q_upright=q_up, p_upright=p_up)
+                return verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
+                                              v, distance=distance, radius=radius, q_upright=q_up, p_upright=p_up)
             return verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
                                place.image_shape, v, bruteforce=bruteforce, distance=distance, radius=radius,
                                q_upright=q_up, p_upright=p_up)

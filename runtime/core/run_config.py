@@ -150,18 +150,23 @@ def settings_differences(stored: object, current: object, prefix: str = "") -> l
     return [] if stored == current else [prefix.rstrip(".")]
 
 
+def settings_before_upright(detector: object) -> object:
+    """Recorded detector settings (DetectorConfig.to_dict, or part of it) as they ran: a record
+    whose verification settings have no `upright` was written before upright descriptors
+    existed and ran without them. Anything else comes back as it is."""
+    verification = detector.get("verification") if isinstance(detector, dict) else None
+    if isinstance(verification, dict) and "upright" not in verification:
+        return {**detector, "verification": {**verification, "upright": False}}
+    return detector
+
+
 def recorded_settings_differences(recorded: object, config: DetectorConfig) -> list[str]:
     """Dotted names of the detector settings in which ``recorded`` (the JSON text a map state or
     journal stored, DetectorConfig.to_dict) differs from ``config``, ignoring the kept inlier
     points (they change what is drawn, never a decision); ["(unreadable record)"] when the
     text cannot be read."""
     try:
-        stored = json.loads(recorded)
-        verification = stored.get("verification") if isinstance(stored, dict) else None
-        if isinstance(verification, dict) and "upright" not in verification:
-            # Written before upright descriptors existed: those maps ran without them.
-            stored = {**stored, "verification": {**verification, "upright": False}}
-        differ = settings_differences(stored, config.to_dict())
+        differ = settings_differences(settings_before_upright(json.loads(recorded)), config.to_dict())
     except (TypeError, ValueError, RecursionError):
         return ["(unreadable record)"]
     return [d for d in differ if not d.endswith("keep_inlier_points")]

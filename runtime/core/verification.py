@@ -164,7 +164,7 @@ class VerificationConfig:
     upright: every keypoint is also described with its orientation set to 0 and stored so;
         when the brute-force retry of a tracked place fails (the candidate policy asks it for
         the track's places only), it is retried once more with these upright descriptors
-        (`retry_bruteforce`), and that test's NFA counts both descriptor forms
+        (`verify_pair_bruteforce`), and that test's NFA counts both descriptor forms
         (UPRIGHT_LOG10_TESTS). An oriented descriptor turns its window by an angle estimated
         from the patch, which a small, blurred or strongly foreshortened patch gives poorly:
         a true correspondence seen from a metre or two aside often gets two different angles
@@ -782,8 +782,8 @@ def verify_pair(
     *_desc: descriptors and distance: the feature kind's ("hamming" | "l2", see
     `match_keypoints`); shape_*: (height, width) of each image.
     bruteforce: when same-word matching does not pass, retry with all-pairs matching
-    (`retry_bruteforce`, with the upright descriptors q_upright (N, B) / p_upright (M, B) when
-    both are given).
+    (`verify_pair_bruteforce`, with the upright descriptors q_upright (N, B) / p_upright (M, B)
+    when both are given).
     radius: the query's `independence_radius` (None: `duplicate_radius`).
     """
     c = config or VerificationConfig()
@@ -794,40 +794,14 @@ def verify_pair(
         _keep_points(res, pairs, q_xy, p_xy, c)
     if res.verified or not bruteforce:
         return res
-    retry = retry_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius,
-                             q_upright=q_upright, p_upright=p_upright)
+    retry = verify_pair_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance,
+                                   radius=radius, q_upright=q_upright, p_upright=p_upright)
     return retry if more_significant(retry, res) else res
 
 
 #: log10 of the descriptor forms the upright retry is one of (oriented, upright): its NFA counts
 #: both tests of the pair (VerificationConfig.upright).
 UPRIGHT_LOG10_TESTS = math.log10(2)
-
-
-def retry_bruteforce(
-    q_xy: np.ndarray,
-    q_desc: np.ndarray,
-    shape_q: tuple[int, int],
-    p_xy: np.ndarray,
-    p_desc: np.ndarray,
-    shape_p: tuple[int, int],
-    config: VerificationConfig | None = None,
-    *,
-    distance: str,
-    radius: float | None = None,
-    q_upright: np.ndarray | None = None,
-    p_upright: np.ndarray | None = None,
-) -> GeometryResult:
-    """The brute-force retry of a pair: all-pairs matching of the descriptors; when that fails
-    and both sides have upright descriptors (and `config.upright`), all-pairs matching of those,
-    whose NFA counts the two forms tried. The more significant result. Arguments as `verify_pair`'s."""
-    c = config or VerificationConfig()
-    res = verify_pair_bruteforce(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance=distance, radius=radius)
-    if res.verified or not c.upright or q_upright is None or p_upright is None:
-        return res
-    up = verify_pair_bruteforce(q_xy, q_upright, shape_q, p_xy, p_upright, shape_p, c, distance=distance,
-                                radius=radius, log10_tests=UPRIGHT_LOG10_TESTS)
-    return up if more_significant(up, res) else res
 
 
 def verify_pair_bruteforce(
@@ -841,11 +815,26 @@ def verify_pair_bruteforce(
     *,
     distance: str,
     radius: float | None = None,
-    log10_tests: float = 0.0,
+    q_upright: np.ndarray | None = None,
+    p_upright: np.ndarray | None = None,
 ) -> GeometryResult:
-    """All-pairs matching of one descriptor form, then the geometry (`estimate_geometry`, whose
-    log10_tests this passes on). Arguments as `verify_pair`'s."""
+    """The brute-force retry of `verify_pair` alone (for a place whose same-word check already
+    failed, so that only the retry is paid): all-pairs matching of the descriptors; when that
+    fails and both sides have upright descriptors (and `config.upright`), all-pairs matching of
+    those, whose NFA counts the two forms tried. The more significant result. Arguments as
+    `verify_pair`'s."""
     c = config or VerificationConfig()
+    res = _all_pairs_geometry(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c, distance, radius)
+    if res.verified or not c.upright or q_upright is None or p_upright is None:
+        return res
+    up = _all_pairs_geometry(q_xy, q_upright, shape_q, p_xy, p_upright, shape_p, c, distance, radius,
+                             UPRIGHT_LOG10_TESTS)
+    return up if more_significant(up, res) else res
+
+
+def _all_pairs_geometry(q_xy, q_desc, shape_q, p_xy, p_desc, shape_p, c: VerificationConfig, distance: str,
+                        radius: float | None, log10_tests: float = 0.0) -> GeometryResult:
+    """All-pairs matching of one descriptor form, then `estimate_geometry` (log10_tests passed on)."""
     pairs = match_all(q_desc, p_desc, c, distance=distance)
     if pairs.shape[0] == 0:
         return GeometryResult()

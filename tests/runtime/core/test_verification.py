@@ -18,12 +18,14 @@ from aefabmap.runtime.core.keypoint_store import PLACE_OVERHEAD_BYTES, KeypointS
 from aefabmap.runtime.core.temporal import TemporalFilter
 from aefabmap.runtime.core.verification import (
     NO_WORD,
+    UPRIGHT_LOG10_TESTS,
     GeometryResult,
     VerificationConfig,
     estimate_geometry,
     match_keypoints,
     symmetric_epipolar_distance,
     verify_pair,
+    verify_pair_bruteforce,
 )
 
 
@@ -475,7 +477,7 @@ def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_
     "each with the retry", whatever checked the place before."""
     from aefabmap.runtime.core import detector as detector_module
 
-    real, real_retry = detector_module.verify_pair, detector_module.retry_bruteforce
+    real, real_retry = detector_module.verify_pair, detector_module.verify_pair_bruteforce
     retries_alone: list[int] = []
 
     def same_word_fails(*args, bruteforce=False, **kw):
@@ -488,7 +490,7 @@ def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_
         return real_retry(*args, **kw)
 
     monkeypatch.setattr(detector_module, "verify_pair", same_word_fails)
-    monkeypatch.setattr(detector_module, "retry_bruteforce", retry_alone)
+    monkeypatch.setattr(detector_module, "verify_pair_bruteforce", retry_alone)
     # All words tie, so FAB-MAP ranks places 0, 1, 2, 3, 4; the track (expected frame 1) has
     # already tried 1, 2 and 0 with the retry; 3 and 4 get same-word checks only (ranks 3, 4).
     for reach, found in ((3, True), (0, False)):
@@ -599,19 +601,13 @@ def test_extra_tests_raise_every_models_nfa_and_can_reject_it(kernels):
 
 
 def test_the_upright_retry_runs_only_when_the_oriented_one_fails_and_counts_both_forms(kernels):
-    from aefabmap.runtime.core.verification import (
-        UPRIGHT_LOG10_TESTS,
-        retry_bruteforce,
-        verify_pair_bruteforce,
-    )
-
     a, b = _upright_pair()
     shapes = (a.image_shape, b.image_shape)
 
     def retry(q_desc, config=None, q_up=a.upright, p_up=b.upright):
         cv2.setRNGSeed(0)
-        return retry_bruteforce(a.keypoints, q_desc, shapes[0], b.keypoints, b.descriptors, shapes[1], config,
-                                q_upright=q_up, p_upright=p_up, distance="hamming")
+        return verify_pair_bruteforce(a.keypoints, q_desc, shapes[0], b.keypoints, b.descriptors, shapes[1],
+                                      config, q_upright=q_up, p_upright=p_up, distance="hamming")
 
     def alone(q_desc, p_desc):
         cv2.setRNGSeed(0)
