@@ -6,9 +6,11 @@ second pass of the frames halfway between them, so that every second-pass frame 
 first-pass frames `step / 2` drive frames away, and nothing else. The larger the step, the
 larger the viewpoint change of each revisit (step 4: gap 2, where training pairs mostly verify;
 step 6: gap 3, where about half do). First-pass frames are never revisits, so a loop published
-among them, even to structure further down the same street, is a wrong one.
+among them, even to structure further down the same street, is a wrong one. With `--night` the
+second pass is seen at the fixed synthetic night of the vocabulary's test pairs
+(trainer/multiview.NIGHT, its noise seeded by the frame): a day map revisited at night.
 
-    python scripts/revisit_sequences.py --data DATA --out revisits --step 6
+    python scripts/revisit_sequences.py --data DATA --out revisits --step 6 [--night]
     aefabmap eval --model BUNDLE --images revisits/0001TP/images --gt revisits/0001TP/gt.npy \\
         --exclude 10 --tolerance 1 --fabmap-score llr
 """
@@ -20,8 +22,11 @@ import os
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 from calibrate_sequence import drives  # the training drives, one list of frames each
+
+from aefabmap.trainer.multiview import NIGHT, darken
 
 
 def revisit_order(n_frames: int, step: int) -> tuple[list[int], np.ndarray]:
@@ -40,13 +45,22 @@ def revisit_order(n_frames: int, step: int) -> tuple[list[int], np.ndarray]:
     return order, gt
 
 
-def write_sequence(frames: list[Path], step: int, out: Path) -> int:
-    """Copy one drive's frames to out/images in revisit order and save out/gt.npy; frames written."""
+def write_sequence(frames: list[Path], step: int, out: Path, night: bool = False) -> int:
+    """Copy one drive's frames to out/images in revisit order and save out/gt.npy; frames written.
+    night: second-pass frames are written as grey PNGs at the synthetic NIGHT (noise seeded by
+    the sequence frame number, so a run repeats exactly)."""
     order, gt = revisit_order(len(frames), step)
     images = out / "images"
     images.mkdir(parents=True, exist_ok=True)
+    first = len(range(0, len(frames), step))
     for i, f in enumerate(order):
-        shutil.copyfile(frames[f], images / f"{i:05d}{frames[f].suffix.lower()}")
+        if night and i >= first:
+            gray = cv2.imread(str(frames[f]), cv2.IMREAD_GRAYSCALE)
+            if gray is None:
+                raise SystemExit(f"cannot read {frames[f]}")
+            cv2.imwrite(str(images / f"{i:05d}.png"), darken(gray, np.random.default_rng(i), **NIGHT))
+        else:
+            shutil.copyfile(frames[f], images / f"{i:05d}{frames[f].suffix.lower()}")
     np.save(out / "gt.npy", gt)
     return len(order)
 
@@ -57,12 +71,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("AEFABMAP_DATA", repo.parent / "shared" / "data")))
     ap.add_argument("--out", type=Path, required=True, help="folder for one DRIVE/images + DRIVE/gt.npy per drive")
     ap.add_argument("--step", type=int, default=6, help="first pass plays every STEP-th frame (even; revisit gap STEP/2)")
+    ap.add_argument("--night", action="store_true", help="the second pass at the synthetic night")
     args = ap.parse_args(argv)
     camvid = args.data / "train" / "camvid"
     if not camvid.is_dir():
         raise SystemExit(f"no CamVid training drives under {camvid}")
     for name, frames in drives(camvid).items():
-        n = write_sequence(frames, args.step, args.out / name)
+        n = write_sequence(frames, args.step, args.out / name, args.night)
         print(f"{name}: {n} frames -> {args.out / name}")
 
 

@@ -72,6 +72,9 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
                     help="the best K FAB-MAP candidates are retried with all-pairs matching when same-word "
                     f"matching fails (default {c.bruteforce_fallback}, every candidate of the default top "
                     f"{c.top_k}; fewer cost less on frames that are not loops and find fewer loops)")
+    vg.add_argument("--verify-track-memory", type=int, default=None, metavar="N",
+                    help="frames after a verified match during which its successors are checked first "
+                    f"(default {c.track_memory}; a map journal written with another value replays with it)")
     vg.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
                     help=f"keypoints per frame extracted and matched for verification (default {v.keypoints}; "
                     "FAB-MAP observes the bundle's budget)")
@@ -104,7 +107,8 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
         keep_inlier_points=keep_inlier_points,
     )
     candidates = CandidateConfig(top_k=pick("verify_top_k", c.top_k),
-                                 bruteforce_fallback=pick("verify_bruteforce", c.bruteforce_fallback))
+                                 bruteforce_fallback=pick("verify_bruteforce", c.bruteforce_fallback),
+                                 track_memory=pick("verify_track_memory", c.track_memory))
     scorer = pick("scorer", d.scorer)
     detector = DetectorConfig(
         scorer=scorer if scorer in SCORERS else d.scorer,  # eval's "both" picks per run
@@ -171,5 +175,6 @@ def logged_run_config(logged: dict) -> RunConfig:
 
 #: Logs written before evidence over consecutive frames existed ran without it.
 _BEFORE_CHAINS = {"sequence": {"frames": 0}}
-#: Logs written before the whole configuration was kept also retried only FAB-MAP's best candidate.
-_BEFORE_WHOLE_CONFIG = {**_BEFORE_CHAINS, "candidates": {"bruteforce_fallback": 1}}
+#: Logs written before the whole configuration was kept also retried only FAB-MAP's best candidate
+#: and kept the track for 3 frames.
+_BEFORE_WHOLE_CONFIG = {**_BEFORE_CHAINS, "candidates": {"bruteforce_fallback": 1, "track_memory": 3}}

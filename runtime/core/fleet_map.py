@@ -42,7 +42,8 @@ class FleetConfig:
     fetch_timeout_ms: how long a keypoint fetch may wait for the robot that owns the place.
     top_k: remote places checked per robot and frame (FAB-MAP's best first).
     track, track_memory: the temporal prior after a loop to another robot's place, as the own
-        map's (CandidateConfig.track, track_memory): its next frames are tried first.
+        map's (CandidateConfig.track, track_memory): its next frames are tried first. Without the
+        own map's reach around them, the memory stays short.
     max_robots: remote robots kept; summaries of further robots are refused and counted.
     max_places: remote places kept in all (besides the caps the own map leaves).
     cache_places: fetched keypoint sets kept for the next frames (a revisit checks the same places).

@@ -29,6 +29,17 @@ def test_verify_bruteforce_option_sets_the_retried_candidates_and_is_logged_whol
         _run("--verify-bruteforce", "-1")
 
 
+def test_track_memory_option_and_logs_written_before_the_whole_config_kept_three():
+    assert _run().detector.candidates.track_memory == 6
+    cfg = _run("--verify-track-memory", "3")
+    assert cfg.detector.candidates.track_memory == 3
+    assert logged_run_config({RUN_CONFIG_KEY: cfg.to_dict()}).detector.candidates.track_memory == 3
+    assert logged_run_config({RUN_CONFIG_KEY: _run().to_dict()}).detector.candidates.track_memory == 6
+    assert logged_run_config({"max_places": 5}).detector.candidates.track_memory == 3
+    with pytest.raises(ConfigError, match="track_memory"):
+        _run("--verify-track-memory", "0")
+
+
 def test_upright_option_and_logs_written_before_it_replay_without_it():
     assert _run().detector.verification.upright
     cfg = _run("--no-verify-upright")

@@ -48,6 +48,24 @@ def test_main_writes_one_sequence_per_drive_in_revisit_order(tmp_path):
         assert np.array_equal(np.load(seq / "gt.npy"), gt)
 
 
+def test_night_darkens_the_second_pass_only_and_repeats_exactly(tmp_path):
+    camvid = tmp_path / "data" / "train" / "camvid"
+    camvid.mkdir(parents=True)
+    for f in range(6):
+        cv2.imwrite(str(camvid / f"0006R0_{f:05d}.png"), np.full((16, 16), 200, np.uint8))
+    for run in ("a", "b"):
+        rs.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / run), "--step", "2", "--night"])
+    files = sorted((tmp_path / "a" / "0006R0" / "images").iterdir())
+    first = len(range(0, 6, 2))
+    day = [cv2.imread(str(p), 0) for p in files[:first]]
+    night = [cv2.imread(str(p), 0) for p in files[first:]]
+    assert all((d == 200).all() for d in day)
+    expected = 255 * rs.NIGHT["gain"] * (200 / 255) ** rs.NIGHT["gamma"]  # before noise
+    assert all(abs(float(n.mean()) - expected) < 3 and n.std() > 0 for n in night)
+    again = sorted((tmp_path / "b" / "0006R0" / "images").iterdir())
+    assert all(np.array_equal(cv2.imread(str(p), 0), cv2.imread(str(q), 0)) for p, q in zip(files, again))
+
+
 def test_main_without_camvid_says_so_in_one_line(tmp_path):
     with pytest.raises(SystemExit, match="no CamVid training drives"):
         rs.main(["--data", str(tmp_path), "--out", str(tmp_path / "out")])

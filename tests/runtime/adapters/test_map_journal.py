@@ -23,6 +23,7 @@ from aefabmap.runtime.adapters.map_state import (
     bundle_id,
     load_into,
 )
+from aefabmap.runtime.core.candidates import CandidateConfig
 from aefabmap.runtime.core.detector import DetectorConfig
 from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
 from tests.conftest import make_synthetic_bundle
@@ -301,6 +302,9 @@ def test_forged_records_are_refused_in_one_line(bundle, images, tmp_path):
 def test_a_journal_of_another_bundle_or_settings_is_refused(bundle, images, tmp_path):
     _journaled(bundle, images, tmp_path / "s")
     assert "other detector settings (exclude)" in _refused(bundle, tmp_path / "s", DetectorConfig(exclude=4, max_places=30))
+    # A journal written before the track's memory changed names it, and replays with it.
+    older = dataclasses.replace(CONFIG, candidates=CandidateConfig(track_memory=3))
+    assert "(candidates.track_memory)" in _refused(bundle, tmp_path / "s", older)
     other = make_synthetic_bundle(tmp_path / "other", seed=1)
     det = load_detector(other, CONFIG)
     with MapStateDir(tmp_path / "s", bundle_id(det.manifest)) as d, pytest.raises(StateError, match="another model bundle"):

@@ -84,6 +84,19 @@ def test_track_lapses_after_its_memory_and_places_without_keypoints_are_skipped(
     assert [c[0] for c in script.calls] == [0] and s.tried == 0 and s.best is None
 
 
+def test_the_track_lasts_twice_its_reach_by_default():
+    """The default memory: a revisit slower or faster than the first pass by up to half still has
+    its true frame within the reach of the expected one when the memory ends."""
+    config = CandidateConfig()
+    assert config.track_memory == 2 * config.track_reach
+    for lag, tracked in ((config.track_memory, True), (config.track_memory + 1, False)):
+        policy = CandidatePolicy(CandidateConfig(top_k=1))
+        policy.track.confirm(seq=10, frame=4)
+        script = Script()
+        _search(policy, 10 + lag, np.linspace(1, 0, 40), script)  # FAB-MAP's best: place 0
+        assert (4 + lag in {c[0] for c in script.calls}) is tracked
+
+
 def test_islands_follow_a_failed_candidate():
     policy = CandidatePolicy(CandidateConfig(top_k=1, track=0, island=2, island_candidates=1))
     ranking = np.zeros(10)
