@@ -302,7 +302,7 @@ def test_forged_records_are_refused_in_one_line(bundle, images, tmp_path):
 def test_a_journal_of_another_bundle_or_settings_is_refused(bundle, images, tmp_path):
     _journaled(bundle, images, tmp_path / "s")
     assert "other detector settings (exclude)" in _refused(bundle, tmp_path / "s", DetectorConfig(exclude=4, max_places=30))
-    # A journal written before the track's memory changed names it, and replays with it.
+    # Another track memory (a journal written before its default changed) is named as the difference.
     older = dataclasses.replace(CONFIG, candidates=CandidateConfig(track_memory=3))
     assert "(candidates.track_memory)" in _refused(bundle, tmp_path / "s", older)
     other = make_synthetic_bundle(tmp_path / "other", seed=1)
