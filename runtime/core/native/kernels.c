@@ -105,19 +105,19 @@ static AVX2_TARGET inline __m256i byte_counts(__m256i v) {
 }
 
 /* 256-bit rows (w == 4), four searched rows per step: the same keys d * 2^32 + j and minima as
- * NEAREST_TWO_BODY (a byte holds at most 32 set bits of the four words, so byte sums cannot wrap). */
+ * NEAREST_TWO_BODY (a byte holds at most 32 set bits of the four words, so byte sums cannot wrap).
+ * Each lane keeps its two lowest keys; keys are distinct (they hold j), so the two lowest of all
+ * are among those eight and the tail's. */
 static AVX2_TARGET int nearest_two_avx2_256(const uint64_t *a, const uint64_t *bt, int32_t *dist, int32_t *index,
                                             int64_t n, int64_t m) {
     const int64_t none = (int64_t)1 << 62;
-    int64_t *key = (int64_t *)malloc((size_t)(m > 0 ? m : 1) * sizeof(int64_t));
-    if (!key) return -1;
     const uint64_t *b0 = bt, *b1 = bt + m, *b2 = bt + 2 * m, *b3 = bt + 3 * m;
     const int64_t m4 = m - m % 4;
     for (int64_t i = 0; i < n; i++) {
         const uint64_t *ai = a + i * 4;
         const __m256i a0 = _mm256_set1_epi64x((long long)ai[0]), a1 = _mm256_set1_epi64x((long long)ai[1]);
         const __m256i a2 = _mm256_set1_epi64x((long long)ai[2]), a3 = _mm256_set1_epi64x((long long)ai[3]);
-        __m256i lowest = _mm256_set1_epi64x(none), j4 = _mm256_setr_epi64x(0, 1, 2, 3);
+        __m256i lowest = _mm256_set1_epi64x(none), next = lowest, j4 = _mm256_setr_epi64x(0, 1, 2, 3);
         const __m256i four = _mm256_set1_epi64x(4), zero = _mm256_setzero_si256();
         for (int64_t j = 0; j < m4; j += 4) {
             __m256i c = byte_counts(_mm256_xor_si256(a0, _mm256_loadu_si256((const __m256i *)(b0 + j))));
@@ -125,23 +125,32 @@ static AVX2_TARGET int nearest_two_avx2_256(const uint64_t *a, const uint64_t *b
             c = _mm256_add_epi8(c, byte_counts(_mm256_xor_si256(a2, _mm256_loadu_si256((const __m256i *)(b2 + j)))));
             c = _mm256_add_epi8(c, byte_counts(_mm256_xor_si256(a3, _mm256_loadu_si256((const __m256i *)(b3 + j)))));
             __m256i k = _mm256_or_si256(_mm256_slli_epi64(_mm256_sad_epu8(c, zero), 32), j4);
-            _mm256_storeu_si256((__m256i *)(key + j), k);
-            lowest = _mm256_blendv_epi8(lowest, k, _mm256_cmpgt_epi64(lowest, k));
+            __m256i below_lowest = _mm256_cmpgt_epi64(lowest, k), below_next = _mm256_cmpgt_epi64(next, k);
+            next = _mm256_blendv_epi8(_mm256_blendv_epi8(next, k, below_next), lowest, below_lowest);
+            lowest = _mm256_blendv_epi8(lowest, k, below_lowest);
             j4 = _mm256_add_epi64(j4, four);
         }
-        int64_t lanes[4];
-        _mm256_storeu_si256((__m256i *)lanes, lowest);
-        int64_t best = none;
-        for (int t = 0; t < 4; t++) best = lanes[t] < best ? lanes[t] : best;
-        for (int64_t j = m4; j < m; j++) {
-            int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
-                      + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
-            key[j] = (d << 32) | j;
-            best = key[j] < best ? key[j] : best;
+        int64_t keys[8];
+        _mm256_storeu_si256((__m256i *)keys, lowest);
+        _mm256_storeu_si256((__m256i *)(keys + 4), next);
+        int64_t best = none, second = none;
+        for (int64_t t = 0; t < 8 + (m - m4); t++) {
+            int64_t key;
+            if (t < 8) {
+                key = keys[t];
+            } else {
+                int64_t j = m4 + t - 8;
+                int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
+                          + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
+                key = (d << 32) | j;
+            }
+            if (key < best) {
+                second = best;
+                best = key;
+            } else if (key < second) {
+                second = key;
+            }
         }
-        key[best & 0xFFFFFFFF] = none;
-        int64_t second = none;
-        for (int64_t j = 0; j < m; j++) second = key[j] < second ? key[j] : second;
         dist[2 * i] = (int32_t)(best >> 32);
         index[2 * i] = (int32_t)(best & 0xFFFFFFFF);
         if (second != none) {
@@ -149,7 +158,6 @@ static AVX2_TARGET int nearest_two_avx2_256(const uint64_t *a, const uint64_t *b
             index[2 * i + 1] = (int32_t)(second & 0xFFFFFFFF);
         }
     }
-    free(key);
     return 0;
 }
 

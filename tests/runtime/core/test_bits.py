@@ -65,6 +65,18 @@ def test_nearest_two_equals_the_full_distance_matrix_ties_included(width, kernel
     assert d0.shape == (0, 2) and i0.shape == (0, 2)
 
 
+@pytest.mark.parametrize("rows", [2, 3, 4, 5, 6, 7, 8, 9, 12, 1001])
+def test_nearest_two_of_orb_rows_for_every_count_of_searched_rows(rows, kernels):
+    """ORB's 32 bytes take the compiled kernel's four-rows-a-step path, whose per-lane minima and
+    leftover rows must give the reference's neighbours whatever the number of searched rows."""
+    rng = np.random.default_rng(rows)
+    a = rng.integers(0, 4, (40, 32), dtype=np.uint8)
+    b = rng.integers(0, 4, (rows, 32), dtype=np.uint8)
+    dist, index = nearest_two(a, b)
+    expect_d, expect_i = _nearest_two_by_unpacked_bits(a, b)
+    assert np.array_equal(dist, expect_d) and np.array_equal(index, expect_i)
+
+
 def test_nearest_two_rejects_rows_it_cannot_compare():
     a = np.zeros((3, 32), np.uint8)
     for bad in (np.zeros((3, 31), np.uint8), np.zeros((3, 32), np.float32), np.zeros(32, np.uint8)):
