@@ -48,6 +48,26 @@ API void append_postings(const intptr_t *addresses, const int32_t *positions, in
 
 /* ---- two nearest rows by Hamming distance (bits.py) ---- */
 
+/* Keys d * 2^32 + j order candidates by distance, then by row; they are distinct (they hold j),
+ * so the two lowest of any set of candidates are found by keeping the two lowest seen so far. */
+static inline void keep_two(int64_t key, int64_t *best, int64_t *second) {
+    if (key < *best) {
+        *second = *best;
+        *best = key;
+    } else if (key < *second) {
+        *second = key;
+    }
+}
+
+static inline void write_two(int64_t best, int64_t second, int64_t none, int32_t *dist, int32_t *index) {
+    dist[0] = (int32_t)(best >> 32);
+    index[0] = (int32_t)(best & 0xFFFFFFFF);
+    if (second != none) {
+        dist[1] = (int32_t)(second >> 32);
+        index[1] = (int32_t)(second & 0xFFFFFFFF);
+    }
+}
+
 #define NEAREST_TWO_BODY                                                                              \
     const int64_t none = (int64_t)1 << 62;                                                            \
     int64_t *key = (int64_t *)malloc((size_t)(m > 0 ? m : 1) * sizeof(int64_t));                      \
@@ -79,12 +99,7 @@ API void append_postings(const intptr_t *addresses, const int32_t *positions, in
         key[best & 0xFFFFFFFF] = none;                                                                \
         int64_t second = none;                                                                        \
         for (int64_t j = 0; j < m; j++) second = key[j] < second ? key[j] : second;                   \
-        dist[2 * i] = (int32_t)(best >> 32);                                                          \
-        index[2 * i] = (int32_t)(best & 0xFFFFFFFF);                                                  \
-        if (second != none) {                                                                         \
-            dist[2 * i + 1] = (int32_t)(second >> 32);                                                \
-            index[2 * i + 1] = (int32_t)(second & 0xFFFFFFFF);                                        \
-        }                                                                                             \
+        write_two(best, second, none, dist + 2 * i, index + 2 * i);                                   \
     }                                                                                                 \
     free(key);                                                                                        \
     return 0;
@@ -130,33 +145,16 @@ static AVX2_TARGET int nearest_two_avx2_256(const uint64_t *a, const uint64_t *b
             lowest = _mm256_blendv_epi8(lowest, k, below_lowest);
             j4 = _mm256_add_epi64(j4, four);
         }
-        int64_t keys[8];
+        int64_t keys[8], best = none, second = none;
         _mm256_storeu_si256((__m256i *)keys, lowest);
         _mm256_storeu_si256((__m256i *)(keys + 4), next);
-        int64_t best = none, second = none;
-        for (int64_t t = 0; t < 8 + (m - m4); t++) {
-            int64_t key;
-            if (t < 8) {
-                key = keys[t];
-            } else {
-                int64_t j = m4 + t - 8;
-                int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
-                          + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
-                key = (d << 32) | j;
-            }
-            if (key < best) {
-                second = best;
-                best = key;
-            } else if (key < second) {
-                second = key;
-            }
+        for (int t = 0; t < 8; t++) keep_two(keys[t], &best, &second);
+        for (int64_t j = m4; j < m; j++) {
+            int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
+                      + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
+            keep_two((d << 32) | j, &best, &second);
         }
-        dist[2 * i] = (int32_t)(best >> 32);
-        index[2 * i] = (int32_t)(best & 0xFFFFFFFF);
-        if (second != none) {
-            dist[2 * i + 1] = (int32_t)(second >> 32);
-            index[2 * i + 1] = (int32_t)(second & 0xFFFFFFFF);
-        }
+        write_two(best, second, none, dist + 2 * i, index + 2 * i);
     }
     return 0;
 }
