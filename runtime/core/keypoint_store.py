@@ -123,7 +123,9 @@ class KeypointStore:
         """
         n = int(keypoints.shape[0])
         if words.shape[0] != n or descriptors.shape[0] != n or (upright is not None and upright.shape[0] != n):
-            raise InputError(f"keypoints ({n}), words ({words.shape[0]}) and descriptors ({descriptors.shape[0]}) differ in count")
+            ups = "" if upright is None else f", upright descriptors ({upright.shape[0]})"
+            raise InputError(f"keypoints ({n}), words ({words.shape[0]}), descriptors ({descriptors.shape[0]}){ups} "
+                             "differ in count")
         if self.max_keypoints is not None:
             n = min(n, self.max_keypoints)
         shape = (int(image_shape[0]), int(image_shape[1]))

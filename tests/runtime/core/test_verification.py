@@ -167,7 +167,7 @@ def test_keypoint_store_keeps_upright_descriptors_and_counts_their_bytes():
     assert np.array_equal(place.upright, up[:300]) and np.array_equal(place.descriptors, desc[:300])
     store.put(3, place)
     assert store.nbytes() == 300 * (38 + 32) + PLACE_OVERHEAD_BYTES
-    with pytest.raises(Exception, match="differ in count"):
+    with pytest.raises(Exception, match=r"upright descriptors \(10\) differ in count"):
         store.pack(xy, words, desc, (480, 640), up[:10])
 
 
