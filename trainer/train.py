@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -66,6 +67,8 @@ class TrainConfig:
         random night instead (trainer/multiview.build_tracks), < ae_views.
     ae_balance_weight / ae_recon_weight: objective "assign": weights of the word-usage and
         reconstruction terms.
+    ae_temperature_end: objective "assign": the soft assignment's final temperature, in codebook
+        spacings (AssignConfig.temperature_end).
     ae_init: objective "assign": "random" encoder, or "kmeans" (the encoder starts as the
         projection onto the descriptors' principal axes, the words as k-means of it,
         assign_objective.init_linear_pca).
@@ -104,6 +107,7 @@ class TrainConfig:
     ae_light_views: int = 0
     ae_balance_weight: float = 1.0
     ae_recon_weight: float = 1.0
+    ae_temperature_end: float = 0.3
     ae_init: str = "random"
     cache_dir: Path | None = None
     show_progress: bool = True
@@ -127,6 +131,8 @@ class TrainConfig:
             raise ConfigError("--ae-objective assign needs --ae-arch light, --ae-views >= 3 and --ae-track-images >= 2")
         if not 0 <= self.ae_light_views < self.ae_views:
             raise ConfigError(f"--ae-light-views must be >= 0 and below --ae-views ({self.ae_views}), got {self.ae_light_views}")
+        if not (math.isfinite(self.ae_temperature_end) and self.ae_temperature_end > 0):
+            raise ConfigError(f"--ae-temperature-end must be a finite number > 0, got {self.ae_temperature_end}")
         if self.ae_init not in ASSIGN_INITS or (self.ae_init != "random" and self.ae_objective != "assign"):
             raise ConfigError(f"--ae-init must be one of {ASSIGN_INITS} (with --ae-objective assign), got {self.ae_init!r}")
 
@@ -334,7 +340,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
                 # A k-means start clusters as the k-means quantiser does; a random one keeps AssignConfig's count.
                 start = {"init_kmeans_iterations": config.kmeans_iterations} if config.ae_init == "kmeans" else {}
                 assign = AssignConfig(balance_weight=config.ae_balance_weight, recon_weight=config.ae_recon_weight,
-                                      init=config.ae_init, **start)
+                                      temperature_end=config.ae_temperature_end, init=config.ae_init, **start)
             q_manifest = build_ae_quantizer(
                 sample,
                 words=config.words,

@@ -45,6 +45,9 @@ def register(sub) -> None:
     pl.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
     pl.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
                     help="keypoints per frame extracted and matched for verification (default: the runtime's)")
+    pl.add_argument("--verify-bruteforce", type=int, default=None, metavar="K",
+                    help="FAB-MAP candidates retried with all-pairs matching when same-word matching fails "
+                    "(default: the runtime's)")
     pl.add_argument("--words-only-places", action="store_true",
                     help="pre-filled places without keypoints (never verified, so verification is understated; "
                          "the mode of figures measured before this option existed)")
@@ -196,7 +199,8 @@ def run_pipeline(args) -> int:
     cfg = PipelineBenchConfig(
         bundle=str(_model(args)), places=args.places, frames=args.frames, warmup=args.warmup,
         prefill=args.prefill, verification=not args.no_verification, single_core=not args.all_cores,
-        verify_keypoints=args.verify_keypoints, place_keypoints=not args.words_only_places, scatter=args.scatter,
+        verify_keypoints=args.verify_keypoints, verify_bruteforce=args.verify_bruteforce,
+        place_keypoints=not args.words_only_places, scatter=args.scatter,
     )
     doc = bench_pipeline(cfg)
     _emit(doc, args.json)

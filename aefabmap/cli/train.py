@@ -70,6 +70,9 @@ def register(sub) -> None:
                    help="--ae-objective assign: training images that give multi-view tracks (default 1500)")
     p.add_argument("--ae-balance-weight", type=float, default=1.0,
                    help="--ae-objective assign: weight of the word-usage term (default 1)")
+    p.add_argument("--ae-temperature-end", type=float, default=0.3,
+                   help="--ae-objective assign: temperature of the soft word assignment after annealing, in "
+                   "codebook spacings (default 0.3)")
     p.add_argument("--ae-init", choices=("random", "kmeans"), default="random",
                    help="--ae-objective assign: start from a random encoder, or from the principal axes of the "
                    "descriptors and k-means words on them (default random)")
@@ -124,6 +127,7 @@ def run(args) -> int:
         ae_light_views=args.ae_light_views,
         ae_balance_weight=args.ae_balance_weight,
         ae_recon_weight=args.ae_recon_weight,
+        ae_temperature_end=args.ae_temperature_end,
         ae_init=args.ae_init,
         show_progress=not args.no_progress,
     )

@@ -114,6 +114,8 @@ class PipelineBenchConfig:
     observations, cycled) or "synthetic" (synthetic_observations with the bundle's mean words
     per image). verification: geometric verification on (the runtime's default) or off.
     verify_keypoints: VerificationConfig.keypoints (None: the runtime's default).
+    verify_bruteforce: CandidateConfig.bruteforce_fallback, FAB-MAP candidates retried with
+    all-pairs matching (None: the runtime's default).
     place_keypoints: pre-filled places carry real keypoints (those of 64 synthetic frames of
     another seed, a world the timed frames never revisit), so every FAB-MAP candidate is
     verified as in a live map, and frames pay what a frame that is not a loop pays. False:
@@ -131,6 +133,7 @@ class PipelineBenchConfig:
     prefill: str = "train"
     verification: bool = True
     verify_keypoints: int | None = None
+    verify_bruteforce: int | None = None
     place_keypoints: bool = True
     scatter: str = "auto"
     seed: int = 0
@@ -145,6 +148,8 @@ class PipelineBenchConfig:
             raise ConfigError(f"prefill must be 'train' or 'synthetic', got {self.prefill!r}")
         if self.scatter not in KERNEL_CHOICES:
             raise ConfigError(f"scatter must be one of {', '.join(KERNEL_CHOICES)}, got {self.scatter!r}")
+        if self.verify_bruteforce is not None and self.verify_bruteforce < 0:
+            raise ConfigError(f"verify_bruteforce must be >= 0, got {self.verify_bruteforce}")
 
 
 def bench_pipeline(config: PipelineBenchConfig) -> dict:
@@ -227,6 +232,8 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     if config.verify_keypoints is not None:
         verification = replace(verification, keypoints=config.verify_keypoints)
     det_cfg = DetectorConfig(threads=1, verification=verification)
+    if config.verify_bruteforce is not None:
+        det_cfg = replace(det_cfg, candidates=replace(det_cfg.candidates, bruteforce_fallback=config.verify_bruteforce))
     det = load_detector(config.bundle, det_cfg)
     manifest = det.manifest
     vocab = det.bundle.vocabulary_size
@@ -297,6 +304,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "map_bytes": int(det.map_bytes()),
         "verification": config.verification,
         "verify_keypoints": verification.keypoints,
+        "verify_bruteforce": det.config.candidates.bruteforce_fallback,
         "frames_timed": len(total_wall),
         "warmup_frames": config.warmup,
         "keypoints_median": float(np.median(n_kps)),

@@ -24,10 +24,12 @@ def _sane_stats(s: dict) -> None:
 @pytest.mark.timeout(180)
 def test_bench_pipeline_writes_json(tmp_path, capsys):
     out = tmp_path / "pipeline.json"
-    code = main(["bench", "pipeline", "--places", "60", "--frames", "4", "--warmup", "1", "--json", str(out)])
+    code = main(["bench", "pipeline", "--places", "60", "--frames", "4", "--warmup", "1", "--verify-bruteforce", "1",
+                 "--json", str(out)])
     assert code == 0
     doc = json.loads(out.read_text())
     assert doc["benchmark"] == "pipeline" and doc["single_core"] is True
+    assert doc["verify_bruteforce"] == 1  # the candidates retried, as the option set them
     assert doc["places_in_map"]["max"] >= 60 - 50  # delayed insertion keeps the last `exclude` pending
     assert doc["threads_env"]["OMP_NUM_THREADS"] == "1" and doc["cv2_threads"] == 1
     for stage in ("decode", "features", "quantise", "inference", "verification"):
@@ -78,6 +80,8 @@ def test_bench_stream_two_processes(tmp_path, capsys):
 def test_bench_configs_refuse_bad_values(tmp_path):
     with pytest.raises(ConfigError):
         PipelineBenchConfig(bundle="x", prefill="random")
+    with pytest.raises(ConfigError):
+        PipelineBenchConfig(bundle="x", verify_bruteforce=-1)
     with pytest.raises(ConfigError):
         StreamBenchConfig(bundle="x", rate_hz=0)
     with pytest.raises(ConfigError):

@@ -180,6 +180,9 @@ def test_bad_inputs_raise():
     dict(ae_objective="other"),
     dict(ae_objective="recon", ae_init="kmeans"),  # a start for the assign objective only
     dict(ae_objective="assign", ae_arch="light", ae_init="pca"),
+    dict(ae_temperature_end=0.0),
+    dict(ae_temperature_end=float("nan")),
+    dict(ae_temperature_end=float("inf")),
 ])
 def test_train_config_refuses_bad_assign_settings(settings, tmp_path):
     from aefabmap.trainer.train import TrainConfig

@@ -69,9 +69,10 @@ def test_ae_bundle_quantises_like_its_onnx_graph(image_dir, tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
     # One thread: on a loaded machine two torch threads waiting for each other are ~15x slower.
-    res = train_bundle(config(image_dir, tmp_path / "ae", quantizer="ae", ae_threads=1))
+    res = train_bundle(config(image_dir, tmp_path / "ae", quantizer="ae", ae_threads=1, ae_temperature_end=0.2))
     b = load_bundle(res.path)
     assert b.quantizer_type == "ae"
+    assert b.manifest["quantizer"]["train"]["assign"]["temperature_end"] == 0.2  # --ae-temperature-end reached it
     assert set(b.manifest["quantizer"]["files"]) == {"fp32", "int8"}
     q32, q8 = b.quantizer("fp32"), b.quantizer("int8")
     v = np.random.default_rng(0).integers(0, 2, (300, 256)).astype(np.float32)
