@@ -52,9 +52,9 @@ def write_sequence(frames: list[Path], step: int, out: Path, night: bool = False
     order, gt = revisit_order(len(frames), step)
     images = out / "images"
     images.mkdir(parents=True, exist_ok=True)
-    first = len(range(0, len(frames), step))
+    revisits = gt.any(axis=1)  # the second pass: every frame of it revisits the first
     for i, f in enumerate(order):
-        if night and i >= first:
+        if night and revisits[i]:
             gray = cv2.imread(str(frames[f]), cv2.IMREAD_GRAYSCALE)
             if gray is None:
                 raise SystemExit(f"cannot read {frames[f]}")

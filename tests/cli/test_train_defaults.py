@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import pytest
+
 from aefabmap.cli.main import build_parser
 from aefabmap.trainer.train import TrainConfig
 
@@ -20,3 +22,12 @@ def test_the_default_autoencoder_is_the_assign_objective_measured_best():
     # docs/results.md, "The word-assignment objective": 6 views a track, reconstruction weight 1, 8 epochs.
     assert (c.ae_objective, c.ae_arch, c.ae_views, c.ae_light_views, c.ae_recon_weight, c.ae_epochs) == \
         ("assign", "light", 6, 0, 1.0, 8)
+
+
+def test_the_word_usage_weight_and_temperature_default_to_assign_configs():
+    """(The reconstruction weight differs on purpose: the objective alone has none, the default AE 1.)"""
+    pytest.importorskip("torch")
+    from aefabmap.trainer.assign_objective import AssignConfig
+
+    c, a = TrainConfig(images=(), out="b", quantizer="ae"), AssignConfig()
+    assert (c.ae_balance_weight, c.ae_temperature_end) == (a.balance_weight, a.temperature_end)
