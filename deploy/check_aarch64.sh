@@ -5,6 +5,12 @@
 # machine, as root.
 #
 #   deploy/check_aarch64.sh [WORKDIR]          default WORKDIR: /tmp/aefabmap-aarch64
+#   deploy/check_aarch64.sh WORKDIR BUNDLE IMAGES GT EXCLUDE
+#
+# With a bundle and a sequence it also runs `aefabmap eval` there on this machine (the project's
+# .venv, or $AEFABMAP_PYTHON) and emulated, and fails unless every frame's decisions are the same:
+# keypoints, words, FAB-MAP's scores, the candidates checked, the verified place. The board then
+# decides as the machine its settings were measured on (docs/results.md, "The board's arithmetic").
 #
 # Debian's arm64 python3.11 is unpacked into WORKDIR/sysroot, not installed: apt would replace
 # the machine's amd64 python3 with the arm64 one. Writes runtime/core/_kernels.cpython-311-
@@ -13,6 +19,7 @@
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
 WORK=${1:-/tmp/aefabmap-aarch64}
+[ $# -le 1 ] || [ $# -eq 5 ] || { sed -n 2,17p "$0" >&2; exit 2; }
 SYSROOT=$WORK/sysroot
 export DEBIAN_FRONTEND=noninteractive
 
@@ -59,4 +66,36 @@ mkdir -p "$WORK/bin" && ln -sf "$(command -v aarch64-linux-gnu-gcc)" "$WORK/bin/
 PATH=$WORK/bin:$PATH PYTHONPATH=$WORK/site AEFABMAP_DATA=/nonexistent QEMU_CPU=cortex-a53 "${PY[@]}" \
     -m pytest -p no:cacheprovider -q -rs tests/runtime/core/test_{native,model_errors,scatter,postings,fabmap,bits}.py \
     tests/runtime/core/test_{word_matches,nearest,geometry_acceptance,candidate_policy}.py
-echo "aarch64 check passed: $OUT"
+echo "aarch64 kernels check passed: $OUT"
+[ $# -eq 5 ] || exit 0
+
+# 5. The same eval here and emulated. The board's lock, but onnxruntime 1.20 (the runtime set's
+#    floor), whose import does not crash under qemu-user; its int8 products are integers.
+BUNDLE=$(realpath "$2"); IMAGES=$(realpath "$3"); GT=$(realpath "$4"); EXCLUDE=$5
+HOST_PY=${AEFABMAP_PYTHON:-$REPO/.venv/bin/python}
+pins=$(grep -oE '^[A-Za-z0-9_.-]+==[^ ]+' deploy/requirements-board.txt | grep -v '^onnxruntime==')
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
+    --abi cp311 --abi abi3 --abi none --platform manylinux_2_28_aarch64 --platform manylinux2014_aarch64 \
+    --platform any -d "$WORK/wheels" $pins onnxruntime==1.20.1 coloredlogs humanfriendly sympy mpmath
+for whl in "$WORK"/wheels/*.whl; do python3 -m zipfile -e "$whl" "$WORK/site"; done
+EVAL=(-m aefabmap eval --model "$BUNDLE" --images "$IMAGES" --gt "$GT" --exclude "$EXCLUDE" --fabmap-score llr --no-progress)
+"$HOST_PY" "${EVAL[@]}" --frames "$WORK/here.frames.jsonl" | tail -3
+PYTHONPATH=$WORK/site:$REPO QEMU_CPU=cortex-a53 "${PY[@]}" "${EVAL[@]}" --frames "$WORK/board.frames.jsonl" | tail -3
+python3 - "$WORK/here.frames.jsonl" "$WORK/board.frames.jsonl" <<'EOF'
+import json, sys
+# The geometric fits' diagnostics (OpenCV's MAGSAC in floating point) and the last digits of
+# scores (libm) may differ between CPUs; what a robot receives may not.
+FIT = {"nfa", "inliers", "matches", "geometry_model", "model"}
+def decisions(value):
+    if isinstance(value, dict):
+        return {k: decisions(v) for k, v in value.items() if k not in FIT}
+    if isinstance(value, list):
+        return [decisions(v) for v in value]
+    return float(f"{value:.12g}") if isinstance(value, float) else value
+here, board = ([json.loads(line) for line in open(p)] for p in sys.argv[1:3])
+differ = [a["frame"] for a, b in zip(here, board) if decisions(a) != decisions(b)]
+print(f"{len(here)} frames: equal in every field {sum(a == b for a, b in zip(here, board))}, "
+      f"the same decisions {len(here) - len(differ)}" + (f"; they differ at frames {differ[:10]}" if differ else ""))
+sys.exit(1 if differ or len(here) != len(board) else 0)
+EOF
+echo "aarch64 eval check passed"

@@ -215,7 +215,10 @@ class FeatureExtractor:
         if self.config.long_side is not None:
             scale = self.config.long_side / max(gray.shape)
             if abs(scale - 1.0) > 1e-6:
-                interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+                # Upsampling by OpenCV's bit-exact bilinear: its plain INTER_LINEAR rounds
+                # differently on x86 and ARM, so a board would detect other keypoints than the
+                # machine its settings were measured on (docs/results.md, "The board's arithmetic").
+                interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR_EXACT
                 size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
                 work = cv2.resize(gray, size, interpolation=interp)
                 scale = size[0] / gray.shape[1]

@@ -105,16 +105,17 @@ def test_int8_agrees_with_fp32(exported):
     # Integer kernels differ by CPU (AVX2 pair sums, AVX-512 VNNI dot products), and with them
     # which near-tie int8 rounding tips: on this barely trained encoder agreement was >= 99 % on
     # the project's AVX2 machines and 98.95-99.45 % on an AVX-512 VNNI one. What must hold on
-    # every CPU: int8 picks another word only where fp32's two words are within one int8 step
-    # (1/127) of the score scale, and such ties are rare. (Trained bundles are measured against
-    # the 99 % target in docs/results.md.)
+    # every CPU: int8 picks another word only where fp32's two words are near a tie, within two
+    # int8 steps (2/127) of the score scale (weights and activations are both rounded, each by up
+    # to half a step of its own scale, so one step is no bound), and such ties are rare. (Trained
+    # bundles are measured against the 99 % target in docs/results.md.)
     w32 = exported.runtime("fp32").quantize(exported.test)
     w8 = exported.runtime("int8").quantize(exported.test)
     agreement = float(np.mean(w32 == w8))
     assert agreement >= 0.98, f"int8 agrees on {agreement:.4f} of descriptors"
     _, _, scores = exported.eager(exported.test)
     gap = tie_gap(scores, w32, w8)
-    assert np.all(gap <= 1.0 / 127), f"int8 changed words with an fp32 margin of up to {gap.max():.4f} of the scale"
+    assert np.all(gap <= 2.0 / 127), f"int8 changed words with an fp32 margin of up to {gap.max():.4f} of the scale"
 
 
 def test_int8_weights_cannot_saturate_int16_pair_sums(exported):
