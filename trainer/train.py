@@ -17,7 +17,7 @@ from aefabmap.export.bundle_writer import write_bundle
 from aefabmap.runtime.adapters.frames import load_image
 from aefabmap.runtime.adapters.image_folder import IMAGE_SUFFIXES
 from aefabmap.runtime.core.feature_kinds import FeatureKind
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
+from aefabmap.runtime.core.features import EXTRACTION_VERSION, FeatureConfig, FeatureExtractor
 from aefabmap.runtime.core.quantizer import quantize_raw
 from aefabmap.trainer.ae_quantizer import ASSIGN_INITS, OBJECTIVES
 from aefabmap.trainer.chow_liu import fit_chow_liu
@@ -167,8 +167,9 @@ def extract_training_vectors(files: list[Path], features: FeatureConfig, show_pr
 def cache_entry(cache_dir: Path, prefix: str, features: FeatureConfig, files: list[Path], settings: str = "") -> Path:
     """The .npz cache entry of `prefix` data built from `files` with these feature settings and
     further `settings`: keyed by both and by each image's path, size and modification time, so a
-    stale entry is never reused."""
-    text = (repr(sorted(features.to_dict().items())) + (f"\n{settings}\n" if settings else "\n")
+    stale entry is never reused (nor one written by an extractor of another EXTRACTION_VERSION)."""
+    text = (f"extraction {EXTRACTION_VERSION}\n" + repr(sorted(features.to_dict().items()))
+            + (f"\n{settings}\n" if settings else "\n")
             + "\n".join(f"{f}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files))
     return Path(cache_dir) / f"{prefix}-{features.kind}-{hashlib.sha256(text.encode()).hexdigest()[:20]}.npz"
 

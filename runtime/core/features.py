@@ -62,6 +62,12 @@ def image_shape_problem(height: int, width: int, long_side: int | None = None) -
     return None
 
 
+#: Version of what the extractor does beyond its FeatureConfig (e.g. how it resizes): caches of
+#: extracted features are keyed by it, so a change that gives other features for the same
+#: settings must bump it. 2: small frames upsampled by the bit-exact bilinear.
+EXTRACTION_VERSION = 2
+
+
 @dataclass(frozen=True)
 class FeatureConfig:
     """Settings of the local feature extractor.

@@ -39,9 +39,13 @@ def test_kmeans_bundle_and_cache(image_dir, tmp_path, monkeypatch):
     monkeypatch.setattr(train_mod, "extract_training_vectors", no_extraction)
     second = train_bundle(config(image_dir, tmp_path / "b", cache_dir=cache))
     assert load_bundle(second.path).manifest["files"] == b.manifest["files"]
-    # Other feature settings must not reuse the entry.
+    # Other feature settings must not reuse the entry, nor an extractor that computes other
+    # features for the same settings (a new EXTRACTION_VERSION).
     with pytest.raises(AssertionError, match="extracted again"):
         train_bundle(config(image_dir, tmp_path / "c", cache_dir=cache, features=FeatureConfig("orb", 150)))
+    monkeypatch.setattr(train_mod, "EXTRACTION_VERSION", train_mod.EXTRACTION_VERSION + 1)
+    with pytest.raises(AssertionError, match="extracted again"):
+        train_bundle(config(image_dir, tmp_path / "d", cache_dir=cache))
 
 
 def test_cache_entries_of_writers_sharing_a_directory_do_not_collide(tmp_path, monkeypatch):
