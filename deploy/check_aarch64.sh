@@ -69,15 +69,15 @@ PATH=$WORK/bin:$PATH PYTHONPATH=$WORK/site AEFABMAP_DATA=/nonexistent QEMU_CPU=c
 echo "aarch64 kernels check passed: $OUT"
 [ $# -eq 5 ] || exit 0
 
-# 5. The same eval here and emulated. The board's lock, but onnxruntime 1.20 (the runtime set's
-#    floor), whose import does not crash under qemu-user; its int8 products are integers.
+# 5. The same eval here and emulated. The rest of the board's lock, but onnxruntime 1.20 (the
+#    runtime set's floor), whose import does not crash under qemu-user; its int8 products are integers.
 BUNDLE=$(realpath "$2"); IMAGES=$(realpath "$3"); GT=$(realpath "$4"); EXCLUDE=$5
 HOST_PY=${AEFABMAP_PYTHON:-$REPO/.venv/bin/python}
-pins=$(grep -oE '^[A-Za-z0-9_.-]+==[^ ]+' deploy/requirements-board.txt | grep -v '^onnxruntime==')
+pins=$(grep -oE '^[A-Za-z0-9_.-]+==[^ ]+' deploy/requirements-board.txt | grep -vE '^(onnxruntime|numpy|opencv-python-headless)==')
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
     --abi cp311 --abi abi3 --abi none --platform manylinux_2_28_aarch64 --platform manylinux2014_aarch64 \
-    --platform any -d "$WORK/wheels" $pins onnxruntime==1.20.1 coloredlogs humanfriendly sympy mpmath
-for whl in "$WORK"/wheels/*.whl; do python3 -m zipfile -e "$whl" "$WORK/site"; done
+    --platform any -d "$WORK/wheels-eval" $pins onnxruntime==1.20.1 coloredlogs humanfriendly sympy mpmath
+for whl in "$WORK"/wheels-eval/*.whl; do python3 -m zipfile -e "$whl" "$WORK/site"; done  # numpy, OpenCV: step 4
 EVAL=(-m aefabmap eval --model "$BUNDLE" --images "$IMAGES" --gt "$GT" --exclude "$EXCLUDE" --fabmap-score llr --no-progress)
 "$HOST_PY" "${EVAL[@]}" --frames "$WORK/here.frames.jsonl" | tail -3
 PYTHONPATH=$WORK/site:$REPO QEMU_CPU=cortex-a53 "${PY[@]}" "${EVAL[@]}" --frames "$WORK/board.frames.jsonl" | tail -3

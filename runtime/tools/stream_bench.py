@@ -148,8 +148,10 @@ class PipelineBenchConfig:
             raise ConfigError(f"prefill must be 'train' or 'synthetic', got {self.prefill!r}")
         if self.scatter not in KERNEL_CHOICES:
             raise ConfigError(f"scatter must be one of {', '.join(KERNEL_CHOICES)}, got {self.scatter!r}")
-        if self.verify_bruteforce is not None and self.verify_bruteforce < 0:
-            raise ConfigError(f"verify_bruteforce must be >= 0, got {self.verify_bruteforce}")
+        if self.verify_bruteforce is not None:
+            from aefabmap.runtime.core.candidates import CandidateConfig
+
+            CandidateConfig(bruteforce_fallback=self.verify_bruteforce)  # its owner's check, before any loading
 
 
 def bench_pipeline(config: PipelineBenchConfig) -> dict:
