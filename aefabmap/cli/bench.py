@@ -63,6 +63,8 @@ def register(sub) -> None:
     sq.add_argument("--limit", type=int, default=None, metavar="N", help="first N images only")
     sq.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
     sq.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
+    sq.add_argument("--calls", action="store_true", help="then a second pass under the profiler: CPU ms per frame "
+                    "inside OpenCV, onnxruntime and aefabmap's compiled kernels (the rest: Python and numpy)")
     sq.add_argument("--json", type=Path, metavar="OUT")
     sq.set_defaults(func=run_sequence)
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
@@ -224,7 +226,8 @@ def run_sequence(args) -> int:
     from aefabmap.runtime.tools.sequence_bench import STAGES, SequenceBenchConfig, bench_sequence
 
     doc = bench_sequence(SequenceBenchConfig(images=str(args.images), bundle=str(_model(args)), exclude=args.exclude,
-                                             limit=args.limit, scatter=args.scatter, single_core=not args.all_cores))
+                                             limit=args.limit, scatter=args.scatter, single_core=not args.all_cores,
+                                             calls=args.calls))
     _emit(doc, args.json)
     s, c = doc["stages_ms"], doc["stages_cpu_ms"]
     print(f"\n{doc['images']}: {doc['frames']} frames of {doc['image_size_wh']}, {doc['loops']} loops, "
@@ -237,6 +240,8 @@ def run_sequence(args) -> int:
     w, u = doc["total_ms"], doc["total_cpu_ms"]
     print(f"{'total':<16}{w['median']:>12.2f}{w['p95']:>10.2f}{u['median']:>12.2f}{u['mean']:>10.2f}")
     print(f"{doc['frames_per_second']} frames per second")
+    if "calls_cpu_ms_per_frame" in doc:
+        print("CPU ms per frame (mean) inside: " + ", ".join(f"{k} {v:.2f}" for k, v in doc["calls_cpu_ms_per_frame"].items()))
     return 0
 
 

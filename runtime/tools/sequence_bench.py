@@ -4,7 +4,8 @@ Each image is read and decoded, then goes through the frame loop a node runs (ru
 frame_loop.py: decode, features, words, FAB-MAP, the candidate policy, verification, insertion), in
 file-name order, on one pinned core with one thread everywhere (as ``bench pipeline``). No
 evaluation, no ground truth: what a board pays per frame of this sequence. Printed and saved per
-stage (wall and CPU ms, median / p95 / mean), with the total and the frames per second.
+stage (wall and CPU ms, median / p95 / mean), with the total and the frames per second; with
+`calls`, also the CPU ms per frame spent inside each library's compiled calls (call_profile.py).
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ class SequenceBenchConfig:
     images: folder of images (list_images: file-name order). bundle: model bundle directory.
     exclude: DetectorConfig.exclude (frames, the sequence's exclusion window). limit: first N images
     only (None: all). scatter: the kernels, as StreamBenchConfig.scatter. single_core: a spawned process pinned to one CPU with one thread everywhere.
+    calls: after the timed pass, a second pass from an empty map under the profiler, for the time
+    inside each library's calls (`call_profile.GROUPS`; the rest is Python and numpy).
     """
 
     images: str
@@ -42,6 +45,7 @@ class SequenceBenchConfig:
     limit: int | None = None
     scatter: str = "auto"
     single_core: bool = True
+    calls: bool = False
 
     def __post_init__(self) -> None:
         if self.exclude < 0:
@@ -95,7 +99,7 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
             image_size = [int(out.gray.shape[1]), int(out.gray.shape[0])]
     seconds = time.perf_counter() - t_start
     manifest = det.manifest
-    return {
+    doc = {
         "benchmark": "sequence",
         "images": str(config.images),
         "bundle": str(config.bundle),
@@ -118,3 +122,25 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
         "frames_per_second": round(len(paths) / seconds, 2) if seconds > 0 else None,
         "machine": machine_info(),
     }
+    if config.calls:
+        doc["calls_cpu_ms_per_frame"] = _calls_per_frame(config, paths, sum(total_cpu) / len(paths))
+    return doc
+
+
+def _calls_per_frame(config: SequenceBenchConfig, paths: list, cpu_ms_per_frame: float) -> dict[str, float]:
+    """Mean CPU ms per frame inside each library's calls over a second pass from an empty map, and
+    "rest": the timed pass's mean CPU ms per frame beyond them (Python and numpy)."""
+    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap.runtime.adapters.frame_loop import FrameLoop
+    from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap.runtime.tools.call_profile import seconds_in_calls
+
+    loop = FrameLoop(load_detector(config.bundle, DetectorConfig(threads=1, exclude=config.exclude)), strict=True)
+
+    def run() -> None:
+        for i, path in enumerate(paths):
+            loop.step_file(path, i)
+
+    per_frame = {k: round(v * 1e3 / len(paths), 3) for k, v in seconds_in_calls(run).items()}
+    per_frame["rest"] = round(cpu_ms_per_frame - sum(per_frame.values()), 3)
+    return per_frame

@@ -31,3 +31,21 @@ def test_bench_sequence_refuses_a_missing_folder_in_one_line(tmp_path, caplog):
     code = main(["bench", "sequence", "--images", str(tmp_path / "nowhere")])
     assert code == 4
     assert any("does not exist" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.timeout(180)
+def test_bench_sequence_calls_attributes_time_to_the_libraries(tmp_path, capsys):
+    from aefabmap.runtime.tools.call_profile import GROUPS
+    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+
+    make_demo_sequence(tmp_path / "seq", n_frames=10, seed=4, size=(320, 240))
+    out = tmp_path / "sequence.json"
+    code = main(["bench", "sequence", "--images", str(tmp_path / "seq"), "--exclude", "2", "--calls",
+                 "--json", str(out)])
+    assert code == 0
+    calls = json.loads(out.read_text())["calls_cpu_ms_per_frame"]
+    assert set(calls) == {*GROUPS, "rest"}
+    assert all(calls[g] >= 0 for g in GROUPS)
+    # Every frame is decoded, resized and described by OpenCV and quantised by onnxruntime's product.
+    assert calls["opencv_orb"] > 0 and calls["opencv_image"] > 0 and calls["onnxruntime"] > 0
+    assert "inside: opencv_orb" in capsys.readouterr().out
