@@ -327,6 +327,12 @@ class LogSetReader:
         versions = [v for r in self._readers if (v := r.format_version) is not None]
         return min(versions) if versions else None
 
+    @property
+    def extraction_version(self) -> int | None:
+        """The files' extraction version when they all record the same one, else None."""
+        versions = {r.extraction_version for r in self._readers}
+        return versions.pop() if len(versions) == 1 else None
+
     def frames(self) -> Iterator[LoggedImage]:
         if self._spent:
             raise LogError(f"{self.status.path}: a log reader can be iterated only once")

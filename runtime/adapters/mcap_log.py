@@ -17,8 +17,9 @@ topic          schema / encoding                       content
 
 The topics are McapLogConfig's (defaults above). The JSON schemas and messages are those of
 runtime/core/messages.py (schemas generated from the message records). Metadata record
-``aefabmap.log`` holds ``format_version`` (MESSAGE_FORMAT_VERSION, "major.minor") and the
-three topic names; ``aefabmap.manifest`` and ``aefabmap.run_config`` each hold one key
+``aefabmap.log`` holds ``format_version`` (MESSAGE_FORMAT_VERSION, "major.minor"), the
+three topic names and ``extraction_version`` (features.EXTRACTION_VERSION of the build that wrote
+the log: a replay by a build that extracts features otherwise says why its frames differ); ``aefabmap.manifest`` and ``aefabmap.run_config`` each hold one key
 ``json`` with the JSON text of the bundle manifest / run configuration. All are written
 at open, so they survive a crash. Message ``sequence`` = the frame's sequence number in the
 run (0-based count of processed frames); image ``timestamp`` = the frame's capture stamp.
@@ -89,6 +90,7 @@ from aefabmap.runtime.adapters.ros_cdr import (
     encode_compressed_image_cdr,
     encode_string_cdr,
 )
+from aefabmap.runtime.core.features import EXTRACTION_VERSION
 from aefabmap.runtime.core.messages import (
     MESSAGE_FORMAT_VERSION,
     FrameResult,
@@ -258,6 +260,7 @@ class McapLogWriter:
                 "image_topic": self.config.image_topic,
                 "result_topic": self.config.result_topic,
                 "stats_topic": self.config.stats_topic,
+                "extraction_version": str(EXTRACTION_VERSION),
             })
             if manifest is not None:
                 self.add_metadata(MANIFEST_METADATA, manifest)
@@ -601,6 +604,15 @@ class McapLogReader:
         """(major, minor) of the log's format; None for logs not written by aefabmap."""
         meta = self.metadata.get(LOG_METADATA)
         return check_log_version(self.path, meta) if meta is not None else None
+
+    @property
+    def extraction_version(self) -> int | None:
+        """features.EXTRACTION_VERSION of the build that wrote the log; None when the log does not
+        say (written before it was recorded, not by aefabmap, or not a small positive integer)."""
+        value = (self.metadata.get(LOG_METADATA) or {}).get("extraction_version")
+        if isinstance(value, str) and 0 < len(value) <= 6 and value.isascii() and value.isdigit() and int(value) > 0:
+            return int(value)
+        return None
 
     def _preferred_image_topic(self) -> str:
         topic = (self.metadata.get(LOG_METADATA) or {}).get("image_topic")

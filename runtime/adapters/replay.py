@@ -31,6 +31,7 @@ from aefabmap.runtime.adapters.mcap_log import (
     ReadStatus,
 )
 from aefabmap.runtime.adapters.ros_bag import open_replay_source
+from aefabmap.runtime.core.features import EXTRACTION_VERSION
 from aefabmap.runtime.core.messages import FrameResult
 
 #: Result fields that vary from run to run (wall-clock timings, transport data); --check
@@ -439,6 +440,7 @@ def replay(
             and logged_manifest != json.loads(json.dumps(manifest, sort_keys=True, default=str))
         ):
             report.notes.append("the bundle manifest differs from the one in the log")
+        report.notes += _extraction_notes(reader, report)
         if stopped:
             report.notes.append(f"the replay was stopped after {loop.frames_in} frames")
         if reader.status.truncated:
@@ -459,3 +461,17 @@ def replay(
         check=report,
         stopped=stopped,
     )
+
+
+def _extraction_notes(reader, report: CheckReport) -> list[str]:
+    """Why a check may differ on the features: the log names another extraction version than
+    this build's, or (with differences found) an aefabmap log that names none."""
+    logged = reader.extraction_version
+    if logged is not None and logged != EXTRACTION_VERSION:
+        return [f"the log was written by a build that extracts features otherwise (extraction version {logged}, "
+                f"this build {EXTRACTION_VERSION}; CHANGELOG.md): keypoints, and what follows, may differ"]
+    if logged is None and report.mismatched and reader.format_version is not None:
+        return ["the log does not record its feature extraction version (written before aefabmap recorded it): "
+                f"a build before extraction version {EXTRACTION_VERSION} (CHANGELOG.md) gives other keypoints on "
+                "frames resized for detection"]
+    return []

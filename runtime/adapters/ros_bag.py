@@ -64,9 +64,10 @@ def rosbags_available() -> bool:
 
 class RosBagReader:
     """Single-pass reader of the images of one topic of a ROS bag; the replay interface of
-    McapLogReader (``frames()``, ``status``; no logged results, manifest or format version)."""
+    McapLogReader (``frames()``, ``status``; no logged results, manifest, format or extraction version)."""
 
     format_version = None
+    extraction_version = None
     manifest = None
     run_config = None
 

@@ -300,6 +300,75 @@ def test_replay_check_of_an_older_format_log_skips_the_fields_it_cannot_hold(liv
     assert not any("not compared" in n for n in again.check.notes)
 
 
+def _read(path) -> tuple[McapLogReader, list]:
+    """A reader of the log at path read through (metadata and results with it), and its frames."""
+    reader = McapLogReader(path)
+    return reader, list(reader.frames())
+
+
+def _copy_log(src, dst) -> None:
+    """Rewrite the images and results of log src into a new log dst (this build's writer)."""
+    reader, frames = _read(src)
+    with McapLogWriter(dst, manifest=reader.manifest) as w:
+        for f, res in zip(frames, reader.results, strict=True):
+            w.write_image(f.payload, f.encoding, f.stamp_ns, sequence=res.sequence)
+            w.write_result(res)
+
+
+def test_logs_record_the_extraction_version_and_a_check_says_when_it_differs(live_log, tmp_path, monkeypatch):
+    """A log names the feature extraction of the build that wrote it (features.EXTRACTION_VERSION):
+    replayed by a build that extracts otherwise, the check says why frames may differ."""
+    from aefabmap.runtime.adapters import mcap_log
+    from aefabmap.runtime.core.features import EXTRACTION_VERSION
+
+    assert _read(live_log)[0].extraction_version == EXTRACTION_VERSION
+    same = replay(FakeDetector(), live_log, check=True).check
+    assert same.ok and not any("extraction" in n for n in same.notes)
+    older = tmp_path / "older.mcap"
+    monkeypatch.setattr(mcap_log, "EXTRACTION_VERSION", EXTRACTION_VERSION - 1)
+    _copy_log(live_log, older)
+    monkeypatch.undo()
+    assert _read(older)[0].extraction_version == EXTRACTION_VERSION - 1
+    report = replay(FakeDetector(), older, check=True).check
+    assert report.ok  # this detector does not extract features: the note says what could differ
+    assert any(f"extraction version {EXTRACTION_VERSION - 1}, this build {EXTRACTION_VERSION}" in n
+               for n in report.notes)
+
+
+def test_a_set_of_logs_has_an_extraction_version_only_when_its_files_agree(live_log, tmp_path, monkeypatch):
+    from aefabmap.runtime.adapters import mcap_log
+    from aefabmap.runtime.adapters.log_set import LogSetReader
+    from aefabmap.runtime.core.features import EXTRACTION_VERSION
+
+    same, other = tmp_path / "same.mcap", tmp_path / "other.mcap"
+    _copy_log(live_log, same)
+    monkeypatch.setattr(mcap_log, "EXTRACTION_VERSION", EXTRACTION_VERSION + 1)
+    _copy_log(live_log, other)
+    monkeypatch.undo()
+    for files, expected in (([live_log, same], EXTRACTION_VERSION), ([live_log, other], None)):
+        reader = LogSetReader(files)
+        list(reader.frames())
+        assert reader.extraction_version == expected
+
+
+@pytest.mark.parametrize("value", ["", "0", "-1", "x", "\u00b2", "1234567", "2.0", " 2"])
+def test_a_log_without_a_readable_extraction_version_is_named_only_when_results_differ(live_log, tmp_path,
+                                                                                        monkeypatch, value):
+    """Logs written before the version was recorded (or hostile values) read as None: a check
+    that finds differences says the log does not record it; one that finds none says nothing."""
+    from aefabmap.runtime.adapters import mcap_log
+
+    log = tmp_path / "unrecorded.mcap"
+    monkeypatch.setattr(mcap_log, "EXTRACTION_VERSION", value)
+    _copy_log(live_log, log)
+    monkeypatch.undo()
+    assert _read(log)[0].extraction_version is None
+    assert not any("extraction" in n for n in replay(FakeDetector(), log, check=True).check.notes)
+    differing = replay(FakeDetector(threshold=0.5), log, check=True).check
+    assert differing.mismatched > 0
+    assert any("does not record its feature extraction version" in n for n in differing.notes)
+
+
 class _FakeClock:
     """A monotonic clock and a stop event whose waits advance it (no real time passes)."""
 
