@@ -468,10 +468,12 @@ def _extraction_notes(reader, report: CheckReport) -> list[str]:
     this build's, or (with differences found) an aefabmap log that names none."""
     logged = reader.extraction_version
     if logged is not None and logged != EXTRACTION_VERSION:
-        return [f"the log was written by a build that extracts features otherwise (extraction version {logged}, "
-                f"this build {EXTRACTION_VERSION}; CHANGELOG.md): keypoints, and what follows, may differ"]
+        note = (f"the log was written by a build that extracts features otherwise (extraction version {logged}, "
+                f"this build {EXTRACTION_VERSION}; CHANGELOG.md): keypoints, and what follows, may differ")
+        return [note]
     if logged is None and report.mismatched and reader.format_version is not None:
-        return ["the log does not record its feature extraction version (written before aefabmap recorded it): "
+        note = ("the log does not record its feature extraction version (written before aefabmap recorded it): "
                 f"a build before extraction version {EXTRACTION_VERSION} (CHANGELOG.md) gives other keypoints on "
-                "frames resized for detection"]
+                "frames resized for detection")
+        return [note]
     return []
