@@ -19,10 +19,11 @@ The topics are McapLogConfig's (defaults above). The JSON schemas and messages a
 runtime/core/messages.py (schemas generated from the message records). Metadata record
 ``aefabmap.log`` holds ``format_version`` (MESSAGE_FORMAT_VERSION, "major.minor"), the
 three topic names and ``extraction_version`` (features.EXTRACTION_VERSION of the build that wrote
-the log: a replay by a build that extracts features otherwise says why its frames differ); ``aefabmap.manifest`` and ``aefabmap.run_config`` each hold one key
-``json`` with the JSON text of the bundle manifest / run configuration. All are written
-at open, so they survive a crash. Message ``sequence`` = the frame's sequence number in the
-run (0-based count of processed frames); image ``timestamp`` = the frame's capture stamp.
+the log: a replay by a build that extracts features otherwise says why its frames differ);
+``aefabmap.manifest`` and ``aefabmap.run_config`` each hold one key ``json`` with the JSON text
+of the bundle manifest / run configuration. All are written at open, so they survive a crash.
+Message ``sequence`` = the frame's sequence number in the run (0-based count of processed
+frames); image ``timestamp`` = the frame's capture stamp.
 
 Crash safety: zstd chunks of ``chunk_size`` bytes (256 KiB by default) written through an
 unbuffered file, and a forced chunk flush every ``flush_interval_s`` seconds: a SIGKILL
