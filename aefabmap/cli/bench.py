@@ -17,6 +17,11 @@ _KERNELS_HELP = ("the kernels (FAB-MAP scatter, verification's matching, the int
                  "native, numba, or numpy / OpenCV")
 
 
+_VERIFY_KEYPOINTS_HELP = "keypoints per frame extracted and matched for verification (default: the runtime's)"
+_VERIFY_BRUTEFORCE_HELP = ("FAB-MAP candidates retried with all-pairs matching when same-word matching fails "
+                           "(default: the runtime's)")
+
+
 def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks (print figures, save JSON)")
     bsub = p.add_subparsers(dest="bench", required=True)
@@ -44,10 +49,9 @@ def register(sub) -> None:
                     "or synthetic observations of the same mean size")
     pl.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
     pl.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
-                    help="keypoints per frame extracted and matched for verification (default: the runtime's)")
+                    help=_VERIFY_KEYPOINTS_HELP)
     pl.add_argument("--verify-bruteforce", type=int, default=None, metavar="K",
-                    help="FAB-MAP candidates retried with all-pairs matching when same-word matching fails "
-                    "(default: the runtime's)")
+                    help=_VERIFY_BRUTEFORCE_HELP)
     pl.add_argument("--words-only-places", action="store_true",
                     help="pre-filled places without keypoints (never verified, so verification is understated; "
                          "the mode of figures measured before this option existed)")
@@ -65,6 +69,12 @@ def register(sub) -> None:
     sq.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     sq.add_argument("--calls", action="store_true", help="then a second pass under the profiler: CPU ms per frame "
                     "inside OpenCV, onnxruntime and aefabmap's compiled kernels (the rest: Python and numpy)")
+    sq.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
+                    help=_VERIFY_KEYPOINTS_HELP)
+    sq.add_argument("--verify-bruteforce", type=int, default=None, metavar="K",
+                    help=_VERIFY_BRUTEFORCE_HELP)
+    sq.add_argument("--no-verify-upright", dest="verify_upright", action="store_false", default=None,
+                    help="no upright descriptors (as run's option)")
     sq.add_argument("--json", type=Path, metavar="OUT")
     sq.set_defaults(func=run_sequence)
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
@@ -227,11 +237,15 @@ def run_sequence(args) -> int:
 
     doc = bench_sequence(SequenceBenchConfig(images=str(args.images), bundle=str(_model(args)), exclude=args.exclude,
                                              limit=args.limit, scatter=args.scatter, single_core=not args.all_cores,
-                                             calls=args.calls))
+                                             calls=args.calls, verify_keypoints=args.verify_keypoints,
+                                             verify_bruteforce=args.verify_bruteforce,
+                                             verify_upright=args.verify_upright))
     _emit(doc, args.json)
     s, c = doc["stages_ms"], doc["stages_cpu_ms"]
     print(f"\n{doc['images']}: {doc['frames']} frames of {doc['image_size_wh']}, {doc['loops']} loops, "
-          f"{doc['places_verified_per_frame']['mean']} places verified per frame, kernels {doc['scatter']}, "
+          f"{doc['places_verified_per_frame']['mean']} places verified per frame (keypoints "
+          f"{doc['verify_keypoints']}, retries {doc['verify_bruteforce']}, upright {doc['verify_upright']}), "
+          f"kernels {doc['scatter']}, "
           f"{'one core' if doc['single_core'] else 'all cores'}, load {doc['machine']['load_average']}")
     print(f"{'stage':<16}{'wall median':>12}{'wall p95':>10}{'CPU median':>12}{'CPU mean':>10}  (ms)")
     for name in STAGES:

@@ -64,11 +64,21 @@ def process_rss_mb(pid: int | str) -> float | None:
     """VmRSS of a process in MB from /proc/<pid>/status (pid "self": this one; None when unavailable)."""
     try:
         with open(f"/proc/{pid}/status", encoding="ascii", errors="replace") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
-    except (OSError, ValueError, IndexError):
+            return rss_mb_of_status(f.read())
+    except OSError:
         return None
+
+
+def rss_mb_of_status(text: str) -> float | None:
+    """VmRSS in MB of the text of a /proc/<pid>/status file; None without a positive one (a
+    process in the middle of exec, or exiting, reports 0 kB: its memory, not yet or no longer)."""
+    for line in text.splitlines():
+        if line.startswith("VmRSS:"):
+            try:
+                kb = int(line.split()[1])
+            except (ValueError, IndexError):
+                return None
+            return kb / 1024.0 if kb > 0 else None
     return None
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from aefabmap.errors import BundleError, ConfigError, InputError
@@ -37,6 +37,9 @@ class SequenceBenchConfig:
     only (None: all). scatter: the kernels, as StreamBenchConfig.scatter. single_core: a spawned process pinned to one CPU with one thread everywhere.
     calls: after the timed pass, a second pass from an empty map under the profiler, for the time
     inside each library's calls (`call_profile.GROUPS`; the rest is Python and numpy).
+    verify_keypoints / verify_bruteforce / verify_upright: VerificationConfig.keypoints,
+    CandidateConfig.bruteforce_fallback and VerificationConfig.upright (None: the runtime's), as
+    `run` and `eval` set them with --verify-keypoints, --verify-bruteforce and --no-verify-upright.
     """
 
     images: str
@@ -46,14 +49,31 @@ class SequenceBenchConfig:
     scatter: str = "auto"
     single_core: bool = True
     calls: bool = False
+    verify_keypoints: int | None = None
+    verify_bruteforce: int | None = None
+    verify_upright: bool | None = None
 
     def __post_init__(self) -> None:
-        if self.exclude < 0:
-            raise ConfigError(f"exclude must be >= 0 frames, got {self.exclude}")
         if self.limit is not None and self.limit < 1:
             raise ConfigError(f"limit must be >= 1 images, got {self.limit}")
         if self.scatter not in KERNEL_CHOICES:
             raise ConfigError(f"scatter must be one of {', '.join(KERNEL_CHOICES)}, got {self.scatter!r}")
+        self.detector_config()  # its owners' checks (exclude, keypoints, retries), before any loading
+
+    def detector_config(self):
+        """The DetectorConfig both passes run: one thread, the runtime's defaults but for the
+        exclusion window and the verification settings given."""
+        from aefabmap.runtime.core.detector import DetectorConfig
+
+        d = DetectorConfig()
+        v, c = d.verification, d.candidates
+        if self.verify_keypoints is not None:
+            v = replace(v, keypoints=self.verify_keypoints)
+        if self.verify_upright is not None:
+            v = replace(v, upright=self.verify_upright)
+        if self.verify_bruteforce is not None:
+            c = replace(c, bruteforce_fallback=self.verify_bruteforce)
+        return replace(d, threads=1, exclude=self.exclude, verification=v, candidates=c)
 
 
 def bench_sequence(config: SequenceBenchConfig) -> dict:
@@ -70,13 +90,12 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
     from aefabmap.runtime.adapters.frame_loop import FrameLoop
     from aefabmap.runtime.adapters.image_folder import list_images
     from aefabmap.runtime.core import compiled
-    from aefabmap.runtime.core.detector import DetectorConfig
 
     pinned = prepare_process(config)
     paths = list_images(config.images)[: config.limit]
     if not paths:
         raise InputError(f"no images in {config.images}")
-    det = load_detector(config.bundle, DetectorConfig(threads=1, exclude=config.exclude))
+    det = load_detector(config.bundle, config.detector_config())
     loop = FrameLoop(det, strict=True)
     wall: dict[str, list[float]] = {k: [] for k in STAGES}
     cpu: dict[str, list[float]] = {k: [] for k in STAGES}
@@ -106,6 +125,9 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
         "vocabulary_size": det.bundle.vocabulary_size,
         "features": manifest.get("features"),
         "exclude": config.exclude,
+        "verify_keypoints": det.config.verification.keypoints,
+        "verify_bruteforce": det.config.candidates.bruteforce_fallback,
+        "verify_upright": det.config.verification.upright,
         "frames": len(paths),
         "image_size_wh": image_size,
         "loops": loop.loops,
@@ -132,10 +154,9 @@ def _calls_per_frame(config: SequenceBenchConfig, paths: list, cpu_ms_per_frame:
     "rest": the timed pass's mean CPU ms per frame beyond them (Python and numpy)."""
     from aefabmap.runtime.adapters.bundle_reader import load_detector
     from aefabmap.runtime.adapters.frame_loop import FrameLoop
-    from aefabmap.runtime.core.detector import DetectorConfig
     from aefabmap.runtime.tools.call_profile import seconds_in_calls
 
-    loop = FrameLoop(load_detector(config.bundle, DetectorConfig(threads=1, exclude=config.exclude)), strict=True)
+    loop = FrameLoop(load_detector(config.bundle, config.detector_config()), strict=True)
 
     def run() -> None:
         for i, path in enumerate(paths):

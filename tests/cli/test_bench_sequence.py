@@ -49,3 +49,23 @@ def test_bench_sequence_calls_attributes_time_to_the_libraries(tmp_path, capsys)
     # Every frame is decoded, resized and described by OpenCV and quantised by onnxruntime's product.
     assert calls["opencv_orb"] > 0 and calls["opencv_image"] > 0 and calls["onnxruntime"] > 0
     assert "inside: opencv_orb" in capsys.readouterr().out
+
+
+@pytest.mark.timeout(180)
+def test_bench_sequence_runs_with_run_s_verification_options(tmp_path):
+    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+
+    make_demo_sequence(tmp_path / "seq", n_frames=8, seed=5, size=(320, 240))
+    out = tmp_path / "sequence.json"
+    code = main(["bench", "sequence", "--images", str(tmp_path / "seq"), "--exclude", "2", "--verify-keypoints", "300",
+                 "--verify-bruteforce", "1", "--no-verify-upright", "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert (doc["verify_keypoints"], doc["verify_bruteforce"], doc["verify_upright"]) == (300, 1, False)
+
+
+@pytest.mark.parametrize("option", [["--verify-keypoints", "0"], ["--verify-bruteforce", "-1"], ["--exclude", "-1"]])
+def test_bench_sequence_refuses_bad_settings_in_one_line_before_loading(tmp_path, caplog, option):
+    code = main(["bench", "sequence", "--images", str(tmp_path), *option])
+    assert code == 2
+    assert len([r for r in caplog.records if r.levelname == "ERROR"]) == 1
