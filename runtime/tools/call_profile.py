@@ -2,9 +2,10 @@
 
 Groups (GROUPS) of the calls a frame makes:
 
-- opencv_orb: OpenCV's feature detectors and describers (``Feature2D`` methods);
+- opencv_features: OpenCV's feature detectors and describers (``Feature2D`` methods: ORB, SIFT);
 - opencv_fits: OpenCV's two-view model fits (homography, fundamental and essential matrices);
-- opencv_image: JPEG decoding and image preparation (any other OpenCV function);
+- opencv_matching: OpenCV's descriptor distances (the numpy kernels' all-pairs matching);
+- opencv_image: JPEG decoding and image preparation (any other OpenCV call);
 - onnxruntime: graph runs (the int8 product of the flat search, the autoencoder);
 - native_kernels: aefabmap's own compiled kernels (runtime/core/native.py).
 
@@ -19,9 +20,10 @@ import pstats
 import time
 from collections.abc import Callable
 
-GROUPS = ("opencv_orb", "opencv_fits", "opencv_image", "onnxruntime", "native_kernels")
-#: OpenCV functions that fit a two-view model.
+GROUPS = ("opencv_features", "opencv_fits", "opencv_matching", "opencv_image", "onnxruntime", "native_kernels")
+#: OpenCV functions that fit a two-view model, and those that compare descriptors.
 FITS = frozenset({"findHomography", "findFundamentalMat", "findEssentialMat", "recoverPose"})
+MATCHING = frozenset({"batchDistance", "norm"})
 #: native.py helpers that check arguments in Python: not kernel time.
 NATIVE_HELPERS = frozenset({"_arg", "_writable", "_same", "_memory", "_points", "_load"})
 
@@ -32,13 +34,19 @@ def group_of(key: tuple[str, int, str]) -> str | None:
 
     filename, _, name = key
     if filename == "~":  # a compiled (built-in) call
+        if "of 'cv2.Feature2D'" in name:
+            return "opencv_features"
+        if "of 'cv2.DescriptorMatcher'" in name:
+            return "opencv_matching"
         if "of 'cv2." in name:
-            return "opencv_orb"
+            return "opencv_image"
         if "onnxruntime" in name:
             return "onnxruntime"
         bare = name.strip("<>")
         if bare in FITS:
             return "opencv_fits"
+        if bare in MATCHING:
+            return "opencv_matching"
         return "opencv_image" if bare.isidentifier() and hasattr(cv2, bare) else None
     if filename.replace("\\", "/").endswith("runtime/core/native.py") and name not in NATIVE_HELPERS:
         return "native_kernels"

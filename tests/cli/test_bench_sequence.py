@@ -47,8 +47,8 @@ def test_bench_sequence_calls_attributes_time_to_the_libraries(tmp_path, capsys)
     assert set(calls) == {*GROUPS, "rest"}
     assert all(calls[g] >= 0 for g in GROUPS)
     # Every frame is decoded, resized and described by OpenCV and quantised by onnxruntime's product.
-    assert calls["opencv_orb"] > 0 and calls["opencv_image"] > 0 and calls["onnxruntime"] > 0
-    assert "inside: opencv_orb" in capsys.readouterr().out
+    assert calls["opencv_features"] > 0 and calls["opencv_image"] > 0 and calls["onnxruntime"] > 0
+    assert "inside: opencv_features" in capsys.readouterr().out
 
 
 @pytest.mark.timeout(180)

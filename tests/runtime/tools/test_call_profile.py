@@ -9,7 +9,10 @@ from aefabmap.runtime.tools.call_profile import GROUPS, group_of, seconds_in_cal
 
 
 def test_group_of_names_the_library_of_a_call():
-    assert group_of(("~", 0, "<method 'detectAndCompute' of 'cv2.Feature2D' objects>")) == "opencv_orb"
+    assert group_of(("~", 0, "<method 'detectAndCompute' of 'cv2.Feature2D' objects>")) == "opencv_features"
+    assert group_of(("~", 0, "<method 'knnMatch' of 'cv2.DescriptorMatcher' objects>")) == "opencv_matching"
+    assert group_of(("~", 0, "<batchDistance>")) == "opencv_matching"
+    assert group_of(("~", 0, "<method 'apply' of 'cv2.CLAHE' objects>")) == "opencv_image"
     assert group_of(("~", 0, "<findFundamentalMat>")) == "opencv_fits"
     assert group_of(("~", 0, "<findHomography>")) == "opencv_fits"
     assert group_of(("~", 0, "<imdecode>")) == "opencv_image"
@@ -34,5 +37,5 @@ def test_seconds_in_calls_counts_the_opencv_call_not_the_python_around_it():
 
     seconds = seconds_in_calls(work)
     assert set(seconds) == set(GROUPS)
-    assert seconds["opencv_orb"] > 0
-    assert seconds["opencv_fits"] == seconds["onnxruntime"] == seconds["native_kernels"] == 0
+    assert seconds["opencv_features"] > 0
+    assert seconds["opencv_fits"] == seconds["opencv_matching"] == seconds["onnxruntime"] == seconds["native_kernels"] == 0
