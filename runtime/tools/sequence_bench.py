@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 from aefabmap.errors import BundleError, ConfigError, InputError
@@ -20,6 +20,7 @@ from aefabmap.runtime.core.compiled import KERNEL_CHOICES
 from aefabmap.runtime.tools.stream_bench import (
     SINGLE_THREAD_ENV,
     _stats,
+    bench_detector_config,
     machine_info,
     prepare_process,
     run_benchmark,
@@ -61,19 +62,9 @@ class SequenceBenchConfig:
         self.detector_config()  # its owners' checks (exclude, keypoints, retries), before any loading
 
     def detector_config(self):
-        """The DetectorConfig both passes run: one thread, the runtime's defaults but for the
-        exclusion window and the verification settings given."""
-        from aefabmap.runtime.core.detector import DetectorConfig
-
-        d = DetectorConfig()
-        v, c = d.verification, d.candidates
-        if self.verify_keypoints is not None:
-            v = replace(v, keypoints=self.verify_keypoints)
-        if self.verify_upright is not None:
-            v = replace(v, upright=self.verify_upright)
-        if self.verify_bruteforce is not None:
-            c = replace(c, bruteforce_fallback=self.verify_bruteforce)
-        return replace(d, threads=1, exclude=self.exclude, verification=v, candidates=c)
+        """The DetectorConfig both passes run (`stream_bench.bench_detector_config`)."""
+        return bench_detector_config(exclude=self.exclude, verify_keypoints=self.verify_keypoints,
+                                     verify_bruteforce=self.verify_bruteforce, verify_upright=self.verify_upright)
 
 
 def bench_sequence(config: SequenceBenchConfig) -> dict:

@@ -148,10 +148,30 @@ class PipelineBenchConfig:
             raise ConfigError(f"prefill must be 'train' or 'synthetic', got {self.prefill!r}")
         if self.scatter not in KERNEL_CHOICES:
             raise ConfigError(f"scatter must be one of {', '.join(KERNEL_CHOICES)}, got {self.scatter!r}")
-        if self.verify_bruteforce is not None:
-            from aefabmap.runtime.core.candidates import CandidateConfig
+        self.detector_config()  # its owners' checks (keypoints, retries), before any loading
 
-            CandidateConfig(bruteforce_fallback=self.verify_bruteforce)  # its owner's check, before any loading
+    def detector_config(self):
+        """The DetectorConfig the benchmark runs (`bench_detector_config`)."""
+        return bench_detector_config(verification=self.verification, verify_keypoints=self.verify_keypoints,
+                                     verify_bruteforce=self.verify_bruteforce)
+
+
+def bench_detector_config(*, exclude: int | None = None, verification: bool = True, verify_keypoints: int | None = None,
+                          verify_bruteforce: int | None = None, verify_upright: bool | None = None):
+    """The DetectorConfig a benchmark runs: one thread, the runtime's defaults but for the settings
+    given (None: the default), as `run` sets them with --exclude, --no-verify, --verify-keypoints,
+    --verify-bruteforce and --no-verify-upright. ConfigError (the configs' own checks) for bad ones."""
+    from aefabmap.runtime.core.detector import DetectorConfig
+
+    d = DetectorConfig()
+    v, c = replace(d.verification, enabled=verification), d.candidates
+    if verify_keypoints is not None:
+        v = replace(v, keypoints=verify_keypoints)
+    if verify_upright is not None:
+        v = replace(v, upright=verify_upright)
+    if verify_bruteforce is not None:
+        c = replace(c, bruteforce_fallback=verify_bruteforce)
+    return replace(d, threads=1, exclude=d.exclude if exclude is None else exclude, verification=v, candidates=c)
 
 
 def bench_pipeline(config: PipelineBenchConfig) -> dict:
@@ -225,18 +245,10 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
     from aefabmap.runtime.adapters.frame_loop import FrameLoop
     from aefabmap.runtime.adapters.frames import decode_frame
     from aefabmap.runtime.core import compiled
-    from aefabmap.runtime.core.detector import DetectorConfig
-    from aefabmap.runtime.core.verification import VerificationConfig
     from aefabmap.runtime.tools.synthetic_observations import synthetic_observations
 
     pinned = prepare_process(config)
-    verification = VerificationConfig(enabled=config.verification)
-    if config.verify_keypoints is not None:
-        verification = replace(verification, keypoints=config.verify_keypoints)
-    det_cfg = DetectorConfig(threads=1, verification=verification)
-    if config.verify_bruteforce is not None:
-        det_cfg = replace(det_cfg, candidates=replace(det_cfg.candidates, bruteforce_fallback=config.verify_bruteforce))
-    det = load_detector(config.bundle, det_cfg)
+    det = load_detector(config.bundle, config.detector_config())
     manifest = det.manifest
     vocab = det.bundle.vocabulary_size
     train = det.bundle.training_observations
@@ -305,7 +317,7 @@ def _bench_pipeline_here(config: PipelineBenchConfig) -> dict:
         "places_in_map": {"min": int(min(n_places)), "max": int(max(n_places))},
         "map_bytes": int(det.map_bytes()),
         "verification": config.verification,
-        "verify_keypoints": verification.keypoints,
+        "verify_keypoints": det.config.verification.keypoints,
         "verify_bruteforce": det.config.candidates.bruteforce_fallback,
         "frames_timed": len(total_wall),
         "warmup_frames": config.warmup,
