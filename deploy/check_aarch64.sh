@@ -41,6 +41,15 @@ PY=(qemu-aarch64-static -L "$SYSROOT" "$SYSROOT/usr/bin/python3.11")
 #    then setup.py's extra_compile_args; linked with its LDSHARED flags.
 grep -q '"-O3", "-ffp-contract=off"' "$REPO/setup.py" || { echo "setup.py's flags changed: update $0" >&2; exit 1; }
 var() { "${PY[@]}" -c "import sysconfig; print(sysconfig.get_config_var('$1'))"; }
+# fetch DIR PACKAGE...: PyPI's wheels of the packages for CPython 3.11 on aarch64 (or pure Python)
+# into DIR, unpacked into $WORK/site.
+fetch() {
+    local dir=$1; shift
+    python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
+        --abi cp311 --abi abi3 --abi none --platform manylinux_2_28_aarch64 --platform manylinux2014_aarch64 \
+        --platform any -d "$dir" "$@"
+    for whl in "$dir"/*.whl; do python3 -m zipfile -e "$whl" "$WORK/site"; done
+}
 CFLAGS="$(var CFLAGS) $(var CCSHARED)"
 LDFLAGS=$(var LDSHARED | cut -d' ' -f2-)
 OUT=$REPO/runtime/core/_kernels$(var EXT_SUFFIX)
@@ -58,10 +67,7 @@ fi
 #    then the kernel tests on a Cortex-A53 (Raspberry Pi 3 / Zero 2, ARMv8.0). Not the tests that
 #    need onnxruntime: its import crashes under qemu-user (it parses the host's x86 /proc/cpuinfo).
 pins=$(grep -oE '^(numpy|opencv-python-headless)==[^ ]+' deploy/requirements-board.txt)
-python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
-    --abi cp311 --abi abi3 --platform manylinux_2_28_aarch64 --platform manylinux2014_aarch64 \
-    -d "$WORK/wheels" $pins pytest pytest-timeout iniconfig packaging pluggy pygments
-for whl in "$WORK"/wheels/*.whl; do python3 -m zipfile -e "$whl" "$WORK/site"; done
+fetch "$WORK/wheels" $pins pytest pytest-timeout iniconfig packaging pluggy pygments
 mkdir -p "$WORK/bin" && ln -sf "$(command -v aarch64-linux-gnu-gcc)" "$WORK/bin/cc"  # test_native builds a stub library
 PATH=$WORK/bin:$PATH PYTHONPATH=$WORK/site AEFABMAP_DATA=/nonexistent QEMU_CPU=cortex-a53 "${PY[@]}" \
     -m pytest -p no:cacheprovider -q -rs tests/runtime/core/test_{native,model_errors,scatter,postings,fabmap,bits}.py \
@@ -74,10 +80,7 @@ echo "aarch64 kernels check passed: $OUT"
 BUNDLE=$(realpath "$2"); IMAGES=$(realpath "$3"); GT=$(realpath "$4"); EXCLUDE=$5
 HOST_PY=${AEFABMAP_PYTHON:-$REPO/.venv/bin/python}
 pins=$(grep -oE '^[A-Za-z0-9_.-]+==[^ ]+' deploy/requirements-board.txt | grep -vE '^(onnxruntime|numpy|opencv-python-headless)==')
-python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
-    --abi cp311 --abi abi3 --abi none --platform manylinux_2_28_aarch64 --platform manylinux2014_aarch64 \
-    --platform any -d "$WORK/wheels-eval" $pins onnxruntime==1.20.1 coloredlogs humanfriendly sympy mpmath
-for whl in "$WORK"/wheels-eval/*.whl; do python3 -m zipfile -e "$whl" "$WORK/site"; done  # numpy, OpenCV: step 4
+fetch "$WORK/wheels-eval" $pins onnxruntime==1.20.1 coloredlogs humanfriendly sympy mpmath  # numpy, OpenCV: step 4
 EVAL=(-m aefabmap eval --model "$BUNDLE" --images "$IMAGES" --gt "$GT" --exclude "$EXCLUDE" --fabmap-score llr --no-progress)
 "$HOST_PY" "${EVAL[@]}" --frames "$WORK/here.frames.jsonl" | tail -3
 PYTHONPATH=$WORK/site:$REPO QEMU_CPU=cortex-a53 "${PY[@]}" "${EVAL[@]}" --frames "$WORK/board.frames.jsonl" | tail -3
