@@ -2,9 +2,9 @@
 # aefabmap runtime image: `aefabmap run|replay|eval|demo|publish` with the runtime set only
 # (numpy, OpenCV headless, onnxruntime, zenoh, mcap; no torch, no onnx, no scipy).
 #
-#   docker buildx build --platform linux/arm64,linux/amd64 -t aefabmap:0.1.0 .
-#   docker run --rm aefabmap:0.1.0 demo          # smoke test: publish -> run -> loops -> MCAP -> replay check
-#   docker run --rm --network host -v /var/log/aefabmap:/var/log/aefabmap aefabmap:0.1.0 \
+#   docker buildx build --platform linux/arm64,linux/amd64 -t aefabmap:0.2.0 .
+#   docker run --rm aefabmap:0.2.0 demo          # smoke test: publish -> run -> loops -> MCAP -> replay check
+#   docker run --rm --network host -v /var/log/aefabmap:/var/log/aefabmap aefabmap:0.2.0 \
 #       run --model /bundle --key robot/camera/image --connect tcp/127.0.0.1:7447 \
 #           --mcap /var/log/aefabmap/lcd.mcap --image-every 30     # (+ -v /path/to/bundle:/bundle:ro)
 #
@@ -28,7 +28,7 @@ COPY . /src
 RUN pip wheel --no-deps -w /tmp/dist /src \
  && /opt/aefabmap/bin/pip install --no-deps /tmp/dist/aefabmap-*.whl \
  && /opt/aefabmap/bin/pip check \
- && /opt/aefabmap/bin/python -c "from aefabmap.runtime.core import native; assert native.available(), native.unavailable_reason()" \
+ && /opt/aefabmap/bin/python -c "from aefabmap_runtime.core.kernels import native; assert native.available(), native.unavailable_reason()" \
  && ! /opt/aefabmap/bin/python -c "import torch" 2>/dev/null
 
 FROM ${PYTHON_IMAGE}

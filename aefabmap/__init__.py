@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import importlib
 
-__version__ = "0.1.0"
-
-from aefabmap.errors import (  # noqa: E402
+from aefabmap_runtime.errors import (
     AefabmapError,
     BundleError,
     ConfigError,
@@ -27,21 +25,22 @@ from aefabmap.errors import (  # noqa: E402
     StateError,
     TransportError,
 )
+from aefabmap_runtime.version import __version__
 
 # public name -> module that owns it
 _LAZY = {
-    "LoopClosureDetector": "aefabmap.runtime.core.detector",
-    "DetectorConfig": "aefabmap.runtime.core.detector",
-    "CandidateConfig": "aefabmap.runtime.core.candidates",
-    "VerificationConfig": "aefabmap.runtime.core.verification",
-    "RunConfig": "aefabmap.runtime.core.run_config",
-    "FrameResult": "aefabmap.runtime.core.messages",
-    "Candidate": "aefabmap.runtime.core.messages",
-    "load_detector": "aefabmap.runtime.adapters.bundle_reader",
-    "load_bundle": "aefabmap.runtime.adapters.bundle_reader",
-    "FabMap2": "aefabmap.runtime.core.fabmap",
-    "Localization": "aefabmap.runtime.core.fabmap",
-    "ChowLiuTree": "aefabmap.runtime.core.tree",
+    "LoopClosureDetector": "aefabmap_runtime.core.detector",
+    "DetectorConfig": "aefabmap_runtime.core.detector",
+    "CandidateConfig": "aefabmap_runtime.core.decide.candidates",
+    "VerificationConfig": "aefabmap_runtime.core.verify.verification",
+    "RunConfig": "aefabmap_runtime.core.run_config",
+    "FrameResult": "aefabmap_runtime.core.records.messages",
+    "Candidate": "aefabmap_runtime.core.records.messages",
+    "load_detector": "aefabmap_runtime.adapters.bundle_reader",
+    "load_bundle": "aefabmap_runtime.adapters.bundle_reader",
+    "FabMap2": "aefabmap_runtime.core.rank.fabmap",
+    "Localization": "aefabmap_runtime.core.rank.fabmap",
+    "ChowLiuTree": "aefabmap_runtime.core.rank.tree",
 }
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Build the compiled kernels (runtime/core/native/kernels.c) for aarch64 and run the tests that
+# Build the compiled kernels (runtime/aefabmap_runtime/core/kernels/kernels.c) for aarch64 and run the tests that
 # compare them with the numpy / OpenCV fallbacks under qemu user-mode emulation, with the board's
 # numpy and OpenCV wheels (deploy/requirements-board.txt), from a Debian 12 (bookworm) amd64
 # machine, as root.
@@ -13,7 +13,7 @@
 # decides as the machine its settings were measured on (docs/results.md, "The board's arithmetic").
 #
 # Debian's arm64 python3.11 is unpacked into WORKDIR/sysroot, not installed: apt would replace
-# the machine's amd64 python3 with the arm64 one. Writes runtime/core/_kernels.cpython-311-
+# the machine's amd64 python3 with the arm64 one. Writes runtime/aefabmap_runtime/core/_kernels.cpython-311-
 # aarch64-linux-gnu.so into this checkout (git-ignored; the x86-64 library beside it is untouched).
 # Emulated timings mean nothing: this checks results only.
 set -euo pipefail
@@ -55,7 +55,7 @@ LDFLAGS=$(var LDSHARED | cut -d' ' -f2-)
 OUT=$REPO/runtime/core/_kernels$(var EXT_SUFFIX)
 cd "$REPO"
 set -x
-aarch64-linux-gnu-gcc $CFLAGS -c runtime/core/native/kernels.c -o "$WORK/kernels.o" -O3 -ffp-contract=off
+aarch64-linux-gnu-gcc $CFLAGS -c runtime/aefabmap_runtime/core/kernels/kernels.c -o "$WORK/kernels.o" -O3 -ffp-contract=off
 aarch64-linux-gnu-gcc $LDFLAGS "$WORK/kernels.o" -o "$OUT"
 { set +x; } 2>/dev/null
 # -ffp-contract=off must leave no fused multiply-add (GCC fuses by default on aarch64).

@@ -3,8 +3,8 @@
 
 Pair words (as scripts/ae_report.py): the share of matching descriptor pairs (one scene point in
 two images) whose two descriptors get the same word. Pairs come from test-split training images
-(trainer/multiview.is_test_image, never used for the assign objective's tracks), matched by
-position (trainer/multiview.build_test_pairs):
+(trainer/aefabmap_trainer/multiview.is_test_image, never used for the assign objective's tracks), matched by
+position (trainer/aefabmap_trainer/multiview.build_test_pairs):
   viewpoint        image vs a random homography warp of it
   night            image vs its fixed synthetic night (multiview.NIGHT: darker, gamma, noise, blur)
   viewpoint+night  image vs the night of the warp
@@ -32,11 +32,11 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from aefabmap.runtime.adapters.bundle_reader import load_bundle  # noqa: E402
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor  # noqa: E402
-from aefabmap.trainer.ae_quantizer import PAIR_VAL_FRACTION  # noqa: E402
-from aefabmap.trainer.multiview import build_test_pairs  # noqa: E402
-from aefabmap.trainer.train import cached_match_pairs, find_training_images  # noqa: E402
+from aefabmap_runtime.adapters.bundle_reader import load_bundle  # noqa: E402
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor  # noqa: E402
+from aefabmap_trainer.ae_quantizer import PAIR_VAL_FRACTION  # noqa: E402
+from aefabmap_trainer.multiview import build_test_pairs  # noqa: E402
+from aefabmap_trainer.train import cached_match_pairs, find_training_images  # noqa: E402
 
 SEED = 0
 SETS = ("viewpoint", "night", "viewpoint+night", "old_warps", "old_frames", "old_all")

@@ -28,11 +28,11 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from aefabmap.runtime.adapters.bundle_reader import load_bundle  # noqa: E402
-from aefabmap.runtime.adapters.frames import load_image  # noqa: E402
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor  # noqa: E402
-from aefabmap.trainer.ae_quantizer import PAIR_VAL_FRACTION  # noqa: E402
-from aefabmap.trainer.train import cached_match_pairs, find_training_images  # noqa: E402
+from aefabmap_runtime.adapters.bundle_reader import load_bundle  # noqa: E402
+from aefabmap_runtime.adapters.frames import load_image  # noqa: E402
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor  # noqa: E402
+from aefabmap_trainer.ae_quantizer import PAIR_VAL_FRACTION  # noqa: E402
+from aefabmap_trainer.train import cached_match_pairs, find_training_images  # noqa: E402
 
 SEED = 0
 

@@ -2,8 +2,8 @@
 """Re-vocabulary an AE bundle with a two-level latent vocabulary tree (faster word search).
 
 Keeps the bundle's encoder (fp32 and int8 ONNX graphs), encodes the same training sample the
-AE run clustered, fits a LatentTree (trainer/latent_vocabulary.py) of the same size K, swaps the
-graphs' flat arg-min for the tree search (export/onnx_export.attach_tree_search), re-quantises
+AE run clustered, fits a LatentTree (trainer/aefabmap_trainer/latent_vocabulary.py) of the same size K, swaps the
+graphs' flat arg-min for the tree search (export/aefabmap_export/onnx_export.attach_tree_search), re-quantises
 the training images and re-learns the Chow-Liu tree. Usage:
 
     python scripts/ae_tree_bundle.py --data DATA --cache bundles/cache --branches 64 SRC_BUNDLE OUT_BUNDLE
@@ -26,14 +26,14 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import onnx  # noqa: E402
 
-from aefabmap.export.bundle_writer import write_bundle  # noqa: E402
-from aefabmap.export.onnx_export import attach_tree_search  # noqa: E402
-from aefabmap.runtime.adapters.bundle_reader import load_bundle  # noqa: E402
-from aefabmap.runtime.core.features import FeatureConfig  # noqa: E402
-from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer  # noqa: E402
-from aefabmap.trainer.chow_liu import fit_chow_liu  # noqa: E402
-from aefabmap.trainer.latent_vocabulary import fit_latent_tree  # noqa: E402
-from aefabmap.trainer.train import cached_training_vectors, find_training_images, sample_vectors  # noqa: E402
+from aefabmap_export.bundle_writer import write_bundle  # noqa: E402
+from aefabmap_export.onnx_export import attach_tree_search  # noqa: E402
+from aefabmap_runtime.adapters.bundle_reader import load_bundle  # noqa: E402
+from aefabmap_runtime.core.features.features import FeatureConfig  # noqa: E402
+from aefabmap_runtime.core.words.onnx_quantizer import OnnxQuantizer  # noqa: E402
+from aefabmap_trainer.chow_liu import fit_chow_liu  # noqa: E402
+from aefabmap_trainer.latent_vocabulary import fit_latent_tree  # noqa: E402
+from aefabmap_trainer.train import cached_training_vectors, find_training_images, sample_vectors  # noqa: E402
 
 
 def main() -> None:

@@ -22,11 +22,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.frames import load_image
-from aefabmap.runtime.core import candidates as C
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.core.sequence import Link, SequenceConfig, SequenceEvidence
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.frames import load_image
+from aefabmap_runtime.core.decide import candidates as C
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.core.decide.sequence import Link, SequenceConfig, SequenceEvidence
 
 
 def drives(camvid: Path) -> dict[str, list[Path]]:

@@ -26,10 +26,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap.runtime.adapters.frames import load_image
-from aefabmap.runtime.core import verification as V
-from aefabmap.runtime.core.feature_kinds import get_kind
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
+from aefabmap_runtime.adapters.frames import load_image
+from aefabmap_runtime.core.verify import verification as V
+from aefabmap_runtime.core.features.feature_kinds import get_kind
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor
 
 GAPS = (1, 2, 3, 5, 10)
 

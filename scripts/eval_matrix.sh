@@ -38,4 +38,4 @@ for name in "${names[@]}"; do
   "$(dirname "$0")/eval_sequences.sh" "$data" "$bundles/$name" "$results/$name" \
     --frames "{out}.frames.jsonl" --failures "{out}.failures"
 done
-"$py" -m aefabmap.runtime.tools.results_table "$results"/*.json
+"$py" -m aefabmap_runtime.tools.results_table "$results"/*.json

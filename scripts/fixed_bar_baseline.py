@@ -26,15 +26,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap.errors import AefabmapError
-from aefabmap.runtime.adapters.bundle_reader import load_bundle
-from aefabmap.runtime.adapters.frames import load_image
-from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.core.bow import BowIndex
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
-from aefabmap.runtime.core.quantizer import quantize_raw
-from aefabmap.runtime.tools.pr_metrics import correct_predictions, evaluate_predictions
-from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+from aefabmap_runtime.errors import AefabmapError
+from aefabmap_runtime.adapters.bundle_reader import load_bundle
+from aefabmap_runtime.adapters.frames import load_image
+from aefabmap_runtime.adapters.image_folder import list_images
+from aefabmap_runtime.core.rank.bow import BowIndex
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor
+from aefabmap_runtime.core.words.quantizer import quantize_raw
+from aefabmap_runtime.tools.pr_metrics import correct_predictions, evaluate_predictions
+from aefabmap_runtime.tools.sequence_eval import load_ground_truth
 
 CANDIDATES = 5
 MIN_INLIERS = 15  # below this the baseline makes no prediction at all

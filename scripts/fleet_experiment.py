@@ -28,24 +28,24 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.runtime.adapters.frames import ENCODING_JPEG, ENCODING_PNG
-from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.adapters.zenoh_transport import (
+from aefabmap_runtime.adapters.frames import ENCODING_JPEG, ENCODING_PNG
+from aefabmap_runtime.adapters.image_folder import list_images
+from aefabmap_runtime.adapters.zenoh_transport import (
     FramePublisher,
     SessionConfig,
     open_session,
     result_key_for,
     stats_key_for,
 )
-from aefabmap.runtime.core.messages import FrameResult, StatsMessage
-from aefabmap.runtime.tools.node_process import (
+from aefabmap_runtime.core.records.messages import FrameResult, StatsMessage
+from aefabmap_runtime.tools.node_process import (
     connect_when_listening,
     free_tcp_port,
     process_rss_mb,
     start_run_node,
     stop_node,
 )
-from aefabmap.runtime.tools.pr_metrics import correct_predictions
+from aefabmap_runtime.tools.pr_metrics import correct_predictions
 
 
 class Robot:

@@ -22,12 +22,12 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from aefabmap.cli.demo import default_bundle
-from aefabmap.runtime.adapters.log_set import LogSet
-from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, stats_key_for, result_key_for
-from aefabmap.runtime.core.messages import StatsMessage
-from aefabmap.runtime.tools.node_process import connect_when_listening, free_tcp_port, stop_node
-from aefabmap.runtime.tools.publisher import images_dir_source, publish_frames
-from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+from aefabmap_runtime.adapters.log_set import LogSet
+from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, stats_key_for, result_key_for
+from aefabmap_runtime.core.records.messages import StatsMessage
+from aefabmap_runtime.tools.node_process import connect_when_listening, free_tcp_port, stop_node
+from aefabmap_runtime.tools.publisher import images_dir_source, publish_frames
+from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 
 KEY = "logrot/camera/image"
 MB = 1024 * 1024

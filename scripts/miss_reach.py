@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.errors import AefabmapError
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.frames import load_image
-from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.core.verification import independence_radius, verify_pair
+from aefabmap_runtime.errors import AefabmapError
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.frames import load_image
+from aefabmap_runtime.adapters.image_folder import list_images
+from aefabmap_runtime.core.verify.verification import independence_radius, verify_pair
 
 
 def misses(frames_jsonl: Path) -> list[dict]:

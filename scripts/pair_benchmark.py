@@ -10,7 +10,7 @@ Pairs, all from DATA/train:
   canvas of the original size (cropped or padded with black).
 
 With `--night`, the second image of every pair (negatives included) is seen at the fixed
-synthetic night of the vocabulary's test pairs (trainer/multiview.NIGHT: darker, gamma, sensor
+synthetic night of the vocabulary's test pairs (trainer/aefabmap_trainer/multiview.NIGHT: darker, gamma, sensor
 noise, blur): a day map revisited at night, under the same viewpoint and scale changes.
 
 Each pair is verified as the runtime's brute-force retry verifies a loop candidate (no words:
@@ -46,10 +46,10 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibrate_verification import GAPS, training_pairs  # noqa: E402
 
-from aefabmap.runtime.adapters.frames import load_image  # noqa: E402
-from aefabmap.runtime.core import verification as V  # noqa: E402
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor, Features  # noqa: E402
-from aefabmap.trainer.multiview import NIGHT, darken  # noqa: E402
+from aefabmap_runtime.adapters.frames import load_image  # noqa: E402
+from aefabmap_runtime.core.verify import verification as V  # noqa: E402
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features  # noqa: E402
+from aefabmap_trainer.multiview import NIGHT, darken  # noqa: E402
 
 ANGLES = (10, 20, 30, 40)  # degrees of out-of-plane rotation
 SCALES = (0.5, 0.75, 1.5, 2.0)
@@ -296,7 +296,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--long-side", type=int, default=None,
                     help="downsize every image to this long side (px) before anything (default: as stored)")
     ap.add_argument("--night", action="store_true",
-                    help="the second image of every pair at the synthetic night (trainer/multiview.NIGHT)")
+                    help="the second image of every pair at the synthetic night (trainer/aefabmap_trainer/multiview.NIGHT)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path, help="also write the numbers here")
     args = ap.parse_args(argv)

@@ -24,19 +24,19 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.frame_loop import FrameLoop
-from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id, load_into
-from aefabmap.runtime.adapters.mcap_log import McapLogReader
-from aefabmap.runtime.adapters.replay import NONDETERMINISTIC_FIELDS
-from aefabmap.runtime.adapters.zenoh_transport import (
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.frame_loop import FrameLoop
+from aefabmap_runtime.adapters.image_folder import list_images
+from aefabmap_runtime.adapters.state_dir import MapStateDir, bundle_id, load_into
+from aefabmap_runtime.adapters.mcap_log import McapLogReader
+from aefabmap_runtime.adapters.replay import NONDETERMINISTIC_FIELDS
+from aefabmap_runtime.adapters.zenoh_transport import (
     FramePublisher,
     SessionConfig,
     open_session,
 )
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.core.run_config import MAX_QUEUE
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.core.run_config import MAX_QUEUE
 
 CLI = [sys.executable, "-m", "aefabmap.cli.main"]
 KEY = "restart/camera/image"

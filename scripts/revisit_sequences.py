@@ -8,7 +8,7 @@ larger the viewpoint change of each revisit (step 4: gap 2, where training pairs
 step 6: gap 3, where about half do). First-pass frames are never revisits, so a loop published
 among them, even to structure further down the same street, is a wrong one. With `--night` the
 second pass is seen at the fixed synthetic night of the vocabulary's test pairs
-(trainer/multiview.NIGHT, its noise seeded by the frame): a day map revisited at night.
+(trainer/aefabmap_trainer/multiview.NIGHT, its noise seeded by the frame): a day map revisited at night.
 
     python scripts/revisit_sequences.py --data DATA --out revisits --step 6 [--night]
     aefabmap eval --model BUNDLE --images revisits/0001TP/images --gt revisits/0001TP/gt.npy \\
@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 from calibrate_sequence import drives  # the training drives, one list of frames each
 
-from aefabmap.trainer.multiview import NIGHT, darken
+from aefabmap_trainer.multiview import NIGHT, darken
 
 
 def revisit_order(n_frames: int, step: int) -> tuple[list[int], np.ndarray]:

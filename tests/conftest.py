@@ -26,8 +26,8 @@ def train_dir() -> Path:
 @pytest.fixture(params=["numpy", "native", "numba"])
 def kernels(request):
     """Run a test on the numpy / OpenCV fallbacks and on each compiled form of the kernels
-    (runtime/core/compiled.py; a form that cannot run here is skipped): all must give the same results."""
-    from aefabmap.runtime.core import compiled
+    (runtime/aefabmap_runtime/core/kernels/compiled.py; a form that cannot run here is skipped): all must give the same results."""
+    from aefabmap_runtime.core.kernels import compiled
 
     if request.param != "numpy" and request.param not in compiled.backends():
         pytest.skip(f"the {request.param} kernels cannot run here")
@@ -40,7 +40,7 @@ def kernels(request):
 def on_both_paths(request):
     """run(fn) -> [fn() on the numpy / OpenCV fallbacks, fn() on one compiled form], for tests
     that compare the two paths with each other (once per compiled form; skipped where it cannot run)."""
-    from aefabmap.runtime.core import compiled
+    from aefabmap_runtime.core.kernels import compiled
 
     if request.param not in compiled.backends():
         pytest.skip(f"the {request.param} kernels cannot run here")
@@ -83,9 +83,9 @@ def make_synthetic_bundle(out: Path, vocabulary_size: int = 64, kind: str = "orb
     """A small valid k-means bundle from generated arrays (no training data needed)."""
     import numpy as np
 
-    from aefabmap.export.bundle_writer import write_bundle
-    from aefabmap.runtime.core.features import FeatureConfig
-    from aefabmap.runtime.tools.synthetic_observations import (
+    from aefabmap_export.bundle_writer import write_bundle
+    from aefabmap_runtime.core.features.features import FeatureConfig
+    from aefabmap_runtime.tools.synthetic_observations import (
         random_tree,
         synthetic_observations,
     )
@@ -114,12 +114,12 @@ def make_synthetic_tree_bundle(out: Path, vocabulary_size: int = 40, kind: str =
     """A small valid kmeans-tree bundle, its tree trained on generated descriptor vectors."""
     import numpy as np
 
-    from aefabmap.export.bundle_writer import write_bundle
-    from aefabmap.runtime.core.features import FeatureConfig
-    from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
-    from aefabmap.trainer.kmeans import KMeansConfig
-    from aefabmap.trainer.train import TREE_FILE_NAMES
-    from aefabmap.trainer.vocab_tree import fit_vocab_tree
+    from aefabmap_export.bundle_writer import write_bundle
+    from aefabmap_runtime.core.features.features import FeatureConfig
+    from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
+    from aefabmap_trainer.kmeans import KMeansConfig
+    from aefabmap_trainer.train import TREE_FILE_NAMES
+    from aefabmap_trainer.hierarchical_kmeans import fit_vocab_tree
 
     features = FeatureConfig(kind=kind, max_features=200)
     rng = np.random.default_rng(seed)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 log = logging.getLogger("aefabmap.bench")
 
-# compiled.KERNEL_CHOICES, written out: importing runtime/core/compiled.py imports numba, which
+# compiled.KERNEL_CHOICES, written out: importing runtime/aefabmap_runtime/core/kernels/compiled.py imports numba, which
 # would slow every command's start.
 _KERNEL_CHOICES = ("auto", "native", "numba", "numpy")
 _KERNELS_HELP = ("the kernels (FAB-MAP scatter, verification's matching, the int8 search's re-rank): auto (default: "
@@ -178,8 +178,8 @@ def _emit(doc, path: Path | None) -> None:
 
 
 def run_inference(args) -> int:
-    from aefabmap.runtime.core import compiled
-    from aefabmap.runtime.tools.synthetic_observations import bench_inference
+    from aefabmap_runtime.core.kernels import compiled
+    from aefabmap_runtime.tools.synthetic_observations import bench_inference
 
     previous = compiled.use(True if args.scatter == "auto" else args.scatter)
     log.info("kernels: %s", compiled.describe())
@@ -193,7 +193,7 @@ def run_inference(args) -> int:
 
 
 def run_chowliu(args) -> int:
-    from aefabmap.trainer.benchmark import bench_chow_liu
+    from aefabmap_trainer.benchmark import bench_chow_liu
 
     _emit(asdict(bench_chow_liu(args.images, args.words, args.words_per_image)), args.json)
     return 0
@@ -206,7 +206,7 @@ def _model(args) -> Path:
 
 
 def run_pipeline(args) -> int:
-    from aefabmap.runtime.tools.stream_bench import PipelineBenchConfig, bench_pipeline
+    from aefabmap_runtime.tools.stream_bench import PipelineBenchConfig, bench_pipeline
 
     cfg = PipelineBenchConfig(
         bundle=str(_model(args)), places=args.places, frames=args.frames, warmup=args.warmup,
@@ -233,7 +233,7 @@ def run_pipeline(args) -> int:
 
 
 def run_sequence(args) -> int:
-    from aefabmap.runtime.tools.sequence_bench import STAGES, SequenceBenchConfig, bench_sequence
+    from aefabmap_runtime.tools.sequence_bench import STAGES, SequenceBenchConfig, bench_sequence
 
     doc = bench_sequence(SequenceBenchConfig(images=str(args.images), bundle=str(_model(args)), exclude=args.exclude,
                                              limit=args.limit, scatter=args.scatter, single_core=not args.all_cores,
@@ -262,7 +262,7 @@ def run_sequence(args) -> int:
 def run_quantizer(args) -> int:
     import os
 
-    from aefabmap.runtime.tools.quantizer_bench import QuantizerBenchConfig, bench_quantizer
+    from aefabmap_runtime.tools.quantizer_bench import QuantizerBenchConfig, bench_quantizer
 
     data = args.data or os.environ.get("AEFABMAP_DATA")
     cfg = QuantizerBenchConfig(bundle=str(_model(args)), variant=args.variant, repeats=args.repeats,
@@ -276,7 +276,7 @@ def run_quantizer(args) -> int:
 
 
 def run_stream(args) -> int:
-    from aefabmap.runtime.tools.stream_bench import StreamBenchConfig, bench_stream
+    from aefabmap_runtime.tools.stream_bench import StreamBenchConfig, bench_stream
 
     cfg = StreamBenchConfig(
         bundle=str(_model(args)), rate_hz=args.rate, seconds=args.seconds,
@@ -302,7 +302,7 @@ def run_stream(args) -> int:
 
 
 def run_soak(args) -> int:
-    from aefabmap.runtime.tools.soak_bench import (
+    from aefabmap_runtime.tools.soak_bench import (
         FRAME_CHECKPOINTS,
         OBSERVATION_CHECKPOINTS,
         SoakConfig,

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from aefabmap.errors import AefabmapError, DataNotFoundError, TransportError
+from aefabmap_runtime.errors import AefabmapError, DataNotFoundError, TransportError
 
 if TYPE_CHECKING:
-    from aefabmap.runtime.core.messages import FrameResult
+    from aefabmap_runtime.core.records.messages import FrameResult
 
 log = logging.getLogger("aefabmap.demo")
 DEMO_KEY = "aefabmap/demo/camera/image"
@@ -46,14 +46,14 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, result_key_for
-    from aefabmap.runtime.core.messages import FrameResult
-    from aefabmap.runtime.tools.node_process import (
+    from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, result_key_for
+    from aefabmap_runtime.core.records.messages import FrameResult
+    from aefabmap_runtime.tools.node_process import (
         connect_when_listening,
         free_tcp_port,
         stop_node,
     )
-    from aefabmap.runtime.tools.publisher import images_dir_source, publish_frames
+    from aefabmap_runtime.tools.publisher import images_dir_source, publish_frames
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -101,7 +101,7 @@ def _prepare_images(args, out: Path) -> tuple[Path, Path | None]:
         if not args.images.is_dir():
             raise DataNotFoundError(f"image directory {args.images} does not exist")
         return args.images, args.gt
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 
     seq = out / "sequence"
     if not (seq / "gt.npy").is_file() or len(list(seq.glob("frame_*.jpg"))) != args.frames:
@@ -132,7 +132,7 @@ def _match_frame(result: FrameResult) -> int:
 
 def _logged_results(mcap_path: Path) -> list[FrameResult]:
     """Results as the runtime logged them (complete even if live messages were missed)."""
-    from aefabmap.runtime.adapters.mcap_log import McapLogReader
+    from aefabmap_runtime.adapters.mcap_log import McapLogReader
 
     reader = McapLogReader(mcap_path)
     for _ in reader.frames():
@@ -145,7 +145,7 @@ def _report(received: list[FrameResult], gt_path: Path | None, n_frames: int) ->
     print(f"frames processed: {len(received)}, loop closures: {len(loops)}")
     if gt_path is None or not gt_path.is_file() or not received:
         return
-    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+    from aefabmap_runtime.tools.sequence_eval import load_ground_truth
 
     gt = load_ground_truth(gt_path, n_frames)  # InputError when it does not fit the frames
     ok = sum(bool(gt[r.sequence, max(0, _match_frame(r) - 10): _match_frame(r) + 11].any()) for r in loops)
@@ -155,8 +155,8 @@ def _report(received: list[FrameResult], gt_path: Path | None, n_frames: int) ->
 
 
 def _replay_check(model: Path, mcap_path: Path) -> int:
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.adapters.replay import replay
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.adapters.replay import replay
 
     try:
         summary = replay(load_detector(model), mcap_path, check=True)

@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 
 from aefabmap.cli.run_config import add_detector_options, build_run_config
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.detector import SCORERS, DetectorConfig
-from aefabmap.runtime.core.verification import VerificationConfig
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.detector import SCORERS, DetectorConfig
+from aefabmap_runtime.core.verify.verification import VerificationConfig
 
 
 def register(sub) -> None:
@@ -34,13 +34,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from aefabmap.runtime.tools.reporting import (
+    from aefabmap_runtime.tools.reporting import (
         format_table,
         require_plotting,
         save_pr_plot,
         save_score_matrix,
     )
-    from aefabmap.runtime.tools.sequence_eval import evaluate_bundle, public
+    from aefabmap_runtime.tools.sequence_eval import evaluate_bundle, public
 
     if args.plot:
         require_plotting()  # fail before a long run, not after it
@@ -65,7 +65,7 @@ def run(args) -> int:
         raw_score = run_config.detector.fabmap_score if scorer == "fabmap" else "cosine"
         table[f"{scorer} raw ({raw_score})"] = rows[scorer]
     print(format_table(table))
-    from aefabmap.runtime.tools.frame_evidence import format_revisit_split, revisit_split
+    from aefabmap_runtime.tools.frame_evidence import format_revisit_split, revisit_split
 
     wanted = verification.enabled or args.frames or args.failures
     records = evidence_records(args, runs[scorers[0]], verification) if wanted else []
@@ -93,14 +93,14 @@ def _state_saver(path):
     """detector -> None: saves its map to the empty state directory ``path`` (checked now, before the run)."""
     import logging
 
-    from aefabmap.runtime.adapters.map_state import MapStateDir
+    from aefabmap_runtime.adapters.state_dir import MapStateDir
 
     probe = MapStateDir(path, "")
     if probe.current_or_none() is not None or (probe.path / "CURRENT").exists():
         raise ConfigError(f"state directory {path} already holds a map; eval builds a new one")
 
     def save(detector) -> None:
-        from aefabmap.runtime.adapters.map_state import bundle_id
+        from aefabmap_runtime.adapters.state_dir import bundle_id
 
         with MapStateDir(path, bundle_id(detector.manifest)) as directory:
             info = directory.save(detector.state())
@@ -111,8 +111,8 @@ def _state_saver(path):
 
 
 def evidence_records(args, run, verification: VerificationConfig) -> list[dict]:
-    """Per-frame evidence records of the first scorer's run (runtime/tools/frame_evidence.py)."""
-    from aefabmap.runtime.tools.frame_evidence import frame_records, min_evidence_keypoints
+    """Per-frame evidence records of the first scorer's run (runtime/aefabmap_runtime/tools/frame_evidence.py)."""
+    from aefabmap_runtime.tools.frame_evidence import frame_records, min_evidence_keypoints
 
     return list(frame_records(run.results, run.ground_truth, args.tolerance, min_evidence_keypoints(verification),
                               verification.max_log10_nfa))
@@ -120,7 +120,7 @@ def evidence_records(args, run, verification: VerificationConfig) -> list[dict]:
 
 def write_evidence(args, run, records: list[dict]) -> None:
     """--frames / --failures of the first scorer's run."""
-    from aefabmap.runtime.tools.frame_evidence import failure_cases, write_failure_images, write_frames_jsonl
+    from aefabmap_runtime.tools.frame_evidence import failure_cases, write_failure_images, write_frames_jsonl
 
     if args.frames:
         write_frames_jsonl(args.frames, records)

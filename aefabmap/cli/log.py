@@ -24,7 +24,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def repair(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.adapters.log_repair import repair_log
+    from aefabmap_runtime.adapters.log_repair import repair_log
 
     report = repair_log(args.log, args.out)
     state = f"cut off ({report.reason})" if report.truncated else "complete"

@@ -8,7 +8,7 @@ import logging
 import sys
 
 from aefabmap import __version__
-from aefabmap.errors import AefabmapError
+from aefabmap_runtime.errors import AefabmapError
 
 # Per-frame work runs on one BLAS thread: a multi-threaded BLAS on a small matrix product
 # per frame costs more in thread wake-ups than it saves (quantise was several times slower

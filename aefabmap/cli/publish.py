@@ -1,7 +1,7 @@
 """``aefabmap publish``: publish frames (image directory, video file or camera) on a zenoh key.
 
 Every frame carries a JSON attachment ``{"seq", "stamp_ns", "src"}`` so the node can count
-dropped frames (see aefabmap.runtime.adapters.zenoh_transport).
+dropped frames (see aefabmap_runtime.adapters.zenoh_transport).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import logging
 import threading
 
 from aefabmap.cli.run import add_zenoh_options, warn_exposure
-from aefabmap.errors import AefabmapError
+from aefabmap_runtime.errors import AefabmapError
 
 log = logging.getLogger("aefabmap.publish")
 
@@ -37,9 +37,9 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.runtime.adapters.node import stop_on_signals
-    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
-    from aefabmap.runtime.tools.publisher import (
+    from aefabmap_runtime.adapters.node import stop_on_signals
+    from aefabmap_runtime.adapters.zenoh_transport import cli_session_config
+    from aefabmap_runtime.tools.publisher import (
         camera_source,
         images_dir_source,
         publish_frames,

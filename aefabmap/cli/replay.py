@@ -1,7 +1,7 @@
 """``aefabmap replay``: run a bundle over the images of an MCAP log (own log or ROS 2 bag).
 
 Exit code: 0, or 1 when ``--check`` finds results that differ from the logged ones;
-errors exit with the code of their aefabmap.errors class. With ``--foxglove`` the replay plays at
+errors exit with the code of their aefabmap_runtime.errors class. With ``--foxglove`` the replay plays at
 the recorded pace (``--rate``), optionally after the first viewer (``--wait-viewer``), and the
 server stays up after it until Ctrl-C/SIGTERM (docs/streaming.md, "Replay in Foxglove"). With
 ``--fleet NAME --robot ID`` the replay joins a fleet as `run` does (docs/fleet.md): the map it
@@ -18,7 +18,7 @@ import json
 import logging
 import threading
 
-from aefabmap.errors import AefabmapError, ConfigError, LogError
+from aefabmap_runtime.errors import AefabmapError, ConfigError, LogError
 
 log = logging.getLogger("aefabmap.replay")
 
@@ -74,7 +74,7 @@ def add_playback_options(p: argparse.ArgumentParser) -> None:
 
 def playback_config(args: argparse.Namespace):
     """The PlaybackConfig of the parsed options (ConfigError when invalid)."""
-    from aefabmap.runtime.adapters.replay import PlaybackConfig
+    from aefabmap_runtime.adapters.replay import PlaybackConfig
 
     if args.wait_viewer is not None and args.foxglove is None:
         raise ConfigError("--wait-viewer needs --foxglove")
@@ -110,8 +110,8 @@ def _check_fleet_options(args: argparse.Namespace):
 def _join_fleet(args: argparse.Namespace, detector, config, stack):
     """Open the session and join the fleet (closed by `stack`); the FleetNode wrapping detector."""
     from aefabmap.cli.run import fleet_session, warn_exposure
-    from aefabmap.runtime.adapters.fleet import join_fleet
-    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config, open_session
+    from aefabmap_runtime.adapters.fleet import join_fleet
+    from aefabmap_runtime.adapters.zenoh_transport import cli_session_config, open_session
 
     sc = fleet_session(cli_session_config("listen", connect=args.connect, listen=args.listen,
                                           config_file=args.config, allow_exposure=args.allow_exposure), config)
@@ -125,16 +125,16 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     from aefabmap.cli.run import start_live_view
     from aefabmap.cli.run_config import logged_run_config
     from aefabmap.cli.state_options import open_state
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.adapters.log_set import log_files
-    from aefabmap.runtime.adapters.mcap_log import (
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.adapters.log_set import log_files
+    from aefabmap_runtime.adapters.mcap_log import (
         RUN_CONFIG_METADATA,
         McapLogConfig,
         read_log_metadata,
     )
-    from aefabmap.runtime.adapters.node import stop_on_signals
-    from aefabmap.runtime.adapters.replay import replay
-    from aefabmap.runtime.adapters.ros_bag import is_ros_bag
+    from aefabmap_runtime.adapters.node import stop_on_signals
+    from aefabmap_runtime.adapters.replay import replay
+    from aefabmap_runtime.adapters.ros_bag import is_ros_bag
 
     stop = stop if stop is not None else threading.Event()
     state_dir = view = None

@@ -1,7 +1,7 @@
 """``aefabmap run``: the streaming loop-closure node (Zenoh in, JSON results out, MCAP log).
 
 Results go to the sibling key ``lcd`` of the image key (``robot/camera/image`` ->
-``robot/camera/lcd``), stats to ``robot/camera/lcd/stats``; see aefabmap.runtime.adapters.zenoh_transport.
+``robot/camera/lcd``), stats to ``robot/camera/lcd/stats``; see aefabmap_runtime.adapters.zenoh_transport.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from aefabmap.cli.run_config import (
     apply_process_settings,
     build_run_config,
 )
-from aefabmap.errors import AefabmapError, ConfigError
-from aefabmap.runtime.core.profiles import get_profile
+from aefabmap_runtime.errors import AefabmapError, ConfigError
+from aefabmap_runtime.core.profiles import get_profile
 
 log = logging.getLogger("aefabmap.run")
 
@@ -46,7 +46,7 @@ def add_zenoh_options(p: argparse.ArgumentParser, group=None, *, config: bool = 
 
 def warn_exposure(session, logger: logging.Logger) -> None:
     """Log, at start, how a session accepted with --allow-exposure is exposed."""
-    from aefabmap.runtime.adapters.zenoh_transport import session_exposure
+    from aefabmap_runtime.adapters.zenoh_transport import session_exposure
 
     if session.allow_exposure:
         reasons = session_exposure(session)
@@ -75,7 +75,7 @@ def add_mcap_profile_option(p: argparse.ArgumentParser) -> None:
 
 def log_rotation_config(args: argparse.Namespace):
     """The LogRotationConfig of the parsed options (ConfigError when inconsistent)."""
-    from aefabmap.runtime.adapters.rotating_log import LogRotationConfig
+    from aefabmap_runtime.adapters.rotating_log import LogRotationConfig
 
     min_free = args.log_min_free_mb
     free = {} if min_free is None else {"images_min_free_mb": min_free[0], "results_min_free_mb": min_free[1]}
@@ -83,7 +83,7 @@ def log_rotation_config(args: argparse.Namespace):
 
 
 def add_foxglove_options(p: argparse.ArgumentParser) -> None:
-    """--foxglove [PORT] and --foxglove-host: the live view (runtime/adapters/foxglove_view.py)."""
+    """--foxglove [PORT] and --foxglove-host: the live view (runtime/aefabmap_runtime/adapters/foxglove_view.py)."""
     p.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                    help="serve a live view over the Foxglove WebSocket protocol on PORT (default 8765; 0: any free "
                    "port): camera image, inlier matches, matched place, result and stats plots (layout: "
@@ -98,7 +98,7 @@ def start_live_view(args: argparse.Namespace):
     port = args.foxglove
     if port is None:
         return None
-    from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer, LiveView
+    from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer, LiveView
 
     server = FoxgloveServer(port=port, host=args.foxglove_host)
     log.info("Foxglove live view on ws://%s:%d", server.host, server.port)
@@ -181,11 +181,11 @@ def register(subparsers) -> argparse.ArgumentParser:
 def main(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from aefabmap.runtime.adapters.bundle_reader import load_detector, read_manifest
-    from aefabmap.runtime.adapters.mcap_log import McapLogConfig
-    from aefabmap.runtime.adapters.node import NodeOptions, run_node, stop_on_signals
-    from aefabmap.runtime.adapters.rmw_zenoh import ROS_PEER_LISTEN, RosOptions, domain_from_env
-    from aefabmap.runtime.adapters.zenoh_transport import cli_session_config
+    from aefabmap_runtime.adapters.bundle_reader import load_detector, read_manifest
+    from aefabmap_runtime.adapters.mcap_log import McapLogConfig
+    from aefabmap_runtime.adapters.node import NodeOptions, run_node, stop_on_signals
+    from aefabmap_runtime.adapters.rmw_zenoh import ROS_PEER_LISTEN, RosOptions, domain_from_env
+    from aefabmap_runtime.adapters.zenoh_transport import cli_session_config
 
     stop = threading.Event()
     state_dir = snapshotter = journal = view = state_report = None
@@ -227,8 +227,8 @@ def main(args: argparse.Namespace) -> int:
 
         if args.state is not None:
             from aefabmap.cli.state_options import open_state
-            from aefabmap.runtime.adapters.map_journal import MapJournal
-            from aefabmap.runtime.adapters.map_state import SnapshotPolicy, Snapshotter
+            from aefabmap_runtime.adapters.map_journal import MapJournal
+            from aefabmap_runtime.adapters.state_dir import SnapshotPolicy, Snapshotter
 
             policy = SnapshotPolicy.parse(args.snapshot_every)
             state_dir = open_state(args.state, detector, log)
@@ -243,14 +243,14 @@ def main(args: argparse.Namespace) -> int:
             )
 
         # The map this run starts from (a loaded state's frame counter, 0: empty), so that a replay of
-        # a log set spanning restarts rebuilds each run's map (runtime/adapters/replay.py).
+        # a log set spanning restarts rebuilds each run's map (runtime/aefabmap_runtime/adapters/replay.py).
         map_start = {"frame": getattr(detector, "next_sequence", 0), "places": getattr(detector, "n_places", 0)}
         options = NodeOptions(key=args.key if ros is None else ros.image_key, mcap_path=args.mcap, session=session,
                               queue_size=config.queue, stats_period_s=5.0, image_log_every=args.image_every,
                               run_config={RUN_CONFIG_KEY: config.to_dict(), "map_start": map_start},
                               result_key=args.results_key, ros=ros, log_rotation=rotation,
                               log_config=McapLogConfig(profile=args.mcap_profile), fleet=config.fleet)
-        from aefabmap.runtime.core import compiled
+        from aefabmap_runtime.core.kernels import compiled
 
         log.info("kernels: %s", compiled.describe())  # once the run's settings and state are accepted
         view = start_live_view(args)

@@ -1,4 +1,4 @@
-"""The one place that turns command-line options into a RunConfig (runtime/core/run_config.py).
+"""The one place that turns command-line options into a RunConfig (runtime/aefabmap_runtime/core/run_config.py).
 
 `run` and `eval` share the detector options below; `replay` reads the run's RunConfig from
 its log instead. Precedence: an explicit option, then the `--profile` preset, then the
@@ -10,20 +10,20 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from aefabmap.runtime.core.candidates import CandidateConfig
-from aefabmap.runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
-from aefabmap.runtime.core.fleet_map import FleetConfig
-from aefabmap.runtime.core.profiles import PROFILES, get_profile
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.run_config import RUN_CONFIG_FORMAT, RunConfig, settings_before_upright
-from aefabmap.runtime.core.verification import VerificationConfig
+from aefabmap_runtime.core.decide.candidates import CandidateConfig
+from aefabmap_runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
+from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
+from aefabmap_runtime.core.profiles import PROFILES, get_profile
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.run_config import RUN_CONFIG_FORMAT, RunConfig, settings_before_upright
+from aefabmap_runtime.core.verify.verification import VerificationConfig
 
 VARIANTS = ("fp32", "int8", "flat", "flat-fp32")
 
 #: Key of the RunConfig inside a log's run metadata (aefabmap.run_config), beside the transport's settings.
 RUN_CONFIG_KEY = "run"
 
-#: The exit codes every command shares (aefabmap/errors.py), for the end of each --help.
+#: The exit codes every command shares (runtime/aefabmap_runtime/errors.py), for the end of each --help.
 EXIT_CODES = ("exit codes: 0 success; 1 failure (replay --check: results differ); 2 bad option or "
               "configuration; 3 bad model bundle or map state; 4 bad input data; 5 transport (Zenoh) error; "
               "6 log (MCAP) error; 130 interrupted")
@@ -36,7 +36,7 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
     g = p.add_argument_group("detector")
     if profile:
         g.add_argument("--profile", default=None, choices=tuple(PROFILES), metavar="NAME",
-                       help="named preset (runtime/core/profiles.py): 'board' = ORB 500 keypoints, 3000-word flat "
+                       help="named preset (runtime/aefabmap_runtime/core/profiles.py): 'board' = ORB 500 keypoints, 3000-word flat "
                        "k-means vocabulary, 1 thread, --memory-mb 64, --queue 2; explicit options win; the bundle "
                        "must be the profile's model")
     g.add_argument("--exclude", type=int, default=None, metavar="N",

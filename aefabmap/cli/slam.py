@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from aefabmap.errors import ConfigError
+from aefabmap_runtime.errors import ConfigError
 
 
 def register(sub) -> None:
@@ -43,7 +43,7 @@ def _require_extra() -> None:
 
 def run(args) -> int:
     _require_extra()
-    from aefabmap.runtime.core.verification import parse_camera
+    from aefabmap_runtime.core.verify.verification import parse_camera
     from aefabmap.slam.pipeline import SlamConfig, run_slam, write_outputs
     from aefabmap.slam.pose_graph import PoseGraphConfig
     from aefabmap.slam.tum_io import read_rgbd_folder

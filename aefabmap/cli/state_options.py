@@ -1,5 +1,5 @@
 """``--state DIR`` of run, replay and eval: where the map is kept between runs
-(runtime/adapters/map_state.py)."""
+(runtime/aefabmap_runtime/adapters/state_dir.py)."""
 
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ def open_state(path, detector, logger: logging.Logger):
     """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present:
     the current snapshot, then the frames of its journal. A snapshot built with other detector
     settings loads (it continues with this run's), with a warning naming them; a journal must
-    match them (runtime/adapters/map_journal.py)."""
-    from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id, load_map
-    from aefabmap.runtime.core.run_config import recorded_settings_differences
+    match them (runtime/aefabmap_runtime/adapters/map_journal.py)."""
+    from aefabmap_runtime.adapters.state_dir import MapStateDir, bundle_id, load_map
+    from aefabmap_runtime.core.run_config import recorded_settings_differences
 
     directory = MapStateDir(path, bundle_id(detector.manifest)).open()
     try:

@@ -1,7 +1,7 @@
 """``aefabmap status``: find the running nodes (Zenoh liveliness) and print each one's health.
 
 Exit codes: 0 when at least one node answered, 1 when none was found (or none answered),
-5 on a transport error (runtime/adapters/health.py for the keys).
+5 on a transport error (runtime/aefabmap_runtime/adapters/health.py for the keys).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "status",
         help="list the running aefabmap nodes and their health",
-        description="Find every running node by its liveliness token (aefabmap/runtime/<zid>) and query its status.",
+        description="Find every running node by its liveliness token (runtime/<zid>) and query its status.",
     )
     p.add_argument("--connect", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to connect to (repeatable; default tcp/127.0.0.1:7447)")
@@ -43,13 +43,13 @@ def _line(zid: str, st) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.health import (
+    from aefabmap_runtime.errors import ConfigError
+    from aefabmap_runtime.adapters.health import (
         find_runtimes,
         query_status,
         wait_for_peer,
     )
-    from aefabmap.runtime.adapters.zenoh_transport import (
+    from aefabmap_runtime.adapters.zenoh_transport import (
         cli_session_config,
         open_session,
     )

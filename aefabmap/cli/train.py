@@ -6,8 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
-from aefabmap.runtime.core.feature_kinds import kind_names
-from aefabmap.runtime.core.features import FeatureConfig
+from aefabmap_runtime.core.features.feature_kinds import kind_names
+from aefabmap_runtime.core.features.features import FeatureConfig
 
 
 def register(sub) -> None:
@@ -86,7 +86,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from aefabmap.trainer.train import TrainConfig, train_bundle
+    from aefabmap_trainer.train import TrainConfig, train_bundle
 
     features = FeatureConfig(
         kind=args.features,

@@ -1,6 +1,6 @@
 """Loop-closure edges from aefabmap's verified loops: relative pose by PnP on the verified matches.
 
-The detector (runtime/core/detector.py) verifies a loop with a two-view model (H, F or E) and
+The detector (runtime/aefabmap_runtime/core/detector.py) verifies a loop with a two-view model (H, F or E) and
 keeps the inlier point pairs (VerificationConfig.keep_inlier_points). With depth, the place
 frame's inlier points become 3-D points in its camera; PnP RANSAC (odometry.pnp_pose) on the
 query frame's inlier pixels gives T_query_place, hence the edge T_place_query with metric scale,
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aefabmap.runtime.core.acontrario import match_region, significance
-from aefabmap.runtime.core.messages import FrameResult
-from aefabmap.runtime.core.verification import distinct_matches
+from aefabmap_runtime.core.verify.acontrario import match_region, significance
+from aefabmap_runtime.core.records.messages import FrameResult
+from aefabmap_runtime.core.verify.verification import distinct_matches
 from aefabmap.slam.odometry import (
     FrameFeatures,
     OdometryConfig,

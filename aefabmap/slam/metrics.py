@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from aefabmap.errors import InputError
+from aefabmap_runtime.errors import InputError
 
 
 @dataclass

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.bits import hamming, nearest_two
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.kernels.bits import hamming, nearest_two
 from aefabmap.slam.poses import invert, make_pose
 
 

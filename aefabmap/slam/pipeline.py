@@ -1,7 +1,7 @@
 """`aefabmap slam`: odometry + aefabmap loop closures + pose graph on a TUM RGB-D folder, written and scored.
 
 One pass over the frames runs the visual odometry (odometry.py) and the loop-closure detector
-(runtime/core/detector.py, geometric verification with the camera's essential matrix) side by
+(runtime/aefabmap_runtime/core/detector.py, geometric verification with the camera's essential matrix) side by
 side; each verified loop becomes an edge (loops.py); the pose graph (pose_graph.py) is optimised
 once at the end. Outputs in OUT: odometry.txt and optimized.txt (TUM format), and with ground
 truth metrics.json (evo ATE/RPE, loop edges checked against the ground truth) and trajectory.png.
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.acontrario import SAMPLE_SIZE
-from aefabmap.runtime.core.messages import FrameResult
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
+from aefabmap_runtime.core.records.messages import FrameResult
 from aefabmap.slam.loops import LoopEdge, exclusion_frames, loop_edge, proposal_edge
 from aefabmap.slam.odometry import OdometryConfig, OrbExtractor, run_odometry
 from aefabmap.slam.pose_graph import Edge, PoseGraphConfig, optimize
@@ -110,10 +110,10 @@ def _sigma(config: SlamConfig, inliers: int) -> tuple[float, float]:
 
 def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = None) -> SlamRun:
     """Odometry, loop edges from the bundle's detector, pose graph; no files written."""
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.core.detector import DetectorConfig
-    from aefabmap.runtime.core.run_config import RunConfig
-    from aefabmap.runtime.core.verification import VerificationConfig
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.core.run_config import RunConfig
+    from aefabmap_runtime.core.verify.verification import VerificationConfig
 
     c = config or SlamConfig()
     exclude = exclusion_frames(seq.stamps, c.min_gap_s)

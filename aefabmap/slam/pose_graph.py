@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aefabmap.errors import ConfigError
+from aefabmap_runtime.errors import ConfigError
 
 KERNELS = ("cauchy", "huber", "none")
 

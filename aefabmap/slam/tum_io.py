@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from aefabmap.errors import DataNotFoundError, ImageDecodeError, InputError
+from aefabmap_runtime.errors import DataNotFoundError, ImageDecodeError, InputError
 from aefabmap.slam.poses import make_pose, matrix_to_quaternion, quaternion_to_matrix
 
 #: TUM's depth scale: a 16-bit depth value of 5000 is one metre.

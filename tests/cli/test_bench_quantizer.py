@@ -7,8 +7,8 @@ import json
 import pytest
 
 from aefabmap.cli.main import main
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.tools.quantizer_bench import resolve_variant
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.tools.quantizer_bench import resolve_variant
 from tests.conftest import make_synthetic_tree_bundle
 
 KEYS = {"ms_per_500_median", "ms_per_500_p95", "variant", "feature_kind", "words", "bundle_id", "descriptors"}
@@ -48,9 +48,9 @@ def test_variant_that_the_bundle_does_not_have_is_refused(tmp_path):
 def test_ae_bundle_fp32_and_int8(tmp_path):
     pytest.importorskip("torch")
     pytest.importorskip("onnx")
-    from aefabmap.runtime.core.features import FeatureConfig
-    from aefabmap.runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
-    from aefabmap.trainer.train import TrainConfig, train_bundle
+    from aefabmap_runtime.core.features.features import FeatureConfig
+    from aefabmap_runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
+    from aefabmap_trainer.train import TrainConfig, train_bundle
 
     images = tmp_path / "imgs"
     make_demo_sequence(images, n_frames=8, seed=7, size=(320, 240), config=SyntheticConfig(laps=1))

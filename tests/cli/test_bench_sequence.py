@@ -11,7 +11,7 @@ from aefabmap.cli.main import main
 
 @pytest.mark.timeout(180)
 def test_bench_sequence_runs_the_frame_loop_over_a_folder(tmp_path, capsys):
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 
     make_demo_sequence(tmp_path / "seq", n_frames=12, seed=3, size=(320, 240))
     out = tmp_path / "sequence.json"
@@ -35,8 +35,8 @@ def test_bench_sequence_refuses_a_missing_folder_in_one_line(tmp_path, caplog):
 
 @pytest.mark.timeout(180)
 def test_bench_sequence_calls_attributes_time_to_the_libraries(tmp_path, capsys):
-    from aefabmap.runtime.tools.call_profile import GROUPS
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.tools.call_profile import GROUPS
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 
     make_demo_sequence(tmp_path / "seq", n_frames=10, seed=4, size=(320, 240))
     out = tmp_path / "sequence.json"
@@ -53,7 +53,7 @@ def test_bench_sequence_calls_attributes_time_to_the_libraries(tmp_path, capsys)
 
 @pytest.mark.timeout(180)
 def test_bench_sequence_runs_with_run_s_verification_options(tmp_path):
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 
     make_demo_sequence(tmp_path / "seq", n_frames=8, seed=5, size=(320, 240))
     out = tmp_path / "sequence.json"

@@ -7,8 +7,8 @@ import json
 import pytest
 
 from aefabmap.cli.main import main
-from aefabmap.errors import BundleError, ConfigError
-from aefabmap.runtime.tools.stream_bench import (
+from aefabmap_runtime.errors import BundleError, ConfigError
+from aefabmap_runtime.tools.stream_bench import (
     PipelineBenchConfig,
     StreamBenchConfig,
     bench_stream,

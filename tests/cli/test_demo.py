@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from aefabmap.cli.main import main
-from aefabmap.runtime.adapters.mcap_log import McapLogReader
+from aefabmap_runtime.adapters.mcap_log import McapLogReader
 
 
 @pytest.mark.slow

@@ -4,8 +4,8 @@ import pytest
 
 from aefabmap.cli.main import build_parser
 from aefabmap.cli.run_config import RUN_CONFIG_KEY, build_run_config, logged_run_config
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.run_config import RunConfig
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.run_config import RunConfig
 
 
 def _run(*extra: str) -> RunConfig:

@@ -9,7 +9,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from aefabmap.runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
+from aefabmap_runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
 from tests.conftest import make_synthetic_bundle
 
 BLOCKER = textwrap.dedent(

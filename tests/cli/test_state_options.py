@@ -6,11 +6,11 @@ from __future__ import annotations
 import logging
 
 from aefabmap.cli.state_options import open_state
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.map_state import MapStateDir, bundle_id
-from aefabmap.runtime.core.candidates import CandidateConfig
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.state_dir import MapStateDir, bundle_id
+from aefabmap_runtime.core.decide.candidates import CandidateConfig
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 from tests.conftest import make_synthetic_bundle
 
 

@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
-from aefabmap.runtime.core.messages import StatusMessage
-from aefabmap.runtime.tools.node_process import free_tcp_port
-from aefabmap.runtime.tools.publisher import array_source, publish_frames
+from aefabmap_runtime.core.records.messages import StatusMessage
+from aefabmap_runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.tools.publisher import array_source, publish_frames
 from tests.runtime.adapters.stream_fakes import (
     FakeDetector,
     NodeThread,

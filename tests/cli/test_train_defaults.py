@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from aefabmap.cli.main import build_parser
-from aefabmap.trainer.train import TrainConfig
+from aefabmap_trainer.train import TrainConfig
 
 
 def test_every_train_option_defaults_to_the_config_default():
@@ -27,7 +27,7 @@ def test_the_default_autoencoder_is_the_assign_objective_measured_best():
 def test_the_word_usage_weight_and_temperature_default_to_assign_configs():
     """(The reconstruction weight differs on purpose: the objective alone has none, the default AE 1.)"""
     pytest.importorskip("torch")
-    from aefabmap.trainer.assign_objective import AssignConfig
+    from aefabmap_trainer.assign_objective import AssignConfig
 
     c, a = TrainConfig(images=(), out="b", quantizer="ae"), AssignConfig()
     assert (c.ae_balance_weight, c.ae_temperature_end) == (a.balance_weight, a.temperature_end)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from aefabmap.cli.main import main
-from aefabmap.runtime.adapters.bundle_reader import load_bundle
+from aefabmap_runtime.adapters.bundle_reader import load_bundle
 
 REQUIRED_KEYS = ("recall_at_100p", "auc", "max_f1", "recall_at_100p_tolerant", "auc_tolerant", "max_f1_tolerant", "frames", "ms_per_frame")
 

@@ -97,10 +97,10 @@ def test_kernels_run_ahead_of_time_compiled_when_the_jit_is_denied():
     code = textwrap.dedent(
         """
         import numpy as np
-        from aefabmap.runtime.core import compiled
-        from aefabmap.runtime.core.bits import nearest_two
-        from aefabmap.runtime.core.fabmap import FabMap2
-        from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
+        from aefabmap_runtime.core.kernels import compiled
+        from aefabmap_runtime.core.kernels.bits import nearest_two
+        from aefabmap_runtime.core.rank.fabmap import FabMap2
+        from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
 
         def scores():
             engine = FabMap2(random_tree(200, 0), synthetic_observations(20, 200, 30, 1))
@@ -123,6 +123,6 @@ def test_kernels_run_ahead_of_time_compiled_when_the_jit_is_denied():
     assert out.returncode == 0, out.stderr[-2000:]
     form, offered = out.stdout.strip().split(" | ", 1)
     assert "numba" not in offered
-    from aefabmap.runtime.core import native
+    from aefabmap_runtime.core.kernels import native
 
     assert form == ("native" if native.available() else "numpy")

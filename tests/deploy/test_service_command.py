@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from aefabmap.cli.demo import default_bundle
-from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 from tests.deploy.unit_file import (
     REPO,
     read_unit,
@@ -90,7 +90,7 @@ def test_unit_command_runs_against_a_local_router(tmp_path):
     assert mcap.stat().st_size > 0
     # Under the unit numba's JIT cannot run (or numba is absent): the log names the kernels that
     # do, the ahead-of-time compiled ones where they are built.
-    from aefabmap.runtime.core import native
+    from aefabmap_runtime.core.kernels import native
 
     expected = "kernels: native" if native.available() else "kernels: numpy / OpenCV"
     assert any(expected in line for line in log), "".join(log)[-3000:]

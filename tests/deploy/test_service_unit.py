@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from aefabmap.cli.main import build_parser
-from aefabmap.errors import BundleError, ConfigError
+from aefabmap_runtime.errors import BundleError, ConfigError
 from tests.deploy.unit_file import UNIT_PATH, read_unit, run_argv
 
 MAX_EXPOSURE = 4.0

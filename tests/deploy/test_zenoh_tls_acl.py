@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.zenoh_transport import FramePublisher, SessionConfig, session_exposure
-from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.zenoh_transport import FramePublisher, SessionConfig, session_exposure
+from aefabmap_runtime.tools.node_process import free_tcp_port
 from tests.runtime.adapters.stream_fakes import CLI, KEY, RESULTS, JsonCollector
 
 CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "zenoh-tls-acl.json5"

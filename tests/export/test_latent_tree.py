@@ -8,11 +8,11 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from aefabmap.export.onnx_export import attach_tree_search, export_quantizer_onnx  # noqa: E402
-from aefabmap.export.quantize_int8 import quantize_int8  # noqa: E402
-from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer  # noqa: E402
-from aefabmap.trainer.autoencoder import AeConfig, Autoencoder, encode  # noqa: E402
-from aefabmap.trainer.latent_vocabulary import fit_latent_tree  # noqa: E402
+from aefabmap_export.onnx_export import attach_tree_search, export_quantizer_onnx  # noqa: E402
+from aefabmap_export.quantize_int8 import quantize_int8  # noqa: E402
+from aefabmap_runtime.core.words.onnx_quantizer import OnnxQuantizer  # noqa: E402
+from aefabmap_trainer.autoencoder import AeConfig, Autoencoder, encode  # noqa: E402
+from aefabmap_trainer.latent_vocabulary import fit_latent_tree  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -12,12 +12,12 @@ from tests.conftest import train_dir
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from aefabmap.export.onnx_export import QuantizerGraph, export_quantizer_onnx  # noqa: E402
-from aefabmap.export.quantize_int8 import quantize_int8  # noqa: E402
-from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer  # noqa: E402
-from aefabmap.trainer.ae_quantizer import build_ae_quantizer, descriptor_sample  # noqa: E402
-from aefabmap.trainer.autoencoder import AeConfig, train_autoencoder  # noqa: E402
-from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
+from aefabmap_export.onnx_export import QuantizerGraph, export_quantizer_onnx  # noqa: E402
+from aefabmap_export.quantize_int8 import quantize_int8  # noqa: E402
+from aefabmap_runtime.core.words.onnx_quantizer import OnnxQuantizer  # noqa: E402
+from aefabmap_trainer.ae_quantizer import build_ae_quantizer, descriptor_sample  # noqa: E402
+from aefabmap_trainer.autoencoder import AeConfig, train_autoencoder  # noqa: E402
+from aefabmap_trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
 
 WORDS = 64
 # Three short epochs keep the fixture fast. A barely trained encoder gives codes with small
@@ -120,7 +120,7 @@ def test_int8_agrees_with_fp32(exported):
 
 def test_int8_weights_cannot_saturate_int16_pair_sums(exported):
     # u8 activations (<= 255) times s8 weights, summed in pairs in int16 by onnxruntime's
-    # non-VNNI x86 kernels: |w| <= 64 keeps 2 * 255 * |w| <= 32767 (export/quantize_int8.py).
+    # non-VNNI x86 kernels: |w| <= 64 keeps 2 * 255 * |w| <= 32767 (export/aefabmap_export/quantize_int8.py).
     from onnx import numpy_helper
 
     model = onnx.load(str(exported.int8))
@@ -152,8 +152,8 @@ def test_graph_arg_max_is_the_first_maximum_across_blocks_and_padding(tmp_path):
     # whole blocks: it must still give the first index of the row's maximum, as one flat
     # arg-max does, wherever ties fall (inside a block, across a block boundary, in the padded
     # last block) and never a padding index. K = 70 -> blocks of 16, 80 columns.
-    from aefabmap.export.onnx_export import argmax_block
-    from aefabmap.trainer.autoencoder import Autoencoder
+    from aefabmap_export.onnx_export import argmax_block
+    from aefabmap_trainer.autoencoder import Autoencoder
 
     torch.manual_seed(0)
     words = 70

@@ -34,7 +34,7 @@ def test_slam_writes_trajectories_metrics_and_plot(tmp_path):
     assert m["odometry"]["ate_rmse_m"] < 0.25 and m["optimized"]["ate_rmse_m"] < 0.25
     assert m["wrong_loop_edges"] == 0 or all(r["kernel_weight"] < 0.1 for r in m["loop_edge_checks"] if r.get("wrong"))
     assert m["exclude_frames"] == 15  # 10 s at ~0.67 s per frame
-    from aefabmap.runtime.core.run_config import RunConfig
+    from aefabmap_runtime.core.run_config import RunConfig
 
     run_config = RunConfig.from_dict(m["run_config"])  # the detector's settings, whole and readable back
     assert run_config.detector.exclude == 15 and run_config.detector.verification.camera is not None

@@ -65,7 +65,7 @@ def test_guided_matching_finds_repeated_corners_global_matching_cannot():
 
 
 def test_config_is_checked():
-    from aefabmap.errors import ConfigError
+    from aefabmap_runtime.errors import ConfigError
 
     with pytest.raises(ConfigError):
         OdometryConfig(min_inliers=3)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.errors import ConfigError
+from aefabmap_runtime.errors import ConfigError
 from aefabmap.slam.poses import invert, make_pose, pose_difference
 
 pytest.importorskip("gtsam")

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.errors import DataNotFoundError, InputError
+from aefabmap_runtime.errors import DataNotFoundError, InputError
 from aefabmap.slam.poses import (
     invert,
     make_pose,

@@ -10,9 +10,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from aefabmap.errors import ConfigError, InputError  # noqa: E402
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor  # noqa: E402
-from aefabmap.trainer.assign_objective import (  # noqa: E402
+from aefabmap_runtime.errors import ConfigError, InputError  # noqa: E402
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor  # noqa: E402
+from aefabmap_trainer.assign_objective import (  # noqa: E402
     AssignConfig,
     assign_loss,
     balance_loss,
@@ -21,8 +21,8 @@ from aefabmap.trainer.assign_objective import (  # noqa: E402
     log_assign,
     train_assign,
 )
-from aefabmap.trainer.autoencoder import AeConfig  # noqa: E402
-from aefabmap.trainer.multiview import Tracks, build_tracks, darken, is_test_image  # noqa: E402
+from aefabmap_trainer.autoencoder import AeConfig  # noqa: E402
+from aefabmap_trainer.multiview import Tracks, build_tracks, darken, is_test_image  # noqa: E402
 from tests.trainer.test_match_pairs import textured_image  # noqa: E402
 
 
@@ -111,9 +111,9 @@ def test_kmeans_start_is_a_linear_projection_and_k_means_of_it():
     """init "kmeans": the light encoder computes exactly P (x - mean) through its ReLU layer (P the
     top principal axes), the codes share one scale (distances only rescaled), and the first words
     are k-means of those codes: the vocabulary starts as a k-means vocabulary of the descriptors."""
-    from aefabmap.trainer.assign_objective import start_vocabulary
-    from aefabmap.trainer.autoencoder import Autoencoder
-    from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
+    from aefabmap_trainer.assign_objective import start_vocabulary
+    from aefabmap_trainer.autoencoder import Autoencoder
+    from aefabmap_trainer.kmeans import KMeansConfig, fit_kmeans
 
     vectors, _ = bit_data()
     x = torch.from_numpy(vectors)
@@ -185,7 +185,7 @@ def test_bad_inputs_raise():
     dict(ae_temperature_end=float("inf")),
 ])
 def test_train_config_refuses_bad_assign_settings(settings, tmp_path):
-    from aefabmap.trainer.train import TrainConfig
+    from aefabmap_trainer.train import TrainConfig
 
     with pytest.raises(ConfigError):
         TrainConfig(images=(tmp_path,), out=tmp_path / "b", quantizer="ae", **settings)
@@ -193,10 +193,10 @@ def test_train_config_refuses_bad_assign_settings(settings, tmp_path):
 
 def test_assign_bundle_exports_the_trained_codebook(tmp_path, monkeypatch):
     """The ONNX graph's words are the trained codebook's arg-min over the trained encoder's codes."""
-    import aefabmap.export.onnx_export as onnx_export
-    from aefabmap.runtime.core.onnx_quantizer import OnnxQuantizer
-    from aefabmap.trainer.ae_quantizer import build_ae_quantizer
-    from aefabmap.trainer.assign_objective import squared_distances
+    import aefabmap_export.onnx_export as onnx_export
+    from aefabmap_runtime.core.words.onnx_quantizer import OnnxQuantizer
+    from aefabmap_trainer.ae_quantizer import build_ae_quantizer
+    from aefabmap_trainer.assign_objective import squared_distances
 
     exported = {}
     real = onnx_export.export_quantizer_onnx
@@ -266,7 +266,7 @@ def test_light_views_are_the_unwarped_image_at_night(tmp_path):
 
 
 def test_test_pairs_come_from_the_test_split_only(tmp_path):
-    from aefabmap.trainer.multiview import build_test_pairs
+    from aefabmap_trainer.multiview import build_test_pairs
 
     names = [f"img_{i:03d}.png" for i in range(60)]
     files = [tmp_path / n for n in names]

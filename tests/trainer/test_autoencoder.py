@@ -9,16 +9,16 @@ from tests.conftest import train_dir
 
 torch = pytest.importorskip("torch")
 
-from aefabmap.errors import ConfigError, InputError  # noqa: E402
-from aefabmap.trainer.ae_quantizer import descriptor_sample  # noqa: E402
-from aefabmap.trainer.autoencoder import (  # noqa: E402
+from aefabmap_runtime.errors import ConfigError, InputError  # noqa: E402
+from aefabmap_trainer.ae_quantizer import descriptor_sample  # noqa: E402
+from aefabmap_trainer.autoencoder import (  # noqa: E402
     AeConfig,
     Autoencoder,
     RowScale,
     encode,
     train_autoencoder,
 )
-from aefabmap.trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
+from aefabmap_trainer.latent_vocabulary import fit_latent_vocabulary  # noqa: E402
 
 
 @pytest.fixture(scope="module")

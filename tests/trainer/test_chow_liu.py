@@ -9,7 +9,7 @@ import pytest
 from scipy import sparse
 
 from aefabmap import ChowLiuTree
-from aefabmap.trainer.chow_liu import fit_chow_liu, mutual_information
+from aefabmap_trainer.chow_liu import fit_chow_liu, mutual_information
 
 
 def dense_reference(x: np.ndarray):

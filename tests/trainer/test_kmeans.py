@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from aefabmap import ConfigError, InputError
-from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
-from aefabmap.trainer.kmeans import KMeansConfig, fit_kmeans
+from aefabmap_runtime.core.words.quantizer import NearestCentroidQuantizer
+from aefabmap_trainer.kmeans import KMeansConfig, fit_kmeans
 
 
 def blobs(seed=0, k=5, per=200, d=16):

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.runtime.core.features import FeatureConfig, FeatureExtractor
-from aefabmap.trainer.match_pairs import (
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor
+from aefabmap_trainer.match_pairs import (
     MatchPairs,
     build_match_pairs,
     consecutive_frames,

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aefabmap.runtime.adapters.bundle_reader import load_bundle
-from aefabmap.runtime.core.features import FeatureConfig
-from aefabmap.runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
-from aefabmap.trainer import train as train_mod
-from aefabmap.trainer.train import TrainConfig, train_bundle
+from aefabmap_runtime.adapters.bundle_reader import load_bundle
+from aefabmap_runtime.core.features.features import FeatureConfig
+from aefabmap_runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
+from aefabmap_trainer import train as train_mod
+from aefabmap_trainer.train import TrainConfig, train_bundle
 
 
 @pytest.fixture(scope="module")
@@ -161,7 +161,7 @@ def test_light_ae_with_matching_term_bundle(image_dir, tmp_path):
     dict(y=np.zeros(3)),  # not a tracks entry at all
 ])
 def test_a_tracks_cache_entry_that_does_not_fit_together_is_built_again(image_dir, tmp_path, monkeypatch, arrays):
-    from aefabmap.trainer import multiview
+    from aefabmap_trainer import multiview
 
     files = train_mod.find_training_images([image_dir])
     features = FeatureConfig("orb", 200)

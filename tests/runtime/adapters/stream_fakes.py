@@ -1,6 +1,6 @@
 """Helpers of the streaming-runtime tests: free ports, a stand-in detector, waiting utilities.
 
-The stand-in detector only mimics the interface of aefabmap.runtime.core.detector.LoopClosureDetector
+The stand-in detector only mimics the interface of aefabmap_runtime.core.detector.LoopClosureDetector
 (process(gray, stamp_ns) -> result with to_dict(); manifest); it lives in the tests only.
 """
 
@@ -19,16 +19,16 @@ import cv2
 import numpy as np
 import zenoh
 
-from aefabmap.errors import InputError
-from aefabmap.runtime.adapters.zenoh_transport import (
+from aefabmap_runtime.errors import InputError
+from aefabmap_runtime.adapters.zenoh_transport import (
     FramePublisher,
     SessionConfig,
     open_session,
     result_key_for,
     stats_key_for,
 )
-from aefabmap.runtime.core.detector import FrameResult
-from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.core.detector import FrameResult
+from aefabmap_runtime.tools.node_process import free_tcp_port
 
 #: The image key the stream tests publish on, and the node's result / stats keys for it.
 KEY = "robot/camera/image"
@@ -107,7 +107,7 @@ class JsonCollector:
     def __init__(self, session: zenoh.Session, key: str) -> None:
         import json
 
-        from aefabmap.runtime.core.messages import StatsMessage
+        from aefabmap_runtime.core.records.messages import StatsMessage
 
         kind = StatsMessage if key.endswith("/stats") else FrameResult
         self.queue: queue.Queue = queue.Queue()
@@ -149,7 +149,7 @@ class NodeThread:
     """Runs run_node in a thread; .summary / .error after join."""
 
     def __init__(self, detector, session_config, *, view=None, **options) -> None:
-        from aefabmap.runtime.adapters.node import NodeOptions, run_node
+        from aefabmap_runtime.adapters.node import NodeOptions, run_node
 
         self.stop = threading.Event()
         self.ready = threading.Event()
@@ -188,7 +188,7 @@ class NodeThread:
 
 
 def sample_images(n: int, size=(160, 120), seed: int = 0) -> list[np.ndarray]:
-    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
     images, _ = generate_loop_sequence(max(n, 4), seed, size)
     return images[:n]
@@ -215,7 +215,7 @@ def record_live_log(path, **node_options):
     """A log at ``path`` recorded by a live node (NodeThread with a FakeDetector, loopback Zenoh):
     16 sample frames published as 8 JPEG then 8 raw mono8, every result awaited. node_options go
     to the NodeThread (stats_period_s, log_config, run_config...). Returns (summary, images)."""
-    from aefabmap.runtime.tools.publisher import array_source, publish_frames
+    from aefabmap_runtime.tools.publisher import array_source, publish_frames
 
     images = sample_images(16, size=(96, 72))
     listen, connect = session_pair()

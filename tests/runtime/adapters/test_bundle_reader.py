@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from aefabmap import BundleError
-from aefabmap.runtime.adapters.bundle_reader import load_bundle, sha256_file
+from aefabmap_runtime.adapters.bundle_reader import load_bundle, sha256_file
 from tests.conftest import make_synthetic_bundle
 
 
@@ -104,8 +104,8 @@ def test_flat_search_of_a_binary_kind_runs_in_int8_with_the_float_words(tmp_path
     """An ORB k-means bundle searches its flat vocabulary with the int8 product (exact re-rank),
     "flat-fp32" with the float32 product, and the two give the same words; a SIFT bundle keeps
     the float product (its descriptors are not bits)."""
-    from aefabmap.runtime.core.bit_centroids import BitCentroidQuantizer
-    from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer, quantize_raw
+    from aefabmap_runtime.core.words.bit_centroids import BitCentroidQuantizer
+    from aefabmap_runtime.core.words.quantizer import NearestCentroidQuantizer, quantize_raw
 
     b = load_bundle(make_synthetic_bundle(tmp_path / "orb", vocabulary_size=200))
     int8, fp32 = b.quantizer(), b.quantizer("flat-fp32")

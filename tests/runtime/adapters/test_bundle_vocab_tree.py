@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from aefabmap.errors import BundleError
-from aefabmap.runtime.adapters.bundle_reader import load_bundle, load_detector, sha256_file
-from aefabmap.runtime.core.vocab_tree import VocabularyTree
+from aefabmap_runtime.errors import BundleError
+from aefabmap_runtime.adapters.bundle_reader import load_bundle, load_detector, sha256_file
+from aefabmap_runtime.core.words.vocab_tree import VocabularyTree
 from tests.conftest import make_synthetic_tree_bundle
 
 CENTERS, CHILDREN, WORDS = "vocab_tree_centers.npy", "vocab_tree_children.npy", "vocab_tree_leaf_words.npy"
@@ -138,13 +138,13 @@ def test_lying_header_is_refused_before_allocation(tree_bundle):
 @pytest.fixture(scope="module")
 def indexed_bundle(tmp_path_factory):
     """A synthetic flat bundle plus an index built on generated vectors."""
-    from aefabmap.export.bundle_writer import write_bundle
-    from aefabmap.runtime.core.features import FeatureConfig
-    from aefabmap.runtime.core.quantizer import NearestCentroidQuantizer
-    from aefabmap.runtime.tools.synthetic_observations import random_tree, synthetic_observations
-    from aefabmap.trainer.centroid_index import build_lists, fit_routing
-    from aefabmap.trainer.kmeans import KMeansConfig
-    from aefabmap.trainer.train import INDEX_FILE_NAMES
+    from aefabmap_export.bundle_writer import write_bundle
+    from aefabmap_runtime.core.features.features import FeatureConfig
+    from aefabmap_runtime.core.words.quantizer import NearestCentroidQuantizer
+    from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
+    from aefabmap_trainer.centroid_index import build_lists, fit_routing
+    from aefabmap_trainer.kmeans import KMeansConfig
+    from aefabmap_trainer.train import INDEX_FILE_NAMES
 
     rng = np.random.default_rng(0)
     centroids = rng.random((64, 256)).astype(np.float32)

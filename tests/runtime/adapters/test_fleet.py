@@ -1,5 +1,5 @@
 """Robots of a fleet over real Zenoh sessions through a router on loopback
-(runtime/adapters/fleet.py): places offered, fetched on demand and verified; late joiners;
+(runtime/aefabmap_runtime/adapters/fleet.py): places offered, fetched on demand and verified; late joiners;
 robots that leave; hostile peers."""
 
 from __future__ import annotations
@@ -11,21 +11,21 @@ import numpy as np
 import pytest
 import zenoh
 
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.fleet import FleetNode
-from aefabmap.runtime.adapters.map_state import bundle_id
-from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, open_session
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.core.fleet_map import FleetConfig
-from aefabmap.runtime.core.fleet_wire import PlaceSummary, fleet_key
-from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.fleet import FleetNode
+from aefabmap_runtime.adapters.state_dir import bundle_id
+from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, open_session
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
+from aefabmap_runtime.core.fleet.fleet_wire import PlaceSummary, fleet_key
+from aefabmap_runtime.tools.node_process import free_tcp_port
 
 pytestmark = pytest.mark.timeout(120)
 
 
 @pytest.fixture(scope="module")
 def route():
-    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
     images, _ = generate_loop_sequence(10, seed=3, size=(640, 480))
     return images
@@ -228,8 +228,8 @@ def _image_log(path, images):
     import cv2
 
     from aefabmap.cli.run_config import RUN_CONFIG_KEY
-    from aefabmap.runtime.adapters.mcap_log import McapLogWriter
-    from aefabmap.runtime.core.run_config import RunConfig
+    from aefabmap_runtime.adapters.mcap_log import McapLogWriter
+    from aefabmap_runtime.core.run_config import RunConfig
 
     run = RunConfig(detector=DetectorConfig(exclude=1)).to_dict()
     with McapLogWriter(path, run_config={RUN_CONFIG_KEY: run}) as log:
@@ -392,9 +392,9 @@ def test_places_stored_during_a_network_partition_arrive_once_it_heals(route):
 def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub, tmp_path):
     """Two views of one 3-D point cloud (tests/runtime/core/test_candidates.py): a's place, b's
     query; with --camera the remote loop carries b's camera pose in a's place frame."""
-    from aefabmap.runtime.core.verification import VerificationConfig
-    from tests.runtime.core.test_candidates import CAMERA, calibrated_scene
-    from tests.runtime.core.test_verification import _detector
+    from aefabmap_runtime.core.verify.verification import VerificationConfig
+    from tests.runtime.core.decide.test_candidates import CAMERA, calibrated_scene
+    from tests.runtime.core.verify.test_verification import _detector
 
     scene = calibrated_scene()
     det = _detector(tmp_path, verification=VerificationConfig(camera=CAMERA, min_inliers_h=1000))

@@ -14,11 +14,11 @@ import time
 import cv2
 import pytest
 
-from aefabmap.errors import ConfigError, TransportError
-from aefabmap.runtime.adapters.foxglove_view import IMAGE_TOPIC, RESULT_TOPIC
-from aefabmap.runtime.adapters.mcap_log import McapLogWriter
-from aefabmap.runtime.core.messages import FrameResult
-from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.errors import ConfigError, TransportError
+from aefabmap_runtime.adapters.foxglove_view import IMAGE_TOPIC, RESULT_TOPIC
+from aefabmap_runtime.adapters.mcap_log import McapLogWriter
+from aefabmap_runtime.core.records.messages import FrameResult
+from aefabmap_runtime.tools.node_process import free_tcp_port
 
 from .stream_fakes import FakeDetector, sample_images
 from tests.conftest import cli_args
@@ -103,7 +103,7 @@ class _ReplayCli(threading.Thread):
 
 @pytest.fixture
 def fake_detector(monkeypatch):
-    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
 
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
 
@@ -179,8 +179,8 @@ def test_bad_playback_options_are_one_line_errors(tmp_path, fake_detector, caplo
 
 def test_library_wait_for_a_viewer_needs_a_view_and_stops_on_the_event(tmp_path):
     pytest.importorskip("foxglove")
-    from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer, LiveView
-    from aefabmap.runtime.adapters.replay import PlaybackConfig, replay
+    from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer, LiveView
+    from aefabmap_runtime.adapters.replay import PlaybackConfig, replay
 
     src = _log(tmp_path / "src.mcap", 3, gap_s=0.05)
     with pytest.raises(ConfigError, match="viewer"):
@@ -201,7 +201,7 @@ def test_foxglove_sdk_takes_sdk_v1_and_refuses_a_websocket_v1_only_client():
     answers HTTP 400 to a client that offers only foxglove.websocket.v1 (older Lichtblick)."""
     pytest.importorskip("foxglove")
     websocket = pytest.importorskip("websocket")
-    from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer
+    from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer
 
     server = FoxgloveServer(port=0)
     try:

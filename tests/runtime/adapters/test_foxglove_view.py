@@ -12,7 +12,7 @@ import pytest
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 
-from aefabmap.runtime.adapters.foxglove_view import (
+from aefabmap_runtime.adapters.foxglove_view import (
     ANNOTATIONS_TOPIC,
     IMAGE_TOPIC,
     PLACE_IMAGE_TOPIC,
@@ -21,8 +21,8 @@ from aefabmap.runtime.adapters.foxglove_view import (
     LiveViewConfig,
     PlaceThumbnails,
 )
-from aefabmap.runtime.adapters.mcap_log import McapLogReader, McapLogWriter
-from aefabmap.runtime.core.messages import Candidate, FrameResult
+from aefabmap_runtime.adapters.mcap_log import McapLogReader, McapLogWriter
+from aefabmap_runtime.core.records.messages import Candidate, FrameResult
 
 
 def _gray(seed: int, shape=(192, 240)) -> np.ndarray:
@@ -98,7 +98,7 @@ class _FoxgloveClient:
 def test_live_server_serves_image_annotations_place_and_result(tmp_path):
     pytest.importorskip("foxglove")
     pytest.importorskip("websocket")
-    from aefabmap.runtime.adapters.foxglove_view import FoxgloveServer
+    from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer
 
     view = LiveView(FoxgloveServer(port=0))
     client = _FoxgloveClient(view.server.port)
@@ -155,8 +155,8 @@ def test_view_channels_in_the_log_keep_the_reader_working(tmp_path):
 def test_layout_names_only_served_topics_and_existing_fields():
     from pathlib import Path
 
-    from aefabmap.runtime.adapters.foxglove_view import STATS_TOPIC
-    from aefabmap.runtime.core.messages import StatsMessage
+    from aefabmap_runtime.adapters.foxglove_view import STATS_TOPIC
+    from aefabmap_runtime.core.records.messages import StatsMessage
 
     doc = json.loads((Path(__file__).parents[3] / "deploy" / "foxglove_layout.json").read_text())
     fields = {RESULT_TOPIC: FrameResult.json_schema()["properties"], STATS_TOPIC: StatsMessage.json_schema()["properties"]}
@@ -181,9 +181,9 @@ def test_live_node_with_view_serves_a_client_and_logs_the_view(tmp_path):
     stats; the run's MCAP log gets the annotations too."""
     pytest.importorskip("foxglove")
     pytest.importorskip("websocket")
-    from aefabmap.runtime.adapters.foxglove_view import STATS_TOPIC, FoxgloveServer
-    from aefabmap.runtime.adapters.zenoh_transport import open_session
-    from aefabmap.runtime.tools.publisher import array_source, publish_frames
+    from aefabmap_runtime.adapters.foxglove_view import STATS_TOPIC, FoxgloveServer
+    from aefabmap_runtime.adapters.zenoh_transport import open_session
+    from aefabmap_runtime.tools.publisher import array_source, publish_frames
 
     from .stream_fakes import (
         FakeDetector,
@@ -245,7 +245,7 @@ def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, mon
         for i, img in enumerate(images):
             _ok, png = cv2.imencode(".png", img)
             log.write_image(png.tobytes(), "image/png", 1_700_000_000_000_000_000 + i * 10**8, sequence=i)
-    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
 
     configs, real_load = [], bundle_reader_mod.load_detector
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda path, config: configs.append(config)

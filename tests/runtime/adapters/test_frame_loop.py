@@ -1,15 +1,15 @@
-"""The one per-frame step (runtime/adapters/frame_loop.py): decode -> detect, bad frames counted."""
+"""The one per-frame step (runtime/aefabmap_runtime/adapters/frame_loop.py): decode -> detect, bad frames counted."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from aefabmap.errors import InputError
-from aefabmap.runtime.adapters.frame_loop import FrameLoop
-from aefabmap.runtime.adapters.frames import BAD_FRAME_REASONS, FrameError, encode_frame
-from aefabmap.runtime.core.json_schema import validate
-from aefabmap.runtime.core.messages import StatsMessage
+from aefabmap_runtime.errors import InputError
+from aefabmap_runtime.adapters.frame_loop import FrameLoop
+from aefabmap_runtime.adapters.frames import BAD_FRAME_REASONS, FrameError, encode_frame
+from aefabmap_runtime.core.records.json_schema import validate
+from aefabmap_runtime.core.records.messages import StatsMessage
 
 from .stream_fakes import FakeDetector, sample_images
 
@@ -52,7 +52,7 @@ def test_strict_loop_raises_instead_of_skipping(tmp_path):
 def test_a_model_failing_on_one_frame_is_counted_not_fatal():
     """A quantiser that passes the load-time probe but fails on some frame (BundleError from
     the model) costs that frame, counted as rejected; the running node goes on."""
-    from aefabmap.errors import BundleError
+    from aefabmap_runtime.errors import BundleError
 
     class FailsOnce(FakeDetector):
         def process(self, gray, stamp_ns):

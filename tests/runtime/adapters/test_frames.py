@@ -1,4 +1,4 @@
-"""Frame payload decoding/encoding (runtime/adapters/frames.py)."""
+"""Frame payload decoding/encoding (runtime/aefabmap_runtime/adapters/frames.py)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.errors import ConfigError, ImageDecodeError, InputError
-from aefabmap.runtime.adapters.frames import (
+from aefabmap_runtime.errors import ConfigError, ImageDecodeError, InputError
+from aefabmap_runtime.adapters.frames import (
     FrameError,
     compressed_format_to_encoding,
     decode_frame,

@@ -1,5 +1,5 @@
 """A node's liveliness token and status queryable on real loopback Zenoh sessions
-(runtime/adapters/health.py)."""
+(runtime/aefabmap_runtime/adapters/health.py)."""
 
 from __future__ import annotations
 
@@ -10,18 +10,18 @@ import time
 import pytest
 import zenoh
 
-from aefabmap.runtime.adapters.health import (
+from aefabmap_runtime.adapters.health import (
     RUNTIME_TOKEN_PREFIX,
     find_runtimes,
     query_status,
     status_key,
     wait_for_peer,
 )
-from aefabmap.runtime.adapters.map_state import bundle_id
-from aefabmap.runtime.adapters.zenoh_transport import open_session
-from aefabmap.runtime.core.json_schema import validate
-from aefabmap.runtime.core.messages import MESSAGE_FORMAT_VERSION, StatusMessage
-from aefabmap.runtime.tools.publisher import array_source, publish_frames
+from aefabmap_runtime.adapters.state_dir import bundle_id
+from aefabmap_runtime.adapters.zenoh_transport import open_session
+from aefabmap_runtime.core.records.json_schema import validate
+from aefabmap_runtime.core.records.messages import MESSAGE_FORMAT_VERSION, StatusMessage
+from aefabmap_runtime.tools.publisher import array_source, publish_frames
 
 from .stream_fakes import (
     KEY,
@@ -149,7 +149,7 @@ def test_peak_rss_is_the_kernels_high_water_mark_not_a_sample():
     peak was the largest 5-s sample)."""
     import numpy as np
 
-    from aefabmap.runtime.adapters.health import peak_rss_mb, rss_mb
+    from aefabmap_runtime.adapters.health import peak_rss_mb, rss_mb
 
     before = rss_mb()
     block = np.ones(300 * 2**20 // 8)  # 300 MB touched, then freed

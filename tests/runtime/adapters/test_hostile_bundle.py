@@ -11,9 +11,9 @@ import sys
 import numpy as np
 import pytest
 
-from aefabmap.errors import BundleError, InputError
-from aefabmap.runtime.adapters.bundle_reader import load_bundle, sha256_file
-from aefabmap.runtime.adapters.mcap_log import McapLogWriter
+from aefabmap_runtime.errors import BundleError, InputError
+from aefabmap_runtime.adapters.bundle_reader import load_bundle, sha256_file
+from aefabmap_runtime.adapters.mcap_log import McapLogWriter
 
 
 def _manifest(bundle) -> dict:
@@ -224,7 +224,7 @@ def test_cli_reports_a_hostile_bundle_in_one_line_with_exit_code_3(synthetic_bun
     ],
 )
 def test_ground_truth_header_is_checked_before_loading(tmp_path, content):
-    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+    from aefabmap_runtime.tools.sequence_eval import load_ground_truth
 
     path = tmp_path / "gt.npy"
     path.write_bytes(content)
@@ -233,7 +233,7 @@ def test_ground_truth_header_is_checked_before_loading(tmp_path, content):
 
 
 def test_ground_truth_that_fits_loads(tmp_path):
-    from aefabmap.runtime.tools.sequence_eval import load_ground_truth
+    from aefabmap_runtime.tools.sequence_eval import load_ground_truth
 
     np.save(tmp_path / "gt.npy", np.eye(3, dtype=np.uint8))
     assert load_ground_truth(tmp_path / "gt.npy", 3).dtype == bool
@@ -267,7 +267,7 @@ def test_cli_eval_with_a_lying_ground_truth_header_exits_4_in_one_line(synthetic
 def test_malformed_manifest_fields_are_one_line_errors_before_any_frame(synthetic_bundle, edit):
     """A bundle whose manifest fields have the wrong type or range is refused when it is loaded,
     as a BundleError (CLI exit 3), never a traceback and never on the first frame."""
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
 
     m = _manifest(synthetic_bundle)
     edit(m)

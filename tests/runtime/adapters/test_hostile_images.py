@@ -11,15 +11,15 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.errors import AefabmapError, InputError
-from aefabmap.runtime.adapters.frames import (
+from aefabmap_runtime.errors import AefabmapError, InputError
+from aefabmap_runtime.adapters.frames import (
     BAD_FRAME_REASONS,
     RAW_FORMATS,
     FrameError,
     decode_frame,
 )
-from aefabmap.runtime.adapters.mcap_log import McapLogWriter
-from aefabmap.runtime.core.features import (
+from aefabmap_runtime.adapters.mcap_log import McapLogWriter
+from aefabmap_runtime.core.features.features import (
     MAX_ASPECT_RATIO,
     FeatureConfig,
     FeatureExtractor,
@@ -217,7 +217,7 @@ def _jpeg_with_size_behind_app_segments(width: int, height: int, app_bytes: int)
 
 @pytest.mark.parametrize("app_bytes", [0, 70_000, 300_000])
 def test_a_huge_jpeg_is_refused_from_its_header_wherever_the_header_sits(monkeypatch, app_bytes):
-    import aefabmap.runtime.adapters.frames as frames
+    import aefabmap_runtime.adapters.frames as frames
 
     def no_decode(*_a, **_k):
         raise AssertionError("the pixels were decoded before the size was checked")
@@ -230,7 +230,7 @@ def test_a_huge_jpeg_is_refused_from_its_header_wherever_the_header_sits(monkeyp
 
 
 def test_a_jpeg_without_a_frame_header_is_refused_without_decoding(monkeypatch):
-    import aefabmap.runtime.adapters.frames as frames
+    import aefabmap_runtime.adapters.frames as frames
 
     jpeg = cv2.imencode(".jpg", np.full((64, 64), 128, np.uint8))[1].tobytes()
     sos = jpeg.index(b"\xff\xda")

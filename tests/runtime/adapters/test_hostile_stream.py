@@ -10,10 +10,10 @@ import time
 import pytest
 import zenoh
 
-from aefabmap.errors import LogError
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.mcap_log import McapLogReader, McapLogWriter
-from aefabmap.runtime.adapters.zenoh_transport import (
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.mcap_log import McapLogReader, McapLogWriter
+from aefabmap_runtime.adapters.zenoh_transport import (
     MAX_ATTACHMENT_BYTES,
     DropCounter,
     FrameMeta,
@@ -22,7 +22,7 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     cli_session_config,
     open_session,
 )
-from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.tools.node_process import free_tcp_port
 
 from .stream_fakes import (
     KEY,

@@ -9,9 +9,9 @@ import pytest
 from mcap.reader import make_reader
 
 from aefabmap.cli.main import main
-from aefabmap.errors import LogError
-from aefabmap.runtime.adapters.log_repair import repair_log
-from aefabmap.runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogConfig, McapLogReader
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.log_repair import repair_log
+from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogConfig, McapLogReader
 
 from .stream_fakes import sample_images
 from .test_mcap_log import _write_log

@@ -8,14 +8,14 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
 from aefabmap.cli import replay as cli_replay
-from aefabmap.runtime.adapters.log_set import LogSet, log_files
-from aefabmap.runtime.adapters.mcap_log import McapLogReader
-from aefabmap.runtime.adapters.replay import replay
-from aefabmap.runtime.adapters.rotating_log import MB, LogRotationConfig
-from aefabmap.runtime.adapters.zenoh_transport import open_session
-from aefabmap.runtime.tools.publisher import array_source, publish_frames
+from aefabmap_runtime.adapters.log_set import LogSet, log_files
+from aefabmap_runtime.adapters.mcap_log import McapLogReader
+from aefabmap_runtime.adapters.replay import replay
+from aefabmap_runtime.adapters.rotating_log import MB, LogRotationConfig
+from aefabmap_runtime.adapters.zenoh_transport import open_session
+from aefabmap_runtime.tools.publisher import array_source, publish_frames
 
 from tests.conftest import cli_args
 

@@ -1,4 +1,4 @@
-"""Log sets: names, which files are ours, budget trimming, reading order (runtime/adapters/log_set.py)."""
+"""Log sets: names, which files are ours, budget trimming, reading order (runtime/aefabmap_runtime/adapters/log_set.py)."""
 
 from __future__ import annotations
 
@@ -6,14 +6,14 @@ import os
 
 import pytest
 
-from aefabmap.errors import ConfigError, LogError
-from aefabmap.runtime.adapters.log_set import (
+from aefabmap_runtime.errors import ConfigError, LogError
+from aefabmap_runtime.adapters.log_set import (
     LOG_FILE_METADATA,
     MCAP_MAGIC,
     LogSet,
     log_files,
 )
-from aefabmap.runtime.adapters.mcap_log import McapLogWriter
+from aefabmap_runtime.adapters.mcap_log import McapLogWriter
 
 
 def _mcap(path, size=100):

@@ -1,4 +1,4 @@
-"""The map journal (runtime/adapters/map_journal.py): frames between snapshots survive a kill,
+"""The map journal (runtime/aefabmap_runtime/adapters/map_journal.py): frames between snapshots survive a kill,
 a full disk loses only the frames it could not take, and hostile journals are refused or cut."""
 
 from __future__ import annotations
@@ -12,20 +12,20 @@ import zlib
 import numpy as np
 import pytest
 
-from aefabmap.errors import StateError
-from aefabmap.runtime.adapters import map_journal, map_state
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.map_journal import MapJournal, replay_journal, segments
-from aefabmap.runtime.adapters.map_state import (
+from aefabmap_runtime.errors import StateError
+from aefabmap_runtime.adapters import map_journal, state_dir
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.map_journal import MapJournal, replay_journal, segments
+from aefabmap_runtime.adapters.state_dir import (
     MapStateDir,
     SnapshotPolicy,
     Snapshotter,
     bundle_id,
     load_into,
 )
-from aefabmap.runtime.core.candidates import CandidateConfig
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+from aefabmap_runtime.core.decide.candidates import CandidateConfig
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 from tests.conftest import make_synthetic_bundle
 
 CONFIG = DetectorConfig(exclude=3, max_places=30)  # evictions and verified loops within 60 frames
@@ -117,7 +117,7 @@ class FakeDisk:
 
     def __init__(self, monkeypatch, budget: int) -> None:
         self.left = budget
-        real_write, real_file = os.write, map_state._write_file
+        real_write, real_file = os.write, state_dir._write_file
 
         def write(fd, data):
             if self.left <= 0:
@@ -133,7 +133,7 @@ class FakeDisk:
             real_file(path, data)
 
         monkeypatch.setattr(map_journal, "_os_write", write)
-        monkeypatch.setattr(map_state, "_write_file", write_file)
+        monkeypatch.setattr(state_dir, "_write_file", write_file)
 
 
 def test_a_full_disk_loses_only_the_frames_it_could_not_take(bundle, images, reference, tmp_path, monkeypatch):
@@ -359,7 +359,7 @@ def test_run_with_its_state_on_a_tmpfs_that_fills_says_what_it_kept(bundle, imag
     summary), exits 0, and a restart loads exactly what it said it kept."""
     import json
 
-    from aefabmap.runtime.tools.synthetic_route import write_sequence
+    from aefabmap_runtime.tools.synthetic_route import write_sequence
     from tests.runtime.adapters.stream_fakes import mounted_tmpfs, run_node_process
 
     write_sequence(tmp_path / "seq", images, np.zeros((N, N), bool))

@@ -1,4 +1,4 @@
-"""MCAP writer/reader (runtime/adapters/mcap_log.py): layout, crash safety, ROS 2 bags."""
+"""MCAP writer/reader (runtime/aefabmap_runtime/adapters/mcap_log.py): layout, crash safety, ROS 2 bags."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 
-from aefabmap.errors import LogError
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.mcap_log import (
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.mcap_log import (
     IMAGE_TOPIC,
     MANIFEST_METADATA,
     RESULT_TOPIC,
@@ -29,7 +29,7 @@ from aefabmap.runtime.adapters.mcap_log import (
     McapLogWriter,
     read_log_metadata,
 )
-from aefabmap.runtime.core.messages import StatsMessage
+from aefabmap_runtime.core.records.messages import StatsMessage
 
 from .stream_fakes import make_result, sample_images, write_ros2_bag
 
@@ -103,7 +103,7 @@ def test_unwritable_path_is_log_error_naming_path(tmp_path):
 
 
 def test_bad_config_and_bad_input_files(tmp_path):
-    from aefabmap.errors import ConfigError
+    from aefabmap_runtime.errors import ConfigError
 
     with pytest.raises(ConfigError):
         McapLogConfig(compression="brotli")
@@ -142,8 +142,8 @@ def test_truncated_files_read_up_to_last_complete_chunk(tmp_path):
 _KILLED_WRITER = textwrap.dedent(
     """
     import sys
-    from aefabmap.runtime.adapters.frames import encode_frame
-    from aefabmap.runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
+    from aefabmap_runtime.adapters.frames import encode_frame
+    from aefabmap_runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
     import numpy as np
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, size=(48, 64), dtype=np.uint8)

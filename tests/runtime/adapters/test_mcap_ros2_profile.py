@@ -14,10 +14,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.log_repair import repair_log
-from aefabmap.runtime.adapters.log_set import log_files
-from aefabmap.runtime.adapters.mcap_log import (
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.log_repair import repair_log
+from aefabmap_runtime.adapters.log_set import log_files
+from aefabmap_runtime.adapters.mcap_log import (
     LOG_FORMAT_VERSION,
     LOG_METADATA,
     MANIFEST_METADATA,
@@ -28,8 +28,8 @@ from aefabmap.runtime.adapters.mcap_log import (
     McapLogReader,
     McapLogWriter,
 )
-from aefabmap.runtime.adapters.replay import replay
-from aefabmap.runtime.adapters.ros_cdr import (
+from aefabmap_runtime.adapters.replay import replay
+from aefabmap_runtime.adapters.ros_cdr import (
     COMPRESSED_IMAGE_MSGDEF,
     COMPRESSED_IMAGE_TYPE,
     STRING_MSGDEF,
@@ -37,8 +37,8 @@ from aefabmap.runtime.adapters.ros_cdr import (
     encode_compressed_image_cdr,
     encode_string_cdr,
 )
-from aefabmap.runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
-from aefabmap.runtime.core.messages import FrameResult
+from aefabmap_runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
+from aefabmap_runtime.core.records.messages import FrameResult
 
 from .stream_fakes import (
     CLI,
@@ -163,7 +163,7 @@ def test_the_default_profile_keeps_its_layout(tmp_path):
         w.write_result(FakeDetector().process(sample_images(1, size=(64, 48))[0], STAMP0))
     assert file_layout(path)[:3] == ("", {"protobuf", "jsonschema"}, {"protobuf", "json"})
     assert McapLogReader(path).status.profile is None  # set while reading
-    from aefabmap.errors import ConfigError
+    from aefabmap_runtime.errors import ConfigError
 
     with pytest.raises(ConfigError, match="profile"):
         McapLogConfig(profile="ros1")
@@ -260,7 +260,7 @@ def test_cli_run_with_the_ros2_profile_then_replay_check(tmp_path):
     `aefabmap replay --check --out --mcap-profile ros2` passes and writes a ros2 log too."""
     import subprocess
 
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
     make_demo_sequence(tmp_path / "seq", n_frames=16, seed=2, size=(160, 120))

@@ -1,4 +1,4 @@
-"""Streaming node and publisher on real loopback Zenoh sessions (runtime/adapters/node.py)."""
+"""Streaming node and publisher on real loopback Zenoh sessions (runtime/aefabmap_runtime/adapters/node.py)."""
 
 from __future__ import annotations
 
@@ -11,21 +11,21 @@ import time
 import numpy as np
 import pytest
 
-from aefabmap.errors import LogError
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.mcap_log import (
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.mcap_log import (
     MANIFEST_METADATA,
     RUN_CONFIG_METADATA,
     McapLogReader,
 )
-from aefabmap.runtime.adapters.node import NodeOptions, rss_mb, run_node, stop_on_signals
-from aefabmap.runtime.adapters.zenoh_transport import FramePublisher, open_session
-from aefabmap.runtime.tools.publisher import (
+from aefabmap_runtime.adapters.node import NodeOptions, rss_mb, run_node, stop_on_signals
+from aefabmap_runtime.adapters.zenoh_transport import FramePublisher, open_session
+from aefabmap_runtime.tools.publisher import (
     array_source,
     images_dir_source,
     publish_frames,
 )
-from aefabmap.runtime.tools.synthetic_route import write_sequence
+from aefabmap_runtime.tools.synthetic_route import write_sequence
 
 from .stream_fakes import (
     CLI,
@@ -212,7 +212,7 @@ def test_sigterm_sets_the_stop_event():
 # so that the old behaviour fails by timeout instead of hanging the suite.
 _SIGNAL_IN_WAIT_WINDOW = """
 import os, signal, threading
-from aefabmap.runtime.adapters.node import stop_on_signals
+from aefabmap_runtime.adapters.node import stop_on_signals
 stop = threading.Event()
 with stop_on_signals(stop):
     with stop._cond:  # the state of the main thread inside Event.wait's prologue / epilogue
@@ -274,7 +274,7 @@ def test_cli_options_parse():
 
 def test_cli_run_stops_on_sigint_with_a_finished_log(tmp_path, monkeypatch):
     """`aefabmap run` main(): SIGINT (from another thread) stops it; exit 0; log complete."""
-    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
     from aefabmap.cli import run
 
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
@@ -323,7 +323,7 @@ def test_cli_processes_run_publish_replay_with_a_real_bundle(tmp_path):
     import json
     import subprocess
 
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
     from tests.conftest import make_synthetic_bundle
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
@@ -348,8 +348,8 @@ def test_replay_check_reproduces_a_run_with_non_default_settings(tmp_path):
     import json
     import subprocess
 
-    from aefabmap.runtime.adapters.mcap_log import RUN_CONFIG_METADATA, read_log_metadata
-    from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+    from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, read_log_metadata
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
     from tests.conftest import make_synthetic_bundle
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")

@@ -1,4 +1,4 @@
-"""Replay and --check (runtime/adapters/replay.py) on live logs, truncated logs and ROS 2 bags."""
+"""Replay and --check (runtime/aefabmap_runtime/adapters/replay.py) on live logs, truncated logs and ROS 2 bags."""
 
 from __future__ import annotations
 
@@ -7,20 +7,20 @@ import json
 import numpy as np
 import pytest
 
-from aefabmap.errors import LogError
-from aefabmap.runtime.adapters.mcap_log import (
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.mcap_log import (
     McapLogConfig,
     McapLogReader,
     McapLogWriter,
 )
-from aefabmap.runtime.adapters.replay import (
+from aefabmap_runtime.adapters.replay import (
     NONDETERMINISTIC_FIELDS,
     compare_results,
     replay,
 )
-from aefabmap.runtime.adapters.ros_bag import rosbags_available
-from aefabmap.runtime.adapters.zenoh_transport import open_session
-from aefabmap.runtime.tools.publisher import array_source, publish_frames
+from aefabmap_runtime.adapters.ros_bag import rosbags_available
+from aefabmap_runtime.adapters.zenoh_transport import open_session
+from aefabmap_runtime.tools.publisher import array_source, publish_frames
 
 from .stream_fakes import (
     KEY,
@@ -117,7 +117,7 @@ def test_sparse_image_log_is_flagged_incomplete(tmp_path):
     path = tmp_path / "sparse.mcap"
     det = FakeDetector()
     images = sample_images(6, size=(64, 48))
-    from aefabmap.runtime.adapters.frames import encode_frame
+    from aefabmap_runtime.adapters.frames import encode_frame
 
     with McapLogWriter(path, McapLogConfig(image_every=2)) as w:
         for i, img in enumerate(images):
@@ -154,7 +154,7 @@ def test_ros2_bag_replays(tmp_path):
 
 
 def test_cli_replay_main(live_log, tmp_path, monkeypatch, capsys):
-    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
     from aefabmap.cli import replay as cli_replay
 
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
@@ -170,8 +170,8 @@ def test_cli_replay_main(live_log, tmp_path, monkeypatch, capsys):
 
 def test_real_detector_live_then_replay_check(tmp_path):
     """The lead's LoopClosureDetector on a small synthetic bundle: live log -> replay --check OK."""
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
     from tests.conftest import make_synthetic_bundle
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
@@ -216,7 +216,7 @@ def _raw_json_messages(path) -> dict[str, list[dict]]:
 
 
 def _conforms(doc: dict, schema: dict) -> None:
-    from aefabmap.runtime.core.json_schema import validate
+    from aefabmap_runtime.core.records.json_schema import validate
 
     assert validate(doc, schema) is None, (validate(doc, schema), doc)
     assert set(doc) <= set(schema["properties"]), set(doc) - set(schema["properties"])  # no undeclared key
@@ -225,9 +225,9 @@ def _conforms(doc: dict, schema: dict) -> None:
 def test_real_run_messages_conform_to_the_schemas_written_in_the_log(tmp_path):
     """Zenoh results/stats and MCAP records of a real run (real detector, loopback Zenoh),
     the first stats message (nulls, before any frame) included, then those of its replay."""
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.core.detector import DetectorConfig
-    from aefabmap.runtime.core.messages import RunSummary
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.core.records.messages import RunSummary
     from tests.conftest import make_synthetic_bundle
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
@@ -272,9 +272,9 @@ def test_real_run_messages_conform_to_the_schemas_written_in_the_log(tmp_path):
 def test_replay_check_of_an_older_format_log_skips_the_fields_it_cannot_hold(live_log, tmp_path, monkeypatch):
     """A format-1 log (no score_kind; written as the old code did) still checks OK with the
     real detector, whose results now carry score_kind; the report says what was not compared."""
-    from aefabmap.runtime.adapters import mcap_log
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.adapters import mcap_log
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
     from tests.conftest import make_synthetic_bundle
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
@@ -318,8 +318,8 @@ def _copy_log(src, dst) -> None:
 def test_logs_record_the_extraction_version_and_a_check_says_when_it_differs(live_log, tmp_path, monkeypatch):
     """A log names the feature extraction of the build that wrote it (features.EXTRACTION_VERSION):
     replayed by a build that extracts otherwise, the check says why frames may differ."""
-    from aefabmap.runtime.adapters import mcap_log
-    from aefabmap.runtime.core.features import EXTRACTION_VERSION
+    from aefabmap_runtime.adapters import mcap_log
+    from aefabmap_runtime.core.features.features import EXTRACTION_VERSION
 
     assert _read(live_log)[0].extraction_version == EXTRACTION_VERSION
     same = replay(FakeDetector(), live_log, check=True).check
@@ -336,9 +336,9 @@ def test_logs_record_the_extraction_version_and_a_check_says_when_it_differs(liv
 
 
 def test_a_set_of_logs_has_an_extraction_version_only_when_its_files_agree(live_log, tmp_path, monkeypatch):
-    from aefabmap.runtime.adapters import mcap_log
-    from aefabmap.runtime.adapters.log_set import LogSetReader
-    from aefabmap.runtime.core.features import EXTRACTION_VERSION
+    from aefabmap_runtime.adapters import mcap_log
+    from aefabmap_runtime.adapters.log_set import LogSetReader
+    from aefabmap_runtime.core.features.features import EXTRACTION_VERSION
 
     same, other = tmp_path / "same.mcap", tmp_path / "other.mcap"
     _copy_log(live_log, same)
@@ -356,7 +356,7 @@ def test_a_log_without_a_readable_extraction_version_is_named_only_when_results_
                                                                                         monkeypatch, value):
     """Logs written before the version was recorded (or hostile values) read as None: a check
     that finds differences says the log does not record it; one that finds none says nothing."""
-    from aefabmap.runtime.adapters import mcap_log
+    from aefabmap_runtime.adapters import mcap_log
 
     log = tmp_path / "unrecorded.mcap"
     monkeypatch.setattr(mcap_log, "EXTRACTION_VERSION", value)
@@ -388,7 +388,7 @@ class _FakeClock:
 
 
 def test_pacer_waits_the_recorded_gaps_without_adding_processing_time():
-    from aefabmap.runtime.adapters.replay import Pacer, PlaybackConfig
+    from aefabmap_runtime.adapters.replay import Pacer, PlaybackConfig
 
     clock = _FakeClock()
     pacer = Pacer(PlaybackConfig(rate=1.0, max_gap_s=3.0), stop=clock, clock=clock)
@@ -412,8 +412,8 @@ def test_pacer_waits_the_recorded_gaps_without_adding_processing_time():
 
 
 def test_playback_config_is_validated():
-    from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.replay import PlaybackConfig
+    from aefabmap_runtime.errors import ConfigError
+    from aefabmap_runtime.adapters.replay import PlaybackConfig
 
     for bad in ({"rate": -1.0}, {"rate": float("nan")}, {"rate": float("inf")}, {"max_gap_s": 0},
                 {"wait_viewer_s": 0}, {"wait_viewer_s": float("inf")}):
@@ -435,7 +435,7 @@ def test_replay_rate_keeps_the_recorded_pace_and_rate_0_does_not_wait(tmp_path):
     """Rough timing (slow CI machines): lower bounds from the recorded gaps, upper bounds generous."""
     import threading
 
-    from aefabmap.runtime.adapters.replay import PlaybackConfig
+    from aefabmap_runtime.adapters.replay import PlaybackConfig
 
     src = _paced_log(tmp_path / "paced.mcap", 6, gap_s=0.3)  # 1.5 s recorded
     fast_docs, again_docs = [], []
@@ -463,7 +463,7 @@ def test_a_stop_ends_a_paced_replay_between_frames(tmp_path):
     import threading
     import time
 
-    from aefabmap.runtime.adapters.replay import PlaybackConfig
+    from aefabmap_runtime.adapters.replay import PlaybackConfig
 
     src = _paced_log(tmp_path / "pauses.mcap", 5, gap_s=100.0)  # long pauses: capped, then stopped
     stop = threading.Event()

@@ -5,20 +5,20 @@ from __future__ import annotations
 
 import pytest
 
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.log_set import LOG_FILE_METADATA
-from aefabmap.runtime.adapters.mcap_log import McapLogWriter
-from aefabmap.runtime.adapters.replay import replay
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.core.map_state import MapState
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.log_set import LOG_FILE_METADATA
+from aefabmap_runtime.adapters.mcap_log import McapLogWriter
+from aefabmap_runtime.adapters.replay import replay
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.core.records.map_state import MapState
 
 CONFIG = DetectorConfig(exclude=1)
 
 
 @pytest.fixture(scope="module")
 def frames():
-    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
     images, _ = generate_loop_sequence(14, seed=0, size=(320, 240))
     return [encode_frame(img, "png") for img in images]
@@ -37,7 +37,7 @@ def _write_run(path, det, frames, seqs, run_ns, map_start):
     with McapLogWriter(path, manifest=det.manifest, run_config=run_config, extra_metadata=meta) as w:
         for s in seqs:
             payload, enc = frames[s]
-            from aefabmap.runtime.adapters.frames import decode_frame
+            from aefabmap_runtime.adapters.frames import decode_frame
 
             result = det.process(decode_frame(payload, enc), stamp_ns=1000 + s)
             w.write_image(payload, enc, 1000 + s, sequence=result.sequence)
@@ -57,7 +57,7 @@ def test_a_run_resumed_from_an_older_map_is_replayed_from_that_map(tmp_path, fra
     log_dir = tmp_path / "logs"
     log_dir.mkdir()
     meta = {LOG_FILE_METADATA: {"run_started_ns": 1, "index": 1, "opened_ns": 1, "previous": None}}
-    from aefabmap.runtime.adapters.frames import decode_frame
+    from aefabmap_runtime.adapters.frames import decode_frame
 
     with McapLogWriter(log_dir / "a.mcap", manifest=first.manifest, run_config={"map_start": {"frame": 0}},
                        extra_metadata=meta) as w:
@@ -87,7 +87,7 @@ def test_a_run_whose_map_the_log_cannot_rebuild_is_named_and_not_compared(tmp_pa
     _write_run(log_dir / "a.mcap", _detector(), frames, range(0, 5), 1, 0)
     resumed = _detector()
     for s in range(9):  # a map at frame 9 that frames 5-8, never logged, built
-        from aefabmap.runtime.adapters.frames import decode_frame
+        from aefabmap_runtime.adapters.frames import decode_frame
 
         resumed.process(decode_frame(*frames[s]), stamp_ns=1000 + s)
     _write_run(log_dir / "b.mcap", resumed, frames, range(9, 12), 2, 9)

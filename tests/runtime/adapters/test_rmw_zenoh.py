@@ -1,4 +1,4 @@
-"""ROS 2 over rmw_zenoh without a bridge (runtime/adapters/rmw_zenoh.py, ros_cdr.py).
+"""ROS 2 over rmw_zenoh without a bridge (runtime/aefabmap_runtime/adapters/rmw_zenoh.py, ros_cdr.py).
 
 The samples are made the way a ROS 2 node using rmw_zenoh makes them, but with other
 tools than the runtime's own: CDR by rosbags' serializer, the attachment by zenoh-ext's
@@ -18,9 +18,9 @@ import pytest
 import zenoh
 from zenoh.ext import Int64, z_serialize
 
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.adapters.frames import FrameError, decode_frame
-from aefabmap.runtime.adapters.rmw_zenoh import (
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.adapters.frames import FrameError, decode_frame
+from aefabmap_runtime.adapters.rmw_zenoh import (
     COMPRESSED_IMAGE_RIHS01,
     IMAGE_RIHS01,
     STRING_RIHS01,
@@ -29,8 +29,8 @@ from aefabmap.runtime.adapters.rmw_zenoh import (
     meta_from_attachment,
     parse_attachment,
 )
-from aefabmap.runtime.adapters.ros_cdr import decode_compressed_cdr, decode_image_cdr
-from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
+from aefabmap_runtime.adapters.ros_cdr import decode_compressed_cdr, decode_image_cdr
+from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
 
 from .stream_fakes import FakeDetector, NodeThread, free_tcp_port, sample_images
 from tests.conftest import cli_args
@@ -238,8 +238,8 @@ def test_namespace_node_name_and_topics_are_the_users(tmp_path, typestore):
 
 
 def test_ros_domain_id_from_the_environment_and_refused_when_malformed():
-    from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.rmw_zenoh import domain_from_env
+    from aefabmap_runtime.errors import ConfigError
+    from aefabmap_runtime.adapters.rmw_zenoh import domain_from_env
 
     assert domain_from_env({}) == 0 and domain_from_env({"ROS_DOMAIN_ID": " 3 "}) == 3
     for bad in ("x", "-1", "233", "3.5"):
@@ -336,9 +336,9 @@ def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, ca
     import os
     import signal
 
-    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
     from aefabmap.cli import run
-    from aefabmap.runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogReader
+    from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogReader
 
     from .stream_fakes import JsonCollector
 

@@ -16,7 +16,7 @@ import threading
 import pytest
 import zenoh
 
-from aefabmap.runtime.adapters.rmw_zenoh import (
+from aefabmap_runtime.adapters.rmw_zenoh import (
     DIAG_ERROR,
     DIAG_OK,
     DIAG_WARN,
@@ -27,7 +27,7 @@ from aefabmap.runtime.adapters.rmw_zenoh import (
     RosResultPublisher,
     diagnostic_level,
 )
-from aefabmap.runtime.adapters.zenoh_transport import build_zenoh_config
+from aefabmap_runtime.adapters.zenoh_transport import build_zenoh_config
 
 from .stream_fakes import FakeDetector, NodeThread, sample_images
 from .test_rmw_zenoh import STAMP0, TOPIC, Router, graph_tokens, rmw_attachment, ros_image
@@ -175,7 +175,7 @@ class LogRecords(logging.Handler):
 def test_results_under_a_distro_no_subscriber_uses_are_warned_in_log_and_status(tmp_path):
     """--ros-distro jazzy while a Humble subscriber listens on /lcd/result: a warning in the log
     and in the node's status."""
-    from aefabmap.runtime.adapters.health import find_runtimes, query_status
+    from aefabmap_runtime.adapters.health import find_runtimes, query_status
 
     logged = LogRecords("aefabmap.ros")
     router = Router()

@@ -1,4 +1,4 @@
-"""Any ROS bag through `aefabmap replay` (runtime/adapters/ros_bag.py), bags written by rosbags.
+"""Any ROS bag through `aefabmap replay` (runtime/aefabmap_runtime/adapters/ros_bag.py), bags written by rosbags.
 
 Each bag has, like a real robot's, a depth-like mono16 topic registered first, a non-image
 topic, and the colour camera; replaying the colour topic must give exactly the results of
@@ -14,15 +14,15 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.errors import LogError
-from aefabmap.runtime.adapters.frame_loop import FrameLoop
-from aefabmap.runtime.adapters.image_folder import list_images
-from aefabmap.runtime.adapters.replay import (
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.frame_loop import FrameLoop
+from aefabmap_runtime.adapters.image_folder import list_images
+from aefabmap_runtime.adapters.replay import (
     NONDETERMINISTIC_FIELDS,
     compare_results,
     replay,
 )
-from aefabmap.runtime.adapters.ros_bag import INSTALL_HINT, RosBagReader
+from aefabmap_runtime.adapters.ros_bag import INSTALL_HINT, RosBagReader
 
 from .stream_fakes import FakeDetector, sample_images
 
@@ -87,8 +87,8 @@ def _stripped(docs):
 @pytest.mark.slow
 @pytest.mark.data
 def test_lip6_bags_replay_like_the_image_folder(lip6, tmp_path):
-    from aefabmap.runtime.adapters.bundle_reader import load_detector
-    from aefabmap.runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
     from tests.conftest import make_synthetic_bundle
 
     files = list_images(lip6)[:100]
@@ -146,7 +146,7 @@ def test_ros1_bag_replays(tmp_path):
 
 
 def test_unusable_bags_fail_with_a_reason(tmp_path, monkeypatch, capsys):
-    import aefabmap.runtime.adapters.bundle_reader as bundle_reader_mod
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
     from aefabmap.cli import replay as cli_replay
 
     ts = get_typestore(Stores.ROS2_HUMBLE)

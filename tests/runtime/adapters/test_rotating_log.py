@@ -1,5 +1,5 @@
 """The node's log set: never overwritten, rotated, kept within a budget, degraded on low space,
-write errors counted and survived (runtime/adapters/rotating_log.py)."""
+write errors counted and survived (runtime/aefabmap_runtime/adapters/rotating_log.py)."""
 
 from __future__ import annotations
 
@@ -12,18 +12,18 @@ import threading
 import pytest
 from mcap.reader import make_reader
 
-from aefabmap.errors import ConfigError, LogError, TransportError
-from aefabmap.runtime.adapters.log_set import LOG_FILE_METADATA, LogSet, LogSetReader, log_files
-from aefabmap.runtime.adapters.mcap_log import (
+from aefabmap_runtime.errors import ConfigError, LogError, TransportError
+from aefabmap_runtime.adapters.log_set import LOG_FILE_METADATA, LogSet, LogSetReader, log_files
+from aefabmap_runtime.adapters.mcap_log import (
     LOG_METADATA,
     MANIFEST_METADATA,
     RUN_CONFIG_METADATA,
     McapLogReader,
     McapLogWriter,
 )
-from aefabmap.runtime.adapters.node import NodeOptions, run_node
-from aefabmap.runtime.adapters.rotating_log import MB, LogRotationConfig, RotatingLog
-from aefabmap.runtime.adapters.zenoh_transport import SessionConfig
+from aefabmap_runtime.adapters.node import NodeOptions, run_node
+from aefabmap_runtime.adapters.rotating_log import MB, LogRotationConfig, RotatingLog
+from aefabmap_runtime.adapters.zenoh_transport import SessionConfig
 
 from .stream_fakes import FakeDetector, make_result, mounted_tmpfs
 

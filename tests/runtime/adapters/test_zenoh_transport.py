@@ -1,4 +1,4 @@
-"""Zenoh adapters on real loopback sessions (runtime/adapters/zenoh_transport.py)."""
+"""Zenoh adapters on real loopback sessions (runtime/aefabmap_runtime/adapters/zenoh_transport.py)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import threading
 import pytest
 import zenoh
 
-from aefabmap.errors import ConfigError, TransportError
-from aefabmap.runtime.adapters.frames import encode_frame
-from aefabmap.runtime.adapters.zenoh_transport import (
+from aefabmap_runtime.errors import ConfigError, TransportError
+from aefabmap_runtime.adapters.frames import encode_frame
+from aefabmap_runtime.adapters.zenoh_transport import (
     DropCounter,
     FrameMeta,
     FramePublisher,
@@ -23,7 +23,7 @@ from aefabmap.runtime.adapters.zenoh_transport import (
     result_key_for,
     stats_key_for,
 )
-from aefabmap.runtime.tools.node_process import free_tcp_port
+from aefabmap_runtime.tools.node_process import free_tcp_port
 
 from .stream_fakes import sample_images, session_pair
 
@@ -171,7 +171,7 @@ def test_config_file_mode_is_kept_unless_given(tmp_path):
     """A --config file saying `mode: "client"` is honoured; an explicit mode still wins."""
     import json
 
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
+    from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
 
     cfg = tmp_path / "zenoh.json5"
     cfg.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7447"] } }')
@@ -184,8 +184,8 @@ def test_a_config_file_never_falls_back_to_listening_everywhere_or_multicast_sco
     """An empty --config ({}) used to listen on every interface and join multicast scouting."""
     import json
 
-    from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
+    from aefabmap_runtime.errors import ConfigError
+    from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config
 
     empty = tmp_path / "empty.json5"
     empty.write_text("{}")
@@ -217,8 +217,8 @@ def test_exposure_of_listen_endpoints(tmp_path, listen, exposed):
     config file or from --listen alike."""
     import json
 
-    from aefabmap.errors import ConfigError
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config, session_exposure
+    from aefabmap_runtime.errors import ConfigError
+    from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, build_zenoh_config, session_exposure
 
     conf_file = tmp_path / "z.json5"
     conf_file.write_text(json.dumps({"listen": {"endpoints": [listen]}}))
@@ -235,7 +235,7 @@ def test_mutual_tls_listeners_are_not_exposure(tmp_path):
     without client certificates, or a plain TCP endpoint beside it, is not."""
     import json
 
-    from aefabmap.runtime.adapters.zenoh_transport import SessionConfig, session_exposure
+    from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, session_exposure
 
     def exposure_of(doc):
         path = tmp_path / "z.json5"

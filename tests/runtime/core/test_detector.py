@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from aefabmap import ConfigError
-from aefabmap.runtime.adapters.bundle_reader import load_detector
-from aefabmap.runtime.core.detector import DetectorConfig
-from aefabmap.runtime.core.sequence import SequenceConfig
+from aefabmap_runtime.adapters.bundle_reader import load_detector
+from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.core.decide.sequence import SequenceConfig
 from tests.conftest import make_synthetic_bundle
 
 
@@ -87,9 +87,9 @@ def test_attached_keypoints_make_a_words_only_place_verifiable():
     """A place stored from words alone is never verified; `attach_keypoints` gives it the
     keypoints a live frame would have stored, and the same view then verifies against it."""
     from aefabmap.cli.demo import default_bundle
-    from aefabmap.errors import InputError
-    from aefabmap.runtime.core.verification import VerificationConfig
-    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+    from aefabmap_runtime.errors import InputError
+    from aefabmap_runtime.core.verify.verification import VerificationConfig
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
     images, _ = generate_loop_sequence(6, seed=0, size=(640, 480))
     det = load_detector(default_bundle(), DetectorConfig(exclude=1))
@@ -116,10 +116,10 @@ def test_a_chain_of_weak_pairs_verifies_the_last_frame_and_survives_a_restart(mo
     pass together: the second is verified with the chain's summed NFA; a detector loaded from the
     first one's state reaches the same verdict."""
     from aefabmap.cli.demo import default_bundle
-    from aefabmap.runtime.core import candidates as C
-    from aefabmap.runtime.core.map_state import MapState
-    from aefabmap.runtime.core.verification import GeometryResult
-    from aefabmap.runtime.tools.synthetic_route import generate_loop_sequence
+    from aefabmap_runtime.core.decide import candidates as C
+    from aefabmap_runtime.core.records.map_state import MapState
+    from aefabmap_runtime.core.verify.verification import GeometryResult
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
     images, _ = generate_loop_sequence(6, seed=0, size=(640, 480))
 

@@ -8,8 +8,8 @@ import pytest
 
 from aefabmap.cli.main import build_parser
 from aefabmap.cli.run_config import build_run_config
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.core.profiles import PROFILES, get_profile
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.profiles import PROFILES, get_profile
 
 
 FLAT = {"type": "kmeans"}

@@ -1,11 +1,11 @@
-"""runtime/tools/call_profile.py: which library a profiled call belongs to, and the CPU seconds in them."""
+"""runtime/aefabmap_runtime/tools/call_profile.py: which library a profiled call belongs to, and the CPU seconds in them."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-from aefabmap.runtime.tools.call_profile import GROUPS, group_of, seconds_in_calls
+from aefabmap_runtime.tools.call_profile import GROUPS, group_of, seconds_in_calls
 
 
 def test_group_of_names_the_library_of_a_call():

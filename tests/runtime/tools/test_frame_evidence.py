@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 
 from aefabmap.cli.main import main
-from aefabmap.runtime.core.messages import Candidate, FrameResult
-from aefabmap.runtime.tools.frame_evidence import (
+from aefabmap_runtime.core.records.messages import Candidate, FrameResult
+from aefabmap_runtime.tools.frame_evidence import (
     failure_cases,
     frame_records,
     match_image,
     write_failure_images,
 )
-from aefabmap.runtime.tools.reporting import format_table
-from aefabmap.runtime.tools.synthetic_route import make_demo_sequence
+from aefabmap_runtime.tools.reporting import format_table
+from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
 from tests.conftest import REPO
 
 
@@ -137,7 +137,7 @@ def test_failures_need_verification(tmp_path):
 
 
 def test_revisit_split_says_where_each_missed_revisit_was_lost():
-    from aefabmap.runtime.tools.frame_evidence import format_revisit_split, revisit_split
+    from aefabmap_runtime.tools.frame_evidence import format_revisit_split, revisit_split
 
     def checked(frame, nfa):
         c = cand(frame, 0, checked=True, inliers=5)

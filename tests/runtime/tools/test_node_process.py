@@ -1,4 +1,4 @@
-"""runtime/tools/node_process.py: a process's resident memory from /proc."""
+"""runtime/aefabmap_runtime/tools/node_process.py: a process's resident memory from /proc."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from aefabmap.runtime.tools.node_process import process_rss_mb, rss_mb_of_status
+from aefabmap_runtime.tools.node_process import process_rss_mb, rss_mb_of_status
 
 
 def test_rss_of_this_process_is_positive():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from aefabmap import InputError
-from aefabmap.runtime.tools.pr_metrics import evaluate_predictions
+from aefabmap_runtime.tools.pr_metrics import evaluate_predictions
 
 
 def make_gt(n=40):

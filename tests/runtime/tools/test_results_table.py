@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from aefabmap.runtime.tools.results_table import main, table
+from aefabmap_runtime.tools.results_table import main, table
 
 
 def test_one_row_per_result_verified_first(tmp_path, capsys):

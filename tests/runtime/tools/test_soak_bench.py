@@ -1,4 +1,4 @@
-"""Soak benchmark (runtime/tools/soak_bench.py): flatness verdict, log disk usage, the core phase
+"""Soak benchmark (runtime/aefabmap_runtime/tools/soak_bench.py): flatness verdict, log disk usage, the core phase
 at tiny counts (a real detector on the shipped bundle, in a spawned process)."""
 
 from __future__ import annotations
@@ -9,19 +9,19 @@ import numpy as np
 import pytest
 
 from aefabmap.cli.demo import default_bundle
-from aefabmap.errors import BundleError, ConfigError
-from aefabmap.runtime.tools.soak_bench import (
+from aefabmap_runtime.errors import BundleError, ConfigError
+from aefabmap_runtime.tools.soak_bench import (
     SoakConfig,
     bench_soak,
     flatness,
     flatness_at_cap,
     log_disk_usage,
 )
-from aefabmap.runtime.tools.synthetic_observations import (
+from aefabmap_runtime.tools.synthetic_observations import (
     observation_stream,
     synthetic_observations,
 )
-from aefabmap.runtime.tools.synthetic_route import random_views
+from aefabmap_runtime.tools.synthetic_route import random_views
 
 
 def _samples(rss):

@@ -1,4 +1,4 @@
-"""Synthetic loop sequence (runtime/tools/synthetic_route.py)."""
+"""Synthetic loop sequence (runtime/aefabmap_runtime/tools/synthetic_route.py)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from aefabmap.errors import ConfigError
-from aefabmap.runtime.tools.synthetic_route import (
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.tools.synthetic_route import (
     generate_loop_sequence,
     make_demo_sequence,
     route_poses,

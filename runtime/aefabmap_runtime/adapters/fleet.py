@@ -1,0 +1,440 @@
+"""A node's part in a fleet over Zenoh (run --fleet NAME --robot ID).
+
+`FleetNode` wraps the detector as the frame loop's processor. For every place the own map
+stores it publishes a summary (runtime/aefabmap_runtime/core/fleet/fleet_wire.py) on
+``aefabmap/fleet/<fleet>/<robot>/place/<frame>``; it answers keypoint queries for those places
+and a query for all its summaries (a robot that joins late asks once), and holds a liveliness
+token. Other robots' summaries arrive on Zenoh's threads into a bounded inbox; the frame thread
+reads them into a FleetMap (runtime/aefabmap_runtime/core/fleet/fleet_map.py) before each frame, and after a frame the
+own map did not verify it checks the best remote places, fetching their keypoints on demand
+(one fetch at a time, with a timeout; cached). Every message from a peer is validated; a bad one
+is counted under a reason and dropped.
+
+Catch-up: summaries published while two robots could not reach each other are lost to Zenoh.
+When a robot's liveliness token appears (again), the next frame asks that robot for its
+summaries after the latest frame it offered (``.../summaries?after=N``, answered without
+waiting); a robot that joins asks everyone for everything once (`join`).
+
+Threads: Zenoh's callbacks only append to the inbox, flip liveliness flags, read `_served`
+(a dict the frame thread replaces entries of; single dict operations are atomic in CPython) and
+bump counters under a lock; the detector and the FleetMap are touched by the frame thread alone.
+"""
+
+from __future__ import annotations
+
+import logging
+import statistics
+import threading
+import time
+from collections import deque
+from dataclasses import replace
+
+import numpy as np
+import zenoh
+
+from aefabmap_runtime.errors import ConfigError, TransportError
+from aefabmap_runtime.adapters.state_dir import bundle_id
+from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
+from aefabmap_runtime.core.fleet.fleet_map import FleetConfig, FleetMap
+from aefabmap_runtime.core.fleet.fleet_wire import (
+    FleetMessageError,
+    TOKEN_PATTERN,
+    PlaceSummary,
+    decode_keypoints,
+    encode_keypoints,
+    fleet_key,
+)
+from aefabmap_runtime.core.map.keypoint_store import PlaceKeypoints
+from aefabmap_runtime.core.records.messages import FleetStats, FrameResult, RemoteRobotStats
+
+log = logging.getLogger("aefabmap.fleet")
+
+#: Summaries waiting for the frame thread; more are dropped and counted ("inbox_full").
+INBOX = 20_000
+#: Largest summary read (a place's words at 4 bytes each, for any vocabulary a bundle may have).
+MAX_SUMMARY_BYTES = 1 << 20
+#: Largest keypoint reply read.
+MAX_REPLY_BYTES = 1 << 22
+#: How long a robot that joins waits for the others' summaries (s).
+JOIN_TIMEOUT_S = 5.0
+#: Frames between sweeps of the served places against the own map (evictions the results do not name).
+_SWEEP_FRAMES = 200
+
+
+class FleetNode:
+    """The detector, plus the fleet (see the module doc); use as a context manager."""
+
+    def __init__(self, session: zenoh.Session, detector, config: FleetConfig) -> None:
+        if detector.store is None:
+            raise ConfigError("--fleet needs verification: other robots' places are verified before they count")
+        self.detector, self.config, self.session = detector, config, session
+        self.identity = bytes.fromhex(bundle_id(detector.manifest))
+        self.map = FleetMap(config, detector.new_scorer, self._room)
+        self._inbox: deque[tuple[str, bytes]] = deque()
+        self._served: dict[int, tuple[bytes, PlaceKeypoints]] = {}  # own frame -> (summary, keypoints)
+        self._frame_of_place: dict[int, int] = {}
+        self._pending: dict[int, tuple[np.ndarray, int]] = {}  # sequence -> (unique words, stamp)
+        self._alive: dict[str, bool] = {}
+        self._returned: deque[str] = deque()  # robots whose token appeared, to catch up with
+        self._replied: dict[str, list[int]] = {}  # asker -> [keypoint replies, bytes] (Zenoh threads write)
+        self.out = FleetStats(fleet=config.name, robot=config.robot)
+        self._frames = 0
+        self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
+        self._unreadable = 0  # samples that could not be read, likewise
+        self._drops_lock = threading.Lock()  # guards what Zenoh threads count: _drops, _unreadable, _replied
+        self._handles: list = []
+        self._serve_stored()
+        try:
+            self._declare()
+        except zenoh.ZError as exc:
+            self.close()
+            raise TransportError(f"cannot join fleet {config.name}: {str(exc)[:200]}") from exc
+
+    # ------------------------------------------------------------------ Zenoh side
+
+    def _declare(self) -> None:
+        c = self.config
+        s = self.session
+        self._handles += [
+            s.declare_subscriber(fleet_key(c.name, "*", "place", "*"), self._on_summary),
+            s.declare_queryable(fleet_key(c.name, c.robot, "keypoints", "*"), self._on_keypoint_query),
+            s.declare_queryable(fleet_key(c.name, c.robot, "summaries"), self._on_summaries_query),
+            s.liveliness().declare_token(fleet_key(c.name, c.robot, "alive")),
+            s.liveliness().declare_subscriber(fleet_key(c.name, "*", "alive"), self._on_alive, history=True),
+        ]
+
+    def join(self, timeout_s: float = JOIN_TIMEOUT_S) -> int:
+        """Ask every robot of the fleet for its summaries once (a late joiner's catch-up); returns
+        how many arrived (they are read into the map before the next frame)."""
+        n = 0
+        try:
+            # Every reply counts: each robot answers with all its summaries under one key, which the
+            # default consolidation would reduce to the last.
+            for reply in self.session.get(fleet_key(self.config.name, "*", "summaries"), timeout=timeout_s,
+                                          consolidation=zenoh.ConsolidationMode.NONE):
+                if reply.ok is not None:
+                    self._take(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                    n += 1
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot ask fleet {self.config.name} for its places: {str(exc)[:200]}") from exc
+        return n
+
+    def _on_summary(self, sample: zenoh.Sample) -> None:
+        self._take_safely(sample)
+
+    def _take_safely(self, sample: zenoh.Sample) -> None:
+        """`_take` from a Zenoh thread: never raises; a failure is counted as malformed (the
+        frame thread moves the count into the map)."""
+        try:
+            self._take(str(sample.key_expr), sample.payload.to_bytes())
+        except Exception:  # noqa: BLE001 - a peer's message must never take the node down
+            with self._drops_lock:
+                self._unreadable += 1
+
+    def _take(self, key: str, data: bytes) -> None:
+        parts = key.split("/")
+        robot = parts[3] if len(parts) > 3 else ""
+        if robot == self.config.robot:
+            return
+        if len(data) > MAX_SUMMARY_BYTES or len(self._inbox) >= INBOX:
+            with self._drops_lock:  # several Zenoh threads may drop at once
+                self._drops += 1
+            return
+        self._inbox.append((robot, data))
+
+    def _on_keypoint_query(self, query: zenoh.Query) -> None:
+        try:
+            frame_text = str(query.key_expr).rpartition("/")[2]
+            entry = self._served.get(int(frame_text)) if frame_text.isdigit() and len(frame_text) < 19 else None
+            if entry is None:
+                return  # not ours (any more): the asker times out or gets another robot's reply
+            data = encode_keypoints(self.identity, int(frame_text), entry[1], self.detector.map_epoch)
+            query.reply(str(query.key_expr), data)
+            self.out.keypoint_replies += 1
+            self.out.bytes_out += len(data)
+            asker = query.parameters.get("robot")
+            with self._drops_lock:  # several Zenoh threads may answer at once
+                if asker and TOKEN_PATTERN.fullmatch(asker) and (
+                        asker in self._replied or len(self._replied) < self.config.max_robots):  # bounded
+                    counts = self._replied.setdefault(asker, [0, 0])
+                    counts[0] += 1
+                    counts[1] += len(data)
+        except Exception as exc:  # noqa: BLE001 - a query must never take the node down
+            log.debug("keypoint query not answered: %s", str(exc)[:200])
+
+    def _on_summaries_query(self, query: zenoh.Query) -> None:
+        try:
+            after = _after_frame(query.parameters.get("after"))
+            if after is None:
+                return  # unreadable: the asker times out
+            key = fleet_key(self.config.name, self.config.robot, "summaries")  # a reply's key must match the query
+            for frame, (summary, _) in list(self._served.items()):
+                if frame > after:
+                    query.reply(key, summary)
+                    self.out.bytes_out += len(summary)
+        except Exception as exc:  # noqa: BLE001
+            log.debug("summaries query not answered: %s", str(exc)[:200])
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        try:
+            parts = str(sample.key_expr).split("/")
+            robot = parts[3] if len(parts) == 5 else ""
+            if robot == self.config.robot or not TOKEN_PATTERN.fullmatch(robot):
+                return
+            if robot not in self._alive and len(self._alive) >= self.config.max_robots:
+                # As many robots as the map may hold: a robot that left makes room, else the newcomer
+                # is not followed (a peer cannot grow this without bound).
+                gone = next((r for r, up in list(self._alive.items()) if not up), None)
+                if gone is None:
+                    return
+                del self._alive[gone]
+            alive = sample.kind == zenoh.SampleKind.PUT
+            if alive and not self._alive.get(robot) and len(self._returned) < INBOX:
+                self._returned.append(robot)
+            self._alive[robot] = alive
+        except Exception:  # noqa: BLE001
+            pass
+
+    def robots_alive(self) -> list[str]:
+        """The other robots of the fleet whose liveliness token this node sees now, sorted."""
+        return sorted(r for r, alive in list(self._alive.items()) if alive)
+
+    def catch_up(self) -> list[str]:
+        """Ask each robot whose token appeared since the last call for its summaries after the
+        latest frame it offered; the replies reach the inbox later (nothing waits). Returns the
+        robots asked."""
+        asked: list[str] = []
+        while self._returned:
+            robot = self._returned.popleft()
+            if robot in asked or not TOKEN_PATTERN.fullmatch(robot):  # a key a peer chose
+                continue
+            after = self.map.last_frame(robot)
+            try:
+                self.session.get(f"{fleet_key(self.config.name, robot, 'summaries')}?after={after}",
+                                 self._on_catch_up_reply, consolidation=zenoh.ConsolidationMode.NONE,
+                                 timeout=JOIN_TIMEOUT_S)
+            except zenoh.ZError as exc:
+                log.debug("catch-up with %s not asked: %s", robot, str(exc)[:200])
+                continue
+            asked.append(robot)
+            log.info("fleet %s: robot %s is reachable; asking for its places after frame %d",
+                     self.config.name, robot, after)
+        return asked
+
+    def _on_catch_up_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._take_safely(reply.ok)
+
+    def fetch(self, robot: str, frame: int) -> PlaceKeypoints | None:
+        """The keypoints of another robot's place, or None (timeout, bad reply, robot gone); counted."""
+        remote = self.map.robots[robot]
+        remote.stats.fetches += 1
+        if self._alive.get(robot) is False:
+            remote.stats.fetch_failures += 1
+            return None
+        store = self.detector.store
+        t0 = time.monotonic()
+        try:
+            replies = self.session.get(  # ?robot=: the owner counts its replies per asker
+                f"{fleet_key(self.config.name, robot, 'keypoints', str(frame))}?robot={self.config.robot}",
+                timeout=self.config.fetch_timeout_ms / 1000)
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                data = reply.ok.payload.to_bytes()
+                remote.stats.bytes_in += len(data)
+                if len(data) > MAX_REPLY_BYTES:
+                    remote.refuse("too_large")
+                    continue
+                try:
+                    place = decode_keypoints(data, self.identity, frame, store.dtype, store.vocabulary_size,
+                                             store.no_word_code, self.map.epoch(robot))
+                except FleetMessageError as exc:
+                    remote.refuse(exc.reason)
+                    continue
+                remote.fetch_ms.append((time.monotonic() - t0) * 1e3)
+                return place
+        except zenoh.ZError as exc:
+            log.debug("fetch from %s failed: %s", robot, str(exc)[:200])
+        remote.stats.fetch_failures += 1
+        return None
+
+    # ------------------------------------------------------------------ frame thread
+
+    @property
+    def manifest(self) -> dict:
+        return self.detector.manifest
+
+    def __getattr__(self, name: str):
+        # The node reads the map's figures (places, map bytes, timings) from its processor.
+        if name == "detector":
+            raise AttributeError(name)
+        return getattr(self.detector, name)
+
+    def process(self, gray: np.ndarray, stamp_ns: int = 0) -> FrameResult:
+        self._drain()
+        if self._returned:  # after the drain: ask for what came after the places just read
+            self.catch_up()
+        result = self.detector.process(gray, stamp_ns)
+        words, stamp, features = self.detector.last_input
+        observed = words[: self.detector.bundle.features.max_features]
+        self._pending[result.sequence] = (np.unique(observed[observed >= 0]), int(stamp))
+        self._publish_inserted(result)
+        if not result.verified and features is not None and len(features) > SAMPLE_SIZE["H"]:
+            self._match_remote(result, observed, features, words)  # (fewer keypoints: nothing to verify with)
+        self.map.fit()
+        self._frames += 1
+        if self._frames % _SWEEP_FRAMES == 0:
+            self._sweep()
+        return result
+
+    def _drain(self) -> None:
+        with self._drops_lock:
+            drops, self._drops = self._drops, 0
+            unreadable, self._unreadable = self._unreadable, 0
+        for reason, n in (("too_large_or_inbox_full", drops), ("malformed", unreadable)):
+            if n:
+                self.map.refused_elsewhere[reason] = self.map.refused_elsewhere.get(reason, 0) + n
+        while self._inbox:
+            robot, data = self._inbox.popleft()
+            try:
+                summary = PlaceSummary.decode(data, self.identity, self.detector.bundle.vocabulary_size)
+            except FleetMessageError as exc:
+                self.map.refuse(robot, exc.reason)
+                continue
+            if summary.robot != robot:
+                self.map.refuse(robot, "robot_mismatch")
+                continue
+            self.map.add(summary)
+            if summary.robot in self.map.robots:
+                self.map.robots[summary.robot].stats.bytes_in += len(data)
+        while self.map.restarted:  # a robot restarted: the places it numbered before are gone; ask for all
+            robot = self.map.restarted.pop()
+            log.info("fleet %s: robot %s restarted with a new map; its earlier places are forgotten",
+                     self.config.name, robot)
+            self._returned.append(robot)
+
+    def _publish_inserted(self, result: FrameResult) -> None:
+        if result.evicted_place is not None:
+            self._served.pop(self._frame_of_place.pop(result.evicted_place, -1), None)
+        frame, place = result.inserted_frame, result.inserted_place
+        if frame is None or place is None:
+            return
+        for seq in [s for s in self._pending if s < frame]:
+            del self._pending[seq]
+        words, stamp = self._pending.pop(frame, (None, 0))
+        kps = self.detector.store.get(place)
+        if words is None or kps is None:
+            return
+        old = self._frame_of_place.get(place)
+        if old is not None:
+            self._served.pop(old, None)
+        c = self.config
+        summary = PlaceSummary(c.robot, self.identity, frame, stamp, words, self.detector.map_epoch).encode()
+        self._served[frame] = (summary, kps)
+        self._frame_of_place[place] = frame
+        try:
+            self.session.put(fleet_key(c.name, c.robot, "place", str(frame)), summary)
+            self.out.summaries_out += 1
+            self.out.bytes_out += len(summary)
+        except zenoh.ZError as exc:
+            log.debug("summary of frame %d not published: %s", frame, str(exc)[:200])
+
+    def _serve_stored(self) -> None:
+        """Offer the places a loaded map (--state) already holds: a restarted node serves them
+        again (their summaries go out to robots that ask for all places; nothing is re-published)."""
+        det, c = self.detector, self.config
+        alive, frames = det.scorer.alive, det.place_frames()
+        for place in np.flatnonzero(alive[: frames.size]):
+            kps = det.store.get(int(place))
+            if kps is None:
+                continue
+            frame = int(frames[place])
+            words = np.unique(np.asarray(det.scorer.place_words(int(place)), np.int64))
+            summary = PlaceSummary(c.robot, self.identity, frame, 0, words, det.map_epoch).encode()
+            self._served[frame] = (summary, kps)
+            self._frame_of_place[int(place)] = frame
+
+    def _sweep(self) -> None:
+        """Stop serving own places the map no longer holds (several evictions in one step)."""
+        alive = self.detector.scorer.alive
+        frames = self.detector.place_frames()
+        for place, frame in list(self._frame_of_place.items()):
+            if place >= alive.size or not alive[place] or frames[place] != frame:
+                del self._frame_of_place[place]
+                self._served.pop(frame, None)
+
+    def _match_remote(self, result: FrameResult, observed: np.ndarray, features, words: np.ndarray) -> None:
+        v = self.detector.config.verification
+        match = self.map.match(
+            observed,
+            lambda bar: self.detector.place_check(features, words, replace(v, max_log10_nfa=bar)),
+            self.fetch, v.max_log10_nfa, result.sequence)
+        if match is None:
+            return
+        g = match.geometry
+        result.loop = result.verified = result.geometry_ok = True
+        result.verified_robot, result.verified_frame, result.verified_place = match.robot, match.frame, None
+        result.inliers, result.matches, result.geometry_model = int(g.inliers), int(g.matches), g.model
+        result.nfa, result.geometry_reason = float(g.nfa), ""
+        result.temporal_ok = None
+        result.geometry = [[float(x) for x in row] for row in g.matrix]
+        if g.rotation is not None and g.translation is not None:
+            result.relative_rotation = [[float(x) for x in row] for row in g.rotation]
+            result.relative_translation = [float(x) for x in g.translation]
+
+    def _room(self) -> tuple[int | None, int | None]:
+        c = self.detector.config
+        places = None if c.max_places is None else c.max_places - self.detector.n_places
+        nbytes = None if c.memory_mb is None else int(c.memory_mb * 2**20) - self.detector.map_bytes()
+        return places, nbytes
+
+    def fleet_stats(self) -> FleetStats:
+        """The fleet's counters now (a copy; the stats and status messages carry it)."""
+        robots = {}
+        for name, remote in self.map.robots.items():
+            s = replace(remote.stats, refused=dict(remote.stats.refused), places=remote.scorer.n_alive,
+                        alive=self._alive.get(name, True),
+                        fetch_ms_p50=round(statistics.median(remote.fetch_ms), 3) if remote.fetch_ms else None)
+            robots[name] = s
+        for name, (replies, nbytes) in list(self._replied.items()):  # robots that fetch but offer nothing yet
+            s = robots.setdefault(name, RemoteRobotStats(places=0, alive=self._alive.get(name, True)))
+            s.keypoint_replies, s.bytes_out = replies, nbytes
+        return replace(self.out, places_served=len(self._served), remote_places=self.map.n_places,
+                       remote_evicted=self.map.evicted, refused_elsewhere=dict(self.map.refused_elsewhere),
+                       robots=robots)
+
+    def close(self) -> None:
+        for handle in self._handles:
+            try:
+                handle.undeclare()
+            except zenoh.ZError:
+                pass
+        self._handles = []
+
+    def __enter__(self) -> FleetNode:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+
+def join_fleet(session: zenoh.Session, detector, config: FleetConfig) -> FleetNode:
+    """A FleetNode that has asked the fleet for its places once, as
+    `run` and `replay --fleet` start; closed again when that fails. Logs how many places came."""
+    node = FleetNode(session, detector, config)
+    try:
+        n = node.join()
+    except BaseException:
+        node.close()
+        raise
+    log.info("fleet %s: robot %s joined, %d places offered by the others", config.name, config.robot, n)
+    return node
+
+
+def _after_frame(text: str | None) -> int | None:
+    """The ``after`` parameter of a summaries query: -1 when absent, None when unreadable."""
+    if text is None or text == "-1":
+        return -1
+    return int(text) if text.isdigit() and len(text) < 19 else None
+

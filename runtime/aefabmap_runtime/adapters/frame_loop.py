@@ -1,0 +1,148 @@
+"""One frame through the detector: decode -> detect -> result, with bad-frame accounting.
+
+The single per-frame step of every adapter that feeds the detector: the live node
+(runtime/aefabmap_runtime/adapters/node.py), replay (runtime/aefabmap_runtime/adapters/replay.py), the sequence evaluation
+over image folders and the pipeline benchmark (runtime/tools). A frame that cannot be used
+is counted under its reason (:data:`frames.BAD_FRAME_REASONS`: the decoder's reasons, and
+``rejected`` when the detector refuses the decoded image) by one :class:`BadFrameCounter`,
+and the caller goes on with the next frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from aefabmap_runtime.errors import BundleError, InputError
+from aefabmap_runtime.adapters.frames import (
+    BAD_FRAME_REASONS,
+    FrameError,
+    decode_frame,
+    load_image,
+)
+from aefabmap_runtime.core.records.messages import FrameResult, LatencySummary, StatsMessage
+
+
+class FrameProcessor(Protocol):
+    """What the frame loop needs from the per-frame core (LoopClosureDetector or a stand-in)."""
+
+    manifest: dict
+
+    def process(self, gray: np.ndarray, stamp_ns: int) -> Any: ...
+
+
+@dataclass
+class BadFrameCounter:
+    """Frames refused, per reason (every reason of BAD_FRAME_REASONS present), and the last
+    refusal's message (truncated to 200 characters)."""
+
+    counts: dict[str, int] = field(default_factory=lambda: {r: 0 for r in BAD_FRAME_REASONS})
+    last: str = ""
+
+    def count(self, reason: str, message: str) -> None:
+        self.counts[reason] = self.counts.get(reason, 0) + 1
+        self.last = message[:200]
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+@dataclass
+class FrameOutcome:
+    """What one frame gave: the result (None when the frame was refused, see ``bad_reason``),
+    the decoded (H, W) uint8 image (None when undecodable) and the decode time in ms."""
+
+    result: FrameResult | None
+    gray: np.ndarray | None = None
+    bad_reason: str | None = None
+    decode_ms: float = 0.0
+
+
+class FrameLoop:
+    """Feeds frames to one detector and keeps the run's counters.
+
+    strict: raise the InputError instead of counting the frame as bad (an evaluation over
+    a ground-truth sequence must not skip a frame silently: indices would shift).
+    Counters: frames_in (every frame offered), processed (results), loops, bad.
+    """
+
+    def __init__(self, detector: FrameProcessor, *, strict: bool = False) -> None:
+        self.detector = detector
+        self.strict = strict
+        self.bad = BadFrameCounter()
+        self.frames_in = 0
+        self.processed = 0
+        self.loops = 0
+
+    def step(self, payload: bytes | bytearray | memoryview, encoding: str, stamp_ns: int) -> FrameOutcome:
+        """Decode a frame payload (runtime/aefabmap_runtime/adapters/frames.py encodings) and detect on it."""
+        self.frames_in += 1
+        t0 = time.perf_counter()
+        try:
+            gray = decode_frame(payload, encoding)
+        except FrameError as exc:
+            return self._refuse(exc, exc.reason)
+        return self._detect(gray, stamp_ns, (time.perf_counter() - t0) * 1e3)
+
+    def step_file(self, path: str | Path, stamp_ns: int) -> FrameOutcome:
+        """Read and decode an image file, then detect on it."""
+        self.frames_in += 1
+        t0 = time.perf_counter()
+        try:
+            gray = load_image(path)
+        except FrameError as exc:
+            return self._refuse(exc, exc.reason)
+        except InputError as exc:
+            return self._refuse(exc, "corrupt")
+        return self._detect(gray, stamp_ns, (time.perf_counter() - t0) * 1e3)
+
+    def refuse(self, error: FrameError) -> FrameOutcome:
+        """Count a frame its transport could not unwrap (e.g. broken ROS 2 CDR) as bad."""
+        self.frames_in += 1
+        return self._refuse(error, error.reason)
+
+    def step_image(self, gray: np.ndarray, stamp_ns: int) -> FrameOutcome:
+        """Detect on an already decoded grayscale (H, W) uint8 image."""
+        self.frames_in += 1
+        return self._detect(gray, stamp_ns, 0.0)
+
+    def stats_message(self, *, uptime_s: float, dropped: int = 0, publisher_restarts: int = 0,
+                      rss_mb: float | None = None, latency_ms: LatencySummary | None = None,
+                      fps: float | None = None) -> StatsMessage:
+        """A stats message of this loop's counters (what the caller knows is passed in)."""
+        return StatsMessage(
+            stamp_ns=time.time_ns(),
+            uptime_s=round(uptime_s, 3),
+            frames_received=self.frames_in,
+            frames_processed=self.processed,
+            dropped=dropped,
+            publisher_restarts=publisher_restarts,
+            bad=dict(self.bad.counts),
+            last_bad=self.bad.last,
+            loops=self.loops,
+            rss_mb=rss_mb,
+            latency_ms=latency_ms or LatencySummary(),
+            fps=fps,
+        )
+
+    def _detect(self, gray: np.ndarray, stamp_ns: int, decode_ms: float) -> FrameOutcome:
+        try:
+            result = self.detector.process(gray, stamp_ns)
+        except (InputError, BundleError) as exc:  # a model failing on one frame costs that frame
+            out = self._refuse(exc, "rejected")
+            out.gray, out.decode_ms = gray, decode_ms
+            return out
+        self.processed += 1
+        self.loops += bool(result.loop)
+        return FrameOutcome(result, gray, None, decode_ms)
+
+    def _refuse(self, exc: InputError | BundleError, reason: str) -> FrameOutcome:
+        if self.strict:
+            raise exc
+        self.bad.count(reason, str(exc))
+        return FrameOutcome(None, bad_reason=reason)

@@ -1,0 +1,84 @@
+"""Make a cut-off MCAP log readable by standard readers.
+
+A log cut off by a full disk or a kill -9 has no summary and no footer: readers that seek to
+the summary (the `mcap` CLI, `mcap.reader.make_reader` on a file) find no messages. This
+module streams it up to its last complete record, as McapLogReader does, and writes every
+schema, channel, metadata record, attachment and message it read into a new, finished file.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
+from mcap.writer import CompressionType, Writer
+
+from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.mcap_log import complete_records
+
+
+@dataclass
+class RepairReport:
+    """What a repair kept: messages, channels, metadata records; truncated: the source had no
+    clean end (reason: why reading stopped)."""
+
+    source: str
+    out: str
+    messages: int = 0
+    channels: int = 0
+    metadata: int = 0
+    truncated: bool = False
+    reason: str = ""
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def repair_log(source: str | Path, out: str | Path) -> RepairReport:
+    """Copy every complete record of MCAP `source` into a new finished MCAP `out` (never
+    overwritten). LogError when `source` is not an MCAP file or `out` cannot be written."""
+    source, out = Path(source), Path(out)
+    report = RepairReport(str(source), str(out))
+    try:
+        fh = open(source, "rb")
+    except OSError as exc:
+        raise LogError(f"{source}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except OSError as exc:
+        fh.close()
+        raise LogError(f"{out}: cannot create (it must not exist yet): {exc.strerror or exc}") from exc
+    with fh, os.fdopen(fd, "wb") as sink:
+        writer = Writer(sink, compression=CompressionType.ZSTD)
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        started = False
+        for record in complete_records(fh, report):
+            if not started:
+                writer.start(profile=record.profile if isinstance(record, Header) else "",
+                             library="aefabmap log repair")
+                started = True
+            if isinstance(record, Schema):
+                schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+            elif isinstance(record, Channel):
+                channel_ids[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata))
+                report.channels += 1
+            elif isinstance(record, Message) and record.channel_id in channel_ids:
+                writer.add_message(channel_ids[record.channel_id], record.log_time, record.data, record.publish_time,
+                                   record.sequence)
+                report.messages += 1
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, dict(record.metadata))
+                report.metadata += 1
+            elif isinstance(record, Attachment):
+                writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
+                                      record.data)
+        if started:
+            writer.finish()
+    if not started:
+        out.unlink(missing_ok=True)
+        raise LogError(f"{source}: not an MCAP file (no complete record): {report.reason}")
+    return report

@@ -1,0 +1,1 @@
+"""Decide: which candidates are checked in what order, and evidence over frames (sequence, temporal)."""

@@ -1,0 +1,665 @@
+"""Per-frame loop-closure detection: features -> words -> FAB-MAP (or BoW) with delayed insertion.
+
+The core class every adapter shares (eval over image folders, the Zenoh node, MCAP replay).
+It does no I/O: it takes decoded images and returns FrameResult records.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import secrets
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field, replace
+from typing import Protocol
+
+import numpy as np
+
+from aefabmap_runtime.errors import ConfigError, InputError, StateError
+from aefabmap_runtime.core.kernels import compiled
+from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
+from aefabmap_runtime.core.kernels.bits import nearest_two_kernel
+from aefabmap_runtime.core.rank.bow import BowIndex
+from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, Search, top_places
+from aefabmap_runtime.core.rank.fabmap import FabMap2
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features
+from aefabmap_runtime.core.map.keypoint_store import KeypointStore, PlaceKeypoints
+from aefabmap_runtime.core.records.map_state import MapState, check_ptr, pack_ragged
+from aefabmap_runtime.core.records.messages import Candidate, FrameResult  # records live with the wire messages
+from aefabmap_runtime.core.verify.model_errors import epipolar_kernel, transfer_kernel
+from aefabmap_runtime.core.words.quantizer import quantize_raw
+from aefabmap_runtime.core.rank.scorer import FABMAP_SCORES, BowScorer, FabMapScorer, Ranking, Scorer
+from aefabmap_runtime.core.decide.sequence import Link, SequenceConfig, SequenceEvidence
+from aefabmap_runtime.core.decide.temporal import TemporalFilter
+from aefabmap_runtime.core.rank.tree import ChowLiuTree
+from aefabmap_runtime.core.verify.verification import (
+    NO_WORD,
+    GeometryResult,
+    VerificationConfig,
+    distinct_kernel,
+    independence_radius,
+    more_significant,
+    verify_pair,
+    verify_pair_bruteforce,
+)
+from aefabmap_runtime.core.verify.word_matches import same_word_kernel
+
+
+class TrainedModel(Protocol):
+    """What the detector needs from a trained model (a bundle reader provides it).
+
+    training_observations: list of sorted word-id arrays, the new-place model's samples.
+    quantizer(variant, threads) -> an object with quantize((N, D) float32) -> (N,) word ids.
+    """
+
+    manifest: dict
+    features: FeatureConfig
+    tree: ChowLiuTree
+    training_observations: list[np.ndarray]
+
+    @property
+    def vocabulary_size(self) -> int: ...
+
+    @property
+    def word_detection(self) -> dict: ...
+
+    def quantizer(self, variant: str = "fp32", threads: int = 1): ...
+
+
+SCORERS = ("fabmap", "bow")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Settings of the per-frame detector.
+
+    scorer: "fabmap" (FAB-MAP 2.0 probability) or "bow" (tf-idf cosine similarity).
+    exclude: frames a frame waits before it enters the map (delayed insertion); also the
+        exclusion window: a query never sees its `exclude` predecessors.
+    loop_threshold: a loop is declared when the best place's score reaches this.
+    quantizer_variant: "fp32" or "int8" (autoencoder bundles); "flat" searches a k-means bundle
+        with an inverted index exhaustively instead; "flat-fp32" does so with a float32 product
+        (binary kinds otherwise use an int8 product with an exact re-rank, the same words).
+        threads: onnxruntime threads.
+    motion_model, naive_bayes, smoothing: FAB-MAP options (docs/fabmap2.md).
+    fabmap_score: what `score` holds with the fabmap scorer: "probability" (the normalised
+        posterior P of the best place, docs/evaluation.md's FAB-MAP score) or "llr" (log-likelihood
+        ratio of the best place against the new-place model, in nats: it keeps ranking frames
+        where P has saturated at 0.99 + 0.01 / (n + 1)).
+    max_places: hard cap of the map in places (None: unbounded).
+    memory_mb: hard cap of the map's memory in MiB, as accounted by `map_bytes()` (None: unbounded).
+        When either cap is reached the place least recently inserted or matched as a loop
+        is evicted before a new one is added (with either scorer).
+    verification: geometric verification of the best candidates (runtime/aefabmap_runtime/core/verify/verification.py);
+        on by default. When enabled, `loop` means "verified" and loop_threshold is not used:
+        the places `candidates` picks are checked whatever their score, because the posterior
+        saturates and ranks better than it thresholds. Each place then keeps its keypoints
+        (runtime/aefabmap_runtime/core/map/keypoint_store.py) inside memory_mb.
+    candidates: which places a frame is verified against and in what order
+        (runtime/aefabmap_runtime/core/decide/candidates.py: track prior, FAB-MAP's top_k, islands, the track's reach).
+    sequence: evidence over consecutive frames (runtime/aefabmap_runtime/core/decide/sequence.py): when no single pair
+        passes, a run of query frames whose checked places line up with a run of stored frames
+        may pass together. SequenceConfig(frames=0) switches it off.
+    temporal_frames: temporal consistency (runtime/aefabmap_runtime/core/decide/temporal.py): a verified match counts only
+        when the `temporal_frames` preceding frames were verified to frames within
+        `temporal_tolerance` frames of it. 0 (default) switches the check off.
+    """
+
+    scorer: str = "fabmap"
+    exclude: int = 50
+    loop_threshold: float = 0.99
+    quantizer_variant: str = "fp32"
+    threads: int = 1
+    motion_model: bool = False
+    naive_bayes: bool = False
+    smoothing: float = 0.99
+    fabmap_score: str = "probability"
+    max_places: int | None = None
+    memory_mb: float | None = None
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
+    candidates: CandidateConfig = field(default_factory=CandidateConfig)
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
+    temporal_frames: int = 0
+    temporal_tolerance: int = 10
+
+    def __post_init__(self) -> None:
+        if self.scorer not in SCORERS:
+            raise ConfigError(f"scorer must be one of {SCORERS}, got {self.scorer!r}")
+        if self.exclude < 0:
+            raise ConfigError(f"exclude must be >= 0 frames, got {self.exclude}")
+        # Also read back from logs (replay), so the types are checked, not assumed.
+        if self.max_places is not None and (
+            not isinstance(self.max_places, int) or isinstance(self.max_places, bool) or self.max_places < 1
+        ):
+            raise ConfigError(f"max_places must be an integer >= 1, got {str(self.max_places)[:40]}")
+        if self.memory_mb is not None and (
+            not isinstance(self.memory_mb, (int, float)) or isinstance(self.memory_mb, bool)
+            or not math.isfinite(self.memory_mb) or self.memory_mb <= 0
+        ):
+            raise ConfigError(f"memory_mb must be a finite number > 0, got {str(self.memory_mb)[:40]}")
+        if self.fabmap_score not in FABMAP_SCORES:
+            raise ConfigError(f"fabmap_score must be one of {FABMAP_SCORES}, got {self.fabmap_score!r}")
+        if self.threads < 1:
+            raise ConfigError(f"threads must be >= 1, got {self.threads}")
+        if not isinstance(self.verification, VerificationConfig):
+            raise ConfigError(f"verification must be a VerificationConfig, got {type(self.verification).__name__}")
+        if not isinstance(self.candidates, CandidateConfig):
+            raise ConfigError(f"candidates must be a CandidateConfig, got {type(self.candidates).__name__}")
+        if not isinstance(self.sequence, SequenceConfig):
+            raise ConfigError(f"sequence must be a SequenceConfig, got {type(self.sequence).__name__}")
+        if self.temporal_frames < 0 or self.temporal_tolerance < 0:
+            raise ConfigError("temporal_frames and temporal_tolerance must be >= 0")
+        if self.temporal_frames and not self.verification.enabled:
+            raise ConfigError("temporal consistency works on verified matches: enable verification")
+
+    def to_dict(self) -> dict:
+        """Every setting as plain JSON types (nested configs as objects, tuples as lists): the
+        form the map state records and RunConfig carries."""
+        return json.loads(json.dumps(asdict(self)))
+
+
+class LoopClosureDetector:
+    """Stateful per-frame detector for one model bundle (not thread-safe)."""
+
+    def __init__(self, bundle: TrainedModel, config: DetectorConfig | None = None) -> None:
+        self.bundle = bundle
+        self.config = config or DetectorConfig()
+        c = self.config
+        v = c.verification
+        # FAB-MAP observes the strongest `max_features` keypoints, as the bundle was trained;
+        # verification may extract and match more of them (VerificationConfig.keypoints).
+        self._observed_keypoints = bundle.features.max_features
+        extract = bundle.features
+        if v.enabled and v.keypoints is not None and v.keypoints > extract.max_features:
+            extract = replace(extract, max_features=v.keypoints)
+        self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright)
+        self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
+        self.kind = bundle.features.spec
+        self.scorer: Scorer = self._build_scorer()
+        self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
+        self.store: KeypointStore | None = None
+        if v.enabled:
+            self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
+            # Verification's kernels: match counting and model errors for every kind, the two
+            # matchers for binary ones.
+            binary = (nearest_two_kernel, same_word_kernel) if self.kind.distance == "hamming" else ()
+            compiled.prepare(distinct_kernel, transfer_kernel, epipolar_kernel, *binary)
+        self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
+        self.chain = SequenceEvidence(c.sequence) if c.sequence.frames and v.enabled else None
+        # place id -> sequence of the frame that made it / last sequence inserted or matched.
+        self._place_frame = np.zeros(0, np.int64)
+        self._last_used = np.zeros(0, np.int64)
+        self._sequence = 0
+        # Names this map's frame numbering (a fleet tells other robots by it that a restarted
+        # node's frame numbers mean other places): drawn for an empty map, kept in its state.
+        self.map_epoch = secrets.randbits(64)
+        self._last_scores: np.ndarray | None = None
+        self.policy = CandidatePolicy(c.candidates)
+        # (words, stamp_ns, features) of the last frame taken: what a map journal records to
+        # replay it with process_words (runtime/aefabmap_runtime/adapters/map_journal.py).
+        self.last_input: tuple[np.ndarray, int, Features | None] | None = None
+
+    def new_scorer(self) -> Scorer:
+        """An empty scorer like the own map's; other robots' places get one each (fleet_map.py).
+        A FAB-MAP scorer shares the own one's read-only tables and new-place model."""
+        if isinstance(self.scorer, FabMapScorer):
+            return FabMapScorer(self.scorer.fabmap.empty_like(), self.config.fabmap_score)
+        return self._build_scorer()
+
+    def _build_scorer(self) -> Scorer:
+        """A new empty scorer of this detector's kind and settings, built from the bundle: the one
+        place that knows which scorer it is (runtime/aefabmap_runtime/core/rank/scorer.py)."""
+        c, bundle = self.config, self.bundle
+        if c.scorer == "fabmap":
+            det = bundle.word_detection
+            fabmap = FabMap2(bundle.tree, bundle.training_observations, pzge=det["pzge"], pzgne=det["pzgne"],
+                             smoothing=c.smoothing, naive_bayes=c.naive_bayes, motion_model=c.motion_model)
+            return FabMapScorer(fabmap, c.fabmap_score)
+        return BowScorer(BowIndex(bundle.vocabulary_size, bundle.training_observations))
+
+    @property
+    def manifest(self) -> dict:
+        return self.bundle.manifest
+
+    @property
+    def n_places(self) -> int:
+        """Places in the map now."""
+        return self.scorer.n_alive
+
+    @property
+    def next_sequence(self) -> int:
+        """Sequence number the next frame gets (frames continue across a saved state)."""
+        return self._sequence
+
+    @property
+    def frames_inserted(self) -> int:
+        """Frames that have entered the map since it was started (evicted ones included)."""
+        return self._sequence - len(self._pending)
+
+    def last_scores(self) -> np.ndarray | None:
+        """Scores of every place id (probability or similarity) from the last processed frame."""
+        return self._last_scores
+
+    def place_frames(self) -> np.ndarray:
+        """(n_places,) sequence number of the frame that created each place id."""
+        return self._place_frame[: self._id_range()]
+
+    def words_of(self, features: Features) -> np.ndarray:
+        """Word id of every keypoint (N,) int64 (repeats kept): the bundle's keypoint budget (the
+        first `features.max_features`, strongest first) is quantised; keypoints beyond it, kept
+        for verification only, get NO_WORD (the brute-force retry matches them)."""
+        n = min(len(features), self._observed_keypoints)
+        words = np.full(len(features), NO_WORD, np.int64)
+        if n:
+            words[:n] = quantize_raw(self.quantizer, self.kind, features.descriptors[:n])
+        return words
+
+    def attach_keypoints(self, place: int, features: Features, words: np.ndarray) -> None:
+        """Give a stored place the keypoints of `features` (words: their `words_of`), replacing
+        any it held. For tools that build a map from words alone (`process_words` without
+        features stores no keypoints, and a place without keypoints is never verified), such as
+        the pipeline benchmark, whose stored places must be verified as a live map's are."""
+        if self.store is None:
+            raise ConfigError("verification is off: this detector stores no keypoints")
+        if not (0 <= place < self._id_range()) or not self.scorer.alive[place]:
+            raise InputError(f"place {place} is not in the map")
+        self.store.put(place, self.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
+                                              features.upright))
+
+    def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
+        """Run one grayscale (H, W) uint8 image through the detector."""
+        t0 = time.perf_counter()
+        feats = self.extractor.extract(image)
+        t1 = time.perf_counter()
+        words = self.words_of(feats)
+        t2 = time.perf_counter()
+        stages = {"features": (t1 - t0) * 1e3, "quantise": (t2 - t1) * 1e3}
+        return self._step(words, stamp_ns, feats, stages)
+
+    def process_words(self, words: np.ndarray, stamp_ns: int = 0, features: Features | None = None) -> FrameResult:
+        """Score one frame given its keypoints' word ids, then queue it for delayed insertion.
+
+        words: (N,) word id of every keypoint (NO_WORD beyond the bundle's budget, see
+        `words_of`); features: the frame's keypoints (same order and count as words, strongest
+        first) for geometric verification. Without features the frame is neither verified nor
+        stored for verifying later frames (verified is then always False). With features,
+        FAB-MAP observes the words of the bundle's keypoint budget (the first
+        `features.max_features`); verification uses every keypoint.
+        """
+        return self._step(words, stamp_ns, features, None)
+
+    def _step(self, words: np.ndarray, stamp_ns: int, features: Features | None,
+              stages: dict[str, float] | None) -> FrameResult:
+        """One frame: insert the frames now due, rank, verify, queue this frame, build its result.
+        stages: times of the stages before (process()); then the result's timings gain inference."""
+        t0 = time.perf_counter()
+        if features is not None and len(features) != words.size:
+            raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
+        observed = words[: self._observed_keypoints] if features is not None else words
+        self.last_input = (words, int(stamp_ns), features)
+        seq = self._sequence
+        self._sequence += 1
+        inserted = self._insert_due(seq)
+        ranked = self.scorer.rank(observed)
+        top = top_places(ranked.order, self.config.candidates.top_k)  # verification and evidence share it
+        self._last_scores = ranked.scores
+        verdict = None
+        query_kps = None
+        if self.store is not None:
+            if features is not None:
+                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
+                                            features.upright)
+            verdict = self._verify(seq, features, words, ranked.order, top)
+            loop = verdict.verified
+        else:
+            loop = ranked.best is not None and ranked.score >= self.config.loop_threshold
+        if loop:
+            self._last_used[verdict.place if verdict is not None else ranked.best] = seq
+        self._pending.append((seq, observed, query_kps))
+        timings = {} if stages is None else dict(stages)
+        if stages is not None:
+            verify_ms = verdict.timing_ms if verdict is not None else 0.0
+            timings["inference"] = (time.perf_counter() - t0) * 1e3 - verify_ms
+        if verdict is not None:
+            timings["verification"] = verdict.timing_ms
+        return self._result(seq, stamp_ns, len(features) if features is not None else int(words.size),
+                            observed, ranked, top, inserted, loop, verdict, timings)
+
+    def _insert_due(self, seq: int) -> tuple[int | None, int | None, int | None]:
+        """Move the queued frames whose delay has passed into the map, evicting to stay within the
+        caps; returns (last inserted frame, its place id, last evicted place id)."""
+        inserted_frame = inserted_place = evicted = None
+        while self._pending and self._pending[0][0] <= seq - self.config.exclude:
+            inserted_frame, pending_words, pending_kps = self._pending.popleft()
+            evicted = self._make_room()
+            inserted_place = self._insert(pending_words, inserted_frame)
+            if self.store is not None:
+                # A reused id must not keep the keypoints of the place it belonged to before.
+                self.store.remove(inserted_place)
+                if pending_kps is not None:
+                    self.store.put(inserted_place, pending_kps)
+            trimmed = self._trim(inserted_place)
+            if trimmed is not None:
+                evicted = trimmed
+        return inserted_frame, inserted_place, evicted
+
+    def _verify(self, seq: int, features: Features | None, words: np.ndarray, ranking: np.ndarray,
+                top: np.ndarray) -> "_Verdict":
+        """Geometric (+ temporal) verification of query `seq`: the candidate policy picks the
+        places (runtime/aefabmap_runtime/core/decide/candidates.py), `verify_pair` judges each pair."""
+        t0 = time.perf_counter()
+        verdict = _Verdict()
+        if features is not None and ranking.size and len(features) <= SAMPLE_SIZE["H"]:
+            verdict.reason = "no_evidence"  # texture-poor frame: nothing to verify with
+        elif features is not None and len(features) and ranking.size:
+            verdict.search = self.policy.search(seq, top, ranking, self.place_frames(), self.store.__contains__,
+                                                self._pair_check(features, words))
+        best = verdict.search.best
+        verdict.geometry_ok = best is not None and bool(best.verified)
+        if self.chain is not None:
+            self._chain_step(verdict)
+        verdict.verified = verdict.geometry_ok
+        if self.temporal is not None:
+            matched = int(self._place_frame[verdict.search.best_place]) if verdict.geometry_ok else None
+            verdict.temporal_ok = self.temporal.update(matched)
+            verdict.verified = verdict.geometry_ok and verdict.temporal_ok
+        verdict.place = verdict.search.best_place if verdict.verified else None
+        if verdict.geometry_ok:
+            self.policy.track.confirm(seq, int(self._place_frame[verdict.search.best_place]))
+        verdict.timing_ms = (time.perf_counter() - t0) * 1e3
+        return verdict
+
+    def _chain_step(self, verdict: "_Verdict") -> None:
+        """Record this query's checked places as chain links; when no single pair passed, take the
+        place ending the most significant accepted chain (runtime/aefabmap_runtime/core/decide/sequence.py)."""
+        attempts = verdict.search.attempts
+        links = [Link(a.place, int(self._place_frame[a.place]), float(a.result.nfa)) for a in attempts
+                 if np.isfinite(a.result.nfa)]
+        chain = self.chain.update(links)
+        if verdict.geometry_ok or chain is None:
+            return
+        link, total = chain
+        verdict.search.best = min((a.result for a in attempts if a.place == link.place), key=lambda g: g.nfa)
+        verdict.search.best_place = link.place
+        verdict.geometry_ok, verdict.sequence_nfa = True, total
+
+    def _pair_check(self, features: Features, words: np.ndarray):
+        """The policy's PairCheck for this query: verify it against one stored place."""
+        verify = self.place_check(features, words)
+
+        def check(pid: int, bruteforce: bool, retry_only: bool, upright: bool) -> GeometryResult | None:
+            place = self.store.get(pid)
+            if place is None or len(place) == 0:
+                return None
+            return verify(place, bruteforce, retry_only, upright)
+
+        return check
+
+    def place_check(self, features: Features, words: np.ndarray, verification: VerificationConfig | None = None):
+        """check(place, bruteforce, retry_only, upright=False) -> GeometryResult: this query
+        (features, its `words_of`) verified against the keypoints of a place (PlaceKeypoints), ours
+        or another robot's; retry_only: all-pairs matching alone (the reach's retry); upright: a
+        failed all-pairs retry is retried with the upright descriptors when both sides have them.
+        verification: other settings than the detector's (a stricter bar for other robots' places)."""
+        v = self.config.verification if verification is None else verification
+        q_xy, q_desc, q_shape = features.keypoints, features.descriptors, features.image_shape
+        radius = independence_radius(self.kind.window_radius(features.sizes), v)
+        distance = self.kind.distance
+
+        def check(place: PlaceKeypoints, bruteforce: bool, retry_only: bool = False,
+                  upright: bool = False) -> GeometryResult:
+            q_up, p_up = (features.upright, place.upright) if upright else (None, None)
+            if retry_only:
+                return verify_pair_bruteforce(q_xy, q_desc, q_shape, place.xy, place.descriptors, place.image_shape,
+                                              v, distance=distance, radius=radius, q_upright=q_up, p_upright=p_up)
+            return verify_pair(q_xy, words, q_desc, q_shape, place.xy, place.words, place.descriptors,
+                               place.image_shape, v, bruteforce=bruteforce, distance=distance, radius=radius,
+                               q_upright=q_up, p_upright=p_up)
+
+        return check
+
+    def _result(self, seq: int, stamp_ns: int, n_keypoints: int, observed: np.ndarray, ranked: Ranking,
+                top: np.ndarray, inserted: tuple, loop: bool, verdict: "_Verdict | None",
+                timings: dict[str, float]) -> FrameResult:
+        """The frame's FrameResult, built in one place."""
+        best = ranked.best
+        inserted_frame, inserted_place, evicted = inserted
+        geometry = _verdict_fields(verdict, self._place_frame) if verdict is not None else {}
+        return FrameResult(
+            sequence=seq,
+            stamp_ns=int(stamp_ns),
+            n_keypoints=int(n_keypoints),
+            n_words=int(np.unique(observed).size),
+            best_place=best,
+            best_frame=int(self._place_frame[best]) if best is not None else None,
+            score=float(ranked.score),
+            p_new=ranked.p_new,
+            loop=bool(loop),
+            probability=ranked.probability,
+            llr=ranked.llr,
+            inserted_frame=inserted_frame,
+            inserted_place=inserted_place,
+            evicted_place=evicted,
+            n_places=self.n_places,
+            score_kind=self.config.fabmap_score if self.config.scorer == "fabmap" else "similarity",
+            timings_ms=timings,
+            candidates=self._candidates(ranked, top, verdict.search if verdict is not None else None),
+            **geometry,
+        )
+
+    def _candidates(self, ranked: Ranking, top_places: np.ndarray, search: Search | None) -> list[Candidate]:
+        """The top places of the ranking (log-likelihood or similarity) and every place checked."""
+        ranking = ranked.order
+        top = [int(p) for p in top_places if np.isfinite(ranking[p])]  # removed places are -inf
+        # A place checked twice (same-word, then the reach's retry) shows its last source and its
+        # most significant result.
+        attempts: dict[int, tuple] = {}
+        for a in search.attempts if search is not None else []:
+            prev = attempts[a.place][1] if a.place in attempts else None
+            attempts[a.place] = (a.source, a.result if more_significant(a.result, prev) else prev)
+        pids = top + [p for p in attempts if p not in top]
+        out = []
+        for pid in pids:
+            c = Candidate(place=pid, frame=int(self._place_frame[pid]), rank=int(np.sum(ranking > ranking[pid])))
+            if ranked.loglik_new is not None:  # FAB-MAP: order is the log-likelihood
+                c.probability = float(ranked.scores[pid])
+                c.llr = float(ranking[pid] - ranked.loglik_new)
+            else:
+                c.similarity = float(ranking[pid])
+            if pid in attempts:
+                c.source, g = attempts[pid]
+                c.checked, c.verified = True, bool(g.verified)
+                c.inliers, c.matches, c.model = int(g.inliers), int(g.matches), g.model
+                c.nfa = float(g.nfa) if np.isfinite(g.nfa) else None
+                c.inlier_points = None if g.inlier_points is None else g.inlier_points.tolist()
+            out.append(c)
+        return out
+
+    def _id_range(self) -> int:
+        return self.scorer.n_places
+
+    def _insert(self, words: np.ndarray, frame: int) -> int:
+        pid = self.scorer.add(words)
+        if pid >= self._last_used.size:
+            grow = max(64, self._last_used.size)
+            self._last_used = np.concatenate([self._last_used, np.full(grow, -1, np.int64)])
+            self._place_frame = np.concatenate([self._place_frame, np.full(grow, -1, np.int64)])
+        self._last_used[pid] = frame
+        self._place_frame[pid] = frame
+        return pid
+
+    def state(self) -> MapState:
+        """The whole map as arrays + scalars (runtime/aefabmap_runtime/core/records/map_state.py; the keypoints are packed by
+        ``MapState.resolve()``, e.g. in the thread that writes them): scorer postings, keypoint
+        store, place -> frame table, last-used order, delayed-insertion queue, frame counter,
+        track prior and temporal history. Loading it (load_state) into a detector on the same
+        bundle and settings continues the run with bit-identical results."""
+        st = MapState()
+        c = self.config
+        st.scalars.update(
+            scorer=c.scorer, verification=self.store is not None, vocabulary_size=int(self.bundle.vocabulary_size),
+            max_keypoints=self.store.max_keypoints if self.store is not None else None,
+            sequence=self._sequence, track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
+            n_places=self.scorer.n_places, n_alive=self.n_places, map_epoch=self.map_epoch,
+            # The settings the map was built with, whole (JSON; RunConfig's detector part).
+            config=json.dumps(c.to_dict(), sort_keys=True),
+        )
+        st.put("scorer", self.scorer.state())
+        st.arrays["place_frame"] = self._place_frame.copy()
+        st.arrays["last_used"] = self._last_used.copy()
+        pend = list(self._pending)
+        st.arrays["pending_seq"] = np.array([p[0] for p in pend], np.int64)
+        st.arrays["pending_words_ptr"], st.arrays["pending_words"] = pack_ragged([p[1] for p in pend], np.int64)
+        if self.store is not None:
+            st.put("store", self.store.state())
+            store, pending_kps = self.store, [p[2] for p in pend]
+            st.put("pending_kps", MapState(deferred=[("", lambda: store.pack_places(pending_kps))]))
+        if self.temporal is not None:
+            st.put("temporal", self.temporal.state())
+        if self.chain is not None:
+            st.put("chain", self.chain.state())
+        return st
+
+    def load_state(self, st: MapState) -> None:
+        """Replace the map by a checked state (see state()); raises StateError on any mismatch
+        with this detector's bundle or settings, or an array out of shape or bounds."""
+        c = self.config
+        scorer = st.scalar("scorer", str)
+        if scorer != c.scorer:
+            raise StateError(f"map state was built with the {scorer!r} scorer, this run uses {c.scorer!r}")
+        if st.scalar("verification", bool) != (self.store is not None):
+            raise StateError("map state and this run differ in geometric verification (on/off)")
+        v = int(self.bundle.vocabulary_size)
+        if st.scalar("vocabulary_size", int) != v:
+            raise StateError(f"map state has a vocabulary of {st.scalars['vocabulary_size']} words, the bundle {v}")
+        if self.store is not None:
+            # A map kept with another verification budget loads when every stored place fits this
+            # run's cap (the keypoint store checks the counts): places keep the keypoints they have.
+            st.scalar("max_keypoints", (int, type(None)))
+        seq = st.scalar("sequence", int, lo=0, hi=2**62)
+        track_seq = st.scalar("track_seq", int, lo=-2, hi=seq)
+        track_frame = st.scalar("track_frame", int, lo=-1, hi=max(seq, 1))
+        self.scorer.load_state(st.part("scorer"))
+        n = self.scorer.n_places
+        if st.scalar("n_places", int) != n or st.scalar("n_alive", int) != self.scorer.n_alive:
+            raise StateError("map state: place counts disagree with the place index")
+        place_frame = st.array("place_frame", "iu", (None,), lo=-1, hi=max(seq, 1))
+        last_used = st.array("last_used", "iu", (place_frame.size,), lo=-1, hi=max(seq, 1))
+        if place_frame.size < n or place_frame.size > max(64, 2 * n):
+            raise StateError(f"map state: place tables hold {place_frame.size} ids for {n} places")
+        if np.any(place_frame[:n][self.scorer.alive] < 0):
+            raise StateError("map state: a stored place has no frame")
+        pseq = st.array("pending_seq", "iu", (None,), lo=0, hi=max(seq, 1))
+        if pseq.size > 1 and np.any(np.diff(pseq) <= 0):
+            raise StateError("map state: the insertion queue is not in frame order")
+        pwords = st.array("pending_words", "iu", (None,), lo=0, hi=v)
+        pptr = check_ptr(st, "pending_words_ptr", pseq.size, pwords.size)
+        pkps: list = [None] * pseq.size
+        if self.store is not None:
+            self.store.load_state(st.part("store"), n)
+            if any(not self.scorer.alive[p] for p in self.store._places):
+                raise StateError("map state: the keypoint store holds a removed place")
+            pkps = self.store.unpack_places(st.part("pending_kps"), pseq.size)
+        if self.temporal is not None:
+            self.temporal.load_state(st.part("temporal"))
+        if self.chain is not None:
+            chain = st.part("chain")
+            if chain.arrays:
+                self.chain.load_state(chain)
+            else:  # a map saved without chains (another setting, an older version) starts with none
+                self.chain.reset()
+        self._place_frame, self._last_used = place_frame, last_used
+        self._pending = deque(
+            (int(s), pwords[pptr[i]:pptr[i + 1]], pkps[i]) for i, s in enumerate(pseq.tolist())
+        )
+        self._sequence = seq
+        # A map saved before epochs were kept gets a new one (its fleet peers forget it once).
+        if "map_epoch" in st.scalars:
+            self.map_epoch = st.scalar("map_epoch", int, lo=0, hi=2**64)
+        else:
+            self.map_epoch = secrets.randbits(64)
+        self.policy.track.seq, self.policy.track.frame = track_seq, track_frame
+        self._last_scores = None
+
+    def map_bytes(self) -> int:
+        """Memory of the map (index postings, word lists, per-place arrays), in bytes.
+
+        The one place where per-place memory is accounted: whatever else is kept per place
+        (e.g. keypoints for verification) must be added here so that memory_mb holds.
+        """
+        index = self.scorer.nbytes()
+        kps = self.store.nbytes() if self.store is not None else 0
+        return index + self._last_used.nbytes + self._place_frame.nbytes + kps
+
+    def _over_budget(self, extra_places: int = 1) -> bool:
+        c = self.config
+        if c.max_places is not None and self.n_places + extra_places > c.max_places:
+            return True
+        if c.memory_mb is not None and self.n_places > 0:
+            # Leave room for one more place of the average size before inserting it.
+            per_place = self.map_bytes() / self.n_places
+            return self.map_bytes() + per_place > c.memory_mb * 2**20
+        return False
+
+    def _make_room(self) -> int | None:
+        """Evict least-recently-used places until one more fits; returns the last evicted id."""
+        evicted = None
+        while self.n_places > 0 and self._over_budget():
+            evicted = self._evict_lru()
+        return evicted
+
+    def _trim(self, keep: int) -> int | None:
+        """Evict least-recently-used places other than `keep` while the map exceeds memory_mb;
+        returns the last evicted id. `_make_room` leaves room for a place of the average size,
+        but an insertion can take more at once (a full posting buffer grows by a quarter), and
+        the cap is a bound, not an average."""
+        c = self.config
+        evicted = None
+        while c.memory_mb is not None and self.n_places > 1 and self.map_bytes() > c.memory_mb * 2**20:
+            evicted = self._evict_lru(keep)
+        return evicted
+
+    def _evict_lru(self, keep: int | None = None) -> int:
+        alive = self.scorer.alive
+        used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
+        if keep is not None:
+            used[keep] = np.iinfo(np.int64).max
+        evicted = int(np.argmin(used))
+        self.scorer.remove(evicted)
+        if self.store is not None:
+            self.store.remove(evicted)
+        return evicted
+
+
+@dataclass
+class _Verdict:
+    """Verification of one query (internal): the policy's search, then the temporal check."""
+
+    search: Search = field(default_factory=Search)
+    geometry_ok: bool = False
+    temporal_ok: bool | None = None
+    verified: bool = False
+    place: int | None = None
+    timing_ms: float = 0.0
+    reason: str | None = None
+    sequence_nfa: float | None = None
+
+
+def _verdict_fields(verdict: _Verdict, place_frame: np.ndarray) -> dict:
+    """FrameResult's verification fields."""
+    best = verdict.search.best
+    out = dict(verified=bool(verdict.verified), geometry_ok=bool(verdict.geometry_ok), temporal_ok=verdict.temporal_ok,
+               candidates_tried=verdict.search.tried, geometry_reason=verdict.reason, sequence_nfa=verdict.sequence_nfa)
+    if best is not None:
+        out.update(inliers=int(best.inliers), matches=int(best.matches), geometry_model=best.model,
+                   nfa=float(best.nfa) if np.isfinite(best.nfa) else None,
+                   geometry_reason="" if verdict.verified else (
+                       "temporal" if best.verified or verdict.sequence_nfa is not None else best.reason))
+    if verdict.verified and verdict.place is not None:
+        out.update(verified_place=int(verdict.place), verified_frame=int(place_frame[verdict.place]),
+                   geometry=[[float(x) for x in row] for row in best.matrix])
+        if best.rotation is not None and best.translation is not None:
+            out.update(relative_rotation=[[float(x) for x in row] for row in best.rotation],
+                       relative_translation=[float(x) for x in best.translation])
+    return out

@@ -1,0 +1,1 @@
+"""Extract: local features (keypoints and descriptors) of one image, per registered kind."""

@@ -1,0 +1,1 @@
+"""Records with a fixed shape: the wire messages and their JSON schemas, the map state as arrays."""

@@ -1,0 +1,126 @@
+"""The candidate policy on its own: which places it checks, in what order, within its caps
+(the pair verdicts are scripted; the detector's tests cover the real verification)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, top_places
+from aefabmap_runtime.core.verify.verification import GeometryResult
+
+
+class Script:
+    """A PairCheck that passes the places in `passes` and records every call."""
+
+    def __init__(self, passes=(), empty=()):
+        self.passes, self.empty, self.calls, self.upright = set(passes), set(empty), [], []
+
+    def __call__(self, pid, bruteforce, retry_only, upright=False):
+        self.calls.append((pid, bruteforce, retry_only))
+        self.upright.append(upright)
+        if pid in self.empty:
+            return None
+        ok = pid in self.passes
+        return GeometryResult(verified=ok, model="F", inliers=40 if ok else 3, nfa=-10.0 if ok else 2.0,
+                              reason="" if ok else "chance")
+
+
+def _search(policy, seq, ranking, script, frames=None):
+    frames = np.arange(ranking.size) if frames is None else frames
+    top = top_places(ranking, policy.config.top_k)
+    return policy.search(seq, top, ranking, frames, lambda p: True, script)
+
+
+def test_fabmap_candidates_in_rank_order_first_pass_wins():
+    ranking = np.array([0.1, 0.9, 0.5, 0.7, -np.inf])
+    script = Script(passes={2})
+    s = _search(CandidatePolicy(CandidateConfig(top_k=5, bruteforce_fallback=1)), 100, ranking, script)
+    assert [c[0] for c in script.calls] == [1, 3, 2]  # best first, stops at the first that passes
+    assert [c[1] for c in script.calls] == [True, False, False]  # only the best gets the brute-force retry
+    assert s.verified and s.best_place == 2 and s.source == "fabmap" and s.tried == 3 and s.bruteforce == 1
+
+
+def test_removed_places_are_never_checked_and_caps_hold():
+    ranking = np.array([0.3, 0.2, 0.1, -np.inf])
+    script = Script()
+    s = _search(CandidatePolicy(CandidateConfig(top_k=4, max_trials=2, max_bruteforce=0)), 50, ranking, script)
+    assert [c[0] for c in script.calls] == [0, 1] and s.tried == 2 and s.bruteforce == 0 and not s.verified
+
+
+def test_track_window_comes_first_then_the_reach():
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=3, track_reach=3))
+    policy.track.confirm(seq=10, frame=4)  # query 10 matched stored frame 4
+    ranking = np.linspace(0, 1, 20)[::-1].copy()  # place 0 ranks best
+    script = Script(passes={9})
+    s = _search(policy, 11, ranking, script)
+    # window: frames 5, 6 then 4; FAB-MAP's best (place 0); the reach around 5: 7 and 8, 2... nearest
+    # first, ahead before behind, each with the retry; place 9 lies outside the reach: never found.
+    order = [c[0] for c in script.calls]
+    assert order[:4] == [5, 6, 4, 0]
+    assert set(order[4:]) == {7, 8, 3, 2} and order[4] == 7 and not s.verified
+    assert all(bf for pid, bf, _ in script.calls if pid != 0)
+    # Upright descriptors for the tracked places (window and reach) only, never for FAB-MAP's.
+    assert [up for (pid, _, _), up in zip(script.calls, script.upright)] == [pid != 0 for pid in order]
+
+
+def test_a_same_word_check_gets_only_the_retry_when_the_reach_comes_to_it():
+    policy = CandidatePolicy(CandidateConfig(top_k=3, bruteforce_fallback=0, track=1, track_reach=2))
+    policy.track.confirm(seq=10, frame=5)
+    ranking = np.zeros(12)
+    ranking[7] = 1.0  # FAB-MAP's best is place 7: same-word matching only (no fallback)
+    script = Script()
+    s = _search(policy, 11, ranking, script)
+    assert (7, False, False) in script.calls and (7, True, True) in script.calls
+    assert s.tried == len({c[0] for c in script.calls})  # a retried place counts once
+
+
+def test_track_lapses_after_its_memory_and_places_without_keypoints_are_skipped():
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=1, track_reach=0))
+    policy.track.confirm(seq=10, frame=4)
+    script = Script(empty={0})
+    s = _search(policy, 12, np.linspace(1, 0, 8), script)  # lag 2 > memory 1: no track
+    assert [c[0] for c in script.calls] == [0] and s.tried == 0 and s.best is None
+
+
+def test_the_track_lasts_twice_its_reach_by_default():
+    """The default memory: a revisit slower or faster than the first pass by up to half still has
+    its true frame within the reach of the expected one when the memory ends."""
+    config = CandidateConfig()
+    assert config.track_memory == 2 * config.track_reach
+    for lag, tracked in ((config.track_memory, True), (config.track_memory + 1, False)):
+        policy = CandidatePolicy(CandidateConfig(top_k=1))
+        policy.track.confirm(seq=10, frame=4)
+        script = Script()
+        _search(policy, 10 + lag, np.linspace(1, 0, 40), script)  # FAB-MAP's best: place 0
+        assert (4 + lag in {c[0] for c in script.calls}) is tracked
+
+
+def test_islands_follow_a_failed_candidate():
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=0, island=2, island_candidates=1))
+    ranking = np.zeros(10)
+    ranking[5] = 1.0
+    script = Script(passes={3})
+    s = _search(policy, 40, ranking, script)
+    assert [c[0] for c in script.calls] == [5, 4, 6, 3] and s.source == "island"
+
+
+@pytest.mark.parametrize("kw", [{"top_k": 0}, {"track": -1}, {"island": -1}, {"max_trials": 0},
+                                {"max_bruteforce": -1}, {"track_memory": 0}, {"island_candidates": -1},
+                                {"track_reach": 101}, {"bruteforce_fallback": -1}])
+def test_config_is_validated(kw):
+    with pytest.raises(ConfigError):
+        CandidateConfig(**kw)
+
+
+@pytest.mark.parametrize("ranking, k, want", [
+    (np.zeros(20), 5, [0, 1, 2, 3, 4]),
+    (np.array([1.0, 3, 3, 3, 3, 3, 3, 0]), 5, [1, 2, 3, 4, 5]),
+    (np.array([2.0, 1, 5, 1, 1, 1, 1, -np.inf]), 4, [2, 0, 1, 3]),
+    (np.array([-np.inf, -np.inf, 0.5, -np.inf]), 3, [2, 0, 1]),
+    (np.array([0.2, 0.9]), 5, [1, 0]),
+])
+def test_top_places_takes_the_lowest_ids_among_ties_on_every_machine(ranking, k, want):
+    """argpartition alone chose and ordered tied places differently on aarch64 than on x86-64."""
+    assert top_places(ranking, k).tolist() == want
