@@ -13,8 +13,8 @@
 # decides as the machine its settings were measured on (docs/results.md, "The board's arithmetic").
 #
 # Debian's arm64 python3.11 is unpacked into WORKDIR/sysroot, not installed: apt would replace
-# the machine's amd64 python3 with the arm64 one. Writes runtime/aefabmap_runtime/core/_kernels.cpython-311-
-# aarch64-linux-gnu.so into this checkout (git-ignored; the x86-64 library beside it is untouched).
+# the machine's amd64 python3 with the arm64 one. Writes runtime/aefabmap_runtime/core/kernels/
+# _kernels.cpython-311-aarch64-linux-gnu.so into this checkout (git-ignored; the x86-64 library beside it is untouched).
 # Emulated timings mean nothing: this checks results only.
 set -euo pipefail
 REPO=$(cd "$(dirname "$0")/.." && pwd)
@@ -52,7 +52,7 @@ fetch() {
 }
 CFLAGS="$(var CFLAGS) $(var CCSHARED)"
 LDFLAGS=$(var LDSHARED | cut -d' ' -f2-)
-OUT=$REPO/runtime/core/_kernels$(var EXT_SUFFIX)
+OUT=$REPO/runtime/aefabmap_runtime/core/kernels/_kernels$(var EXT_SUFFIX)
 cd "$REPO"
 set -x
 aarch64-linux-gnu-gcc $CFLAGS -c runtime/aefabmap_runtime/core/kernels/kernels.c -o "$WORK/kernels.o" -O3 -ffp-contract=off
@@ -69,9 +69,10 @@ fi
 pins=$(grep -oE '^(numpy|opencv-python-headless)==[^ ]+' deploy/requirements-board.txt)
 fetch "$WORK/wheels" $pins pytest pytest-timeout iniconfig packaging pluggy pygments
 mkdir -p "$WORK/bin" && ln -sf "$(command -v aarch64-linux-gnu-gcc)" "$WORK/bin/cc"  # test_native builds a stub library
-PATH=$WORK/bin:$PATH PYTHONPATH=$WORK/site AEFABMAP_DATA=/nonexistent QEMU_CPU=cortex-a53 "${PY[@]}" \
-    -m pytest -p no:cacheprovider -q -rs tests/runtime/core/test_{native,model_errors,scatter,postings,fabmap,bits}.py \
-    tests/runtime/core/test_{word_matches,nearest,geometry_acceptance,candidate_policy}.py
+PATH=$WORK/bin:$PATH PYTHONPATH=$WORK/site:$REPO/runtime AEFABMAP_DATA=/nonexistent QEMU_CPU=cortex-a53 "${PY[@]}" \
+    -m pytest -p no:cacheprovider -q -rs tests/runtime/core/kernels/test_{native,bits}.py \
+    tests/runtime/core/rank/test_{scatter,postings,fabmap}.py tests/runtime/core/decide/test_candidate_policy.py \
+    tests/runtime/core/verify/test_{model_errors,word_matches,nearest,geometry_acceptance}.py
 echo "aarch64 kernels check passed: $OUT"
 [ $# -eq 5 ] || exit 0
 
@@ -83,7 +84,7 @@ pins=$(grep -oE '^[A-Za-z0-9_.-]+==[^ ]+' deploy/requirements-board.txt | grep -
 fetch "$WORK/wheels-eval" $pins onnxruntime==1.20.1 coloredlogs humanfriendly sympy mpmath  # numpy, OpenCV: step 4
 EVAL=(-m aefabmap eval --model "$BUNDLE" --images "$IMAGES" --gt "$GT" --exclude "$EXCLUDE" --fabmap-score llr --no-progress)
 "$HOST_PY" "${EVAL[@]}" --frames "$WORK/here.frames.jsonl" | tail -3
-PYTHONPATH=$WORK/site:$REPO QEMU_CPU=cortex-a53 "${PY[@]}" "${EVAL[@]}" --frames "$WORK/board.frames.jsonl" | tail -3
+PYTHONPATH=$WORK/site:$REPO:$REPO/runtime QEMU_CPU=cortex-a53 "${PY[@]}" "${EVAL[@]}" --frames "$WORK/board.frames.jsonl" | tail -3
 python3 - "$WORK/here.frames.jsonl" "$WORK/board.frames.jsonl" <<'EOF'
 import json, sys
 # The geometric fits' diagnostics (OpenCV's MAGSAC in floating point) and the last digits of

@@ -2,7 +2,8 @@
 
 A user's clone has only the repository, so README.md and docs/ must not send readers to the
 maintainers' sibling folders, and every relative Markdown link must lead to a file that exists
-(and, with an #anchor into a Markdown file, to a heading that exists).
+(and, with an #anchor into a Markdown file, to a heading that exists); so must a docs page and
+heading named in code or configuration (pyproject.toml's docs/design.md#layout).
 """
 
 from __future__ import annotations
@@ -23,11 +24,14 @@ REFERENCE_DEF = re.compile(r"^\s{0,3}\[[^\]]+\]:\s*<?(\S+?)>?(?:\s+\"[^\"]*\")?\
 FENCE = re.compile(r"^(```|~~~).*?^\1", re.MULTILINE | re.DOTALL)
 CODE_SPAN = re.compile(r"(`+)(?:(?!\1).)+?\1", re.DOTALL)
 HEADING = re.compile(r"^#{1,6}\s+(.+?)\s*#*\s*$", re.MULTILINE)
+# A page and heading named in code or configuration, e.g. pyproject.toml's "docs/design.md#layout".
+DOC_ANCHOR = re.compile(r"\b((?:docs|deploy)/[\w./-]+\.md)#([\w-]+)")
 
 
 def _markdown_files() -> list[Path]:
-    """README.md and every Markdown file under docs/."""
-    return [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+    """README.md, the changelog, the deploy and shipped-data notes, and every Markdown file under docs/."""
+    notes = [REPO / "CHANGELOG.md", REPO / "deploy" / "README.md", REPO / "aefabmap" / "data" / "README.md"]
+    return [REPO / "README.md", *notes, *sorted((REPO / "docs").rglob("*.md"))]
 
 
 def _files_for_pointer_check() -> list[Path]:
@@ -100,6 +104,25 @@ def test_docs_name_no_folder_outside_the_repository():
 def test_relative_links_lead_to_existing_files(md):
     assert md.is_file()
     assert not (bad := broken_links(md)), "\n".join(bad)
+
+
+def test_pages_and_headings_named_outside_markdown_exist():
+    """Code and configuration that send a reader to docs/PAGE.md#heading name one that exists."""
+    bad = []
+    for f in _files_for_pointer_check():
+        if f.suffix == ".md":
+            continue  # Markdown links are checked above
+        try:
+            text = f.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            continue
+        for page, anchor in DOC_ANCHOR.findall(text):
+            dest = REPO / page
+            if not dest.is_file():
+                bad.append(f"{f.relative_to(REPO)}: {page}#{anchor} (no such file)")
+            elif anchor.lower() not in heading_anchors(dest.read_text(encoding="utf-8")):
+                bad.append(f"{f.relative_to(REPO)}: {page}#{anchor} (no such heading)")
+    assert not bad, "\n".join(bad)
 
 
 def test_the_model_protocol_and_data_are_documented():

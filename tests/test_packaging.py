@@ -25,7 +25,8 @@ def test_python_m_aefabmap_runs_the_cli():
 def test_version_is_written_once():
     project = _pyproject()["project"]
     assert "version" not in project and "version" in project["dynamic"]
-    assert _pyproject()["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "aefabmap.__version__"}
+    assert _pyproject()["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "aefabmap_runtime.version.__version__"}
+    assert "__version__ =" not in (REPO / "aefabmap" / "__init__.py").read_text()  # re-exported, not written again
 
 
 def test_licence_file_matches_the_metadata():

@@ -18,7 +18,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "status",
         help="list the running aefabmap nodes and their health",
-        description="Find every running node by its liveliness token (runtime/<zid>) and query its status.",
+        description="Find every running node by its liveliness token (aefabmap/runtime/<zid>) and query its status.",
     )
     p.add_argument("--connect", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to connect to (repeatable; default tcp/127.0.0.1:7447)")

@@ -2,8 +2,8 @@
 
 Keys (one pair per node, ``<zid>`` being the Zenoh id of its session):
 
-- liveliness token ``runtime/<zid>``: present while the node runs, gone when it stops
-  (or its session dies), so ``zenoh liveliness get runtime/*`` lists the live nodes;
+- liveliness token ``aefabmap/runtime/<zid>``: present while the node runs, gone when it stops
+  (or its session dies), so ``zenoh liveliness get aefabmap/runtime/*`` lists the live nodes;
 - queryable ``aefabmap/status/<zid>``: answers any query with one StatusMessage
   (runtime/aefabmap_runtime/core/records/messages.py) in JSON. Query parameters and payload are ignored (untrusted).
 

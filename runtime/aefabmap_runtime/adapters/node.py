@@ -18,7 +18,7 @@ the publisher's clock is synchronised with ours) serialised once (runtime/aefabm
 -> published on the results key and logged to MCAP with the image. Every
 ``stats_period_s`` seconds a StatsMessage (frames, drops, bad by reason, RSS in MB, latency
 p50/p95 in ms) is published on ``<results key>/stats`` and logged. While it runs the node
-holds the liveliness token ``runtime/<zid>`` and answers status queries on
+holds the liveliness token ``aefabmap/runtime/<zid>`` and answers status queries on
 ``aefabmap/status/<zid>`` (runtime/aefabmap_runtime/adapters/health.py).
 """
 

@@ -48,7 +48,7 @@ def group_of(key: tuple[str, int, str]) -> str | None:
         if bare in MATCHING:
             return "opencv_matching"
         return "opencv_image" if bare.isidentifier() and hasattr(cv2, bare) else None
-    if filename.replace("\\", "/").endswith("runtime/aefabmap_runtime/core/kernels/native.py") and name not in NATIVE_HELPERS:
+    if filename.replace("\\", "/").endswith("aefabmap_runtime/core/kernels/native.py") and name not in NATIVE_HELPERS:
         return "native_kernels"
     return None
 

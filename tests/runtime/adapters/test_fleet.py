@@ -390,7 +390,7 @@ def test_places_stored_during_a_network_partition_arrive_once_it_heals(route):
 
 
 def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub, tmp_path):
-    """Two views of one 3-D point cloud (tests/runtime/core/test_candidates.py): a's place, b's
+    """Two views of one 3-D point cloud (tests/runtime/core/decide/test_candidates.py): a's place, b's
     query; with --camera the remote loop carries b's camera pose in a's place frame."""
     from aefabmap_runtime.core.verify.verification import VerificationConfig
     from tests.runtime.core.decide.test_candidates import CAMERA, calibrated_scene

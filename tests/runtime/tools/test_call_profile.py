@@ -18,12 +18,12 @@ def test_group_of_names_the_library_of_a_call():
     assert group_of(("~", 0, "<imdecode>")) == "opencv_image"
     assert group_of(("~", 0, "<resize>")) == "opencv_image"
     assert group_of(("~", 0, "<built-in method onnxruntime.capi.onnxruntime_pybind11_state.run>")) == "onnxruntime"
-    assert group_of(("/x/aefabmap/runtime/core/native.py", 115, "nearest_two")) == "native_kernels"
+    assert group_of(("/x/aefabmap_runtime/core/kernels/native.py", 115, "nearest_two")) == "native_kernels"
     # Python: argument checks of the kernels, numpy, everything else.
-    assert group_of(("/x/aefabmap/runtime/core/native.py", 78, "_arg")) is None
+    assert group_of(("/x/aefabmap_runtime/core/kernels/native.py", 78, "_arg")) is None
     assert group_of(("~", 0, "<built-in method numpy.fromiter>")) is None
     assert group_of(("~", 0, "<method 'reduce' of 'numpy.ufunc' objects>")) is None
-    assert group_of(("/x/aefabmap/runtime/core/features.py", 238, "_pack")) is None
+    assert group_of(("/x/aefabmap_runtime/core/features/features.py", 238, "_pack")) is None
 
 
 def test_seconds_in_calls_counts_the_opencv_call_not_the_python_around_it():

@@ -396,7 +396,7 @@ class StatusMessage(_Message):
     DESCRIPTION = "health of one running aefabmap node, answered on demand (Zenoh queryable)"
 
     stamp_ns: int = _f(description="wall-clock time of the answer, ns since the Unix epoch")
-    zid: str = _f(description="Zenoh id of the node's session (its liveliness token is runtime/<zid>)")
+    zid: str = _f(description="Zenoh id of the node's session (its liveliness token is aefabmap/runtime/<zid>)")
     aefabmap_version: str = _f(description="version of the aefabmap package running")
     message_format_version: str = _f(description="MESSAGE_FORMAT_VERSION of the node's messages")
     bundle_id: str | None = _f(None, "sha256 of the bundle manifest in canonical JSON (null: no manifest)")

@@ -16,7 +16,7 @@ from aefabmap_runtime.core.rank.fabmap import FabMap2
 from aefabmap_runtime.core.rank.scorer import BowScorer, FabMapScorer
 from tests.conftest import make_synthetic_bundle
 
-FIXTURE = Path(__file__).parent / "data" / "fabmap_stream_b5eb575.json"
+FIXTURE = Path(__file__).parents[1] / "data" / "fabmap_stream_b5eb575.json"
 
 
 def fabmap_stream() -> tuple[dict, list]:

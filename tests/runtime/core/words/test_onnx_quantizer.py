@@ -17,7 +17,7 @@ import pytest
 from aefabmap_runtime.errors import BundleError, ConfigError, InputError
 from aefabmap_runtime.core.words.onnx_quantizer import OnnxQuantizer
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[4]
 WORDS = 16
 
 
