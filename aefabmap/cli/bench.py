@@ -7,6 +7,8 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
+from aefabmap.cli.options import add_verification_options, default_bundle
+
 log = logging.getLogger("aefabmap.bench")
 
 # compiled.KERNEL_CHOICES, written out: importing runtime/aefabmap_runtime/core/kernels/compiled.py imports numba, which
@@ -15,11 +17,6 @@ _KERNEL_CHOICES = ("auto", "native", "numba", "numpy")
 _KERNELS_HELP = ("the kernels (FAB-MAP scatter, verification's matching, the int8 search's re-rank): auto (default: "
                  "the ahead-of-time compiled ones when built, else numba's JIT when it can run, else numpy), "
                  "native, numba, or numpy / OpenCV")
-
-
-_VERIFY_KEYPOINTS_HELP = "keypoints per frame extracted and matched for verification (default: the runtime's)"
-_VERIFY_BRUTEFORCE_HELP = ("FAB-MAP candidates retried with all-pairs matching when same-word matching fails "
-                           "(default: the runtime's)")
 
 
 def register(sub) -> None:
@@ -48,10 +45,7 @@ def register(sub) -> None:
                     help="word sets of the pre-filled places: the bundle's training observations (default) "
                     "or synthetic observations of the same mean size")
     pl.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
-    pl.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
-                    help=_VERIFY_KEYPOINTS_HELP)
-    pl.add_argument("--verify-bruteforce", type=int, default=None, metavar="K",
-                    help=_VERIFY_BRUTEFORCE_HELP)
+    add_verification_options(pl, "--verify-keypoints", "--verify-bruteforce", bench=True)
     pl.add_argument("--words-only-places", action="store_true",
                     help="pre-filled places without keypoints (never verified, so verification is understated; "
                          "the mode of figures measured before this option existed)")
@@ -69,12 +63,7 @@ def register(sub) -> None:
     sq.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
     sq.add_argument("--calls", action="store_true", help="then a second pass under the profiler: CPU ms per frame "
                     "inside OpenCV, onnxruntime and aefabmap's compiled kernels (the rest: Python and numpy)")
-    sq.add_argument("--verify-keypoints", type=int, default=None, metavar="N",
-                    help=_VERIFY_KEYPOINTS_HELP)
-    sq.add_argument("--verify-bruteforce", type=int, default=None, metavar="K",
-                    help=_VERIFY_BRUTEFORCE_HELP)
-    sq.add_argument("--no-verify-upright", dest="verify_upright", action="store_false", default=None,
-                    help="no upright descriptors (as run's option)")
+    add_verification_options(sq, "--verify-keypoints", "--verify-bruteforce", "--no-verify-upright", bench=True)
     sq.add_argument("--json", type=Path, metavar="OUT")
     sq.set_defaults(func=run_sequence)
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
@@ -200,8 +189,6 @@ def run_chowliu(args) -> int:
 
 
 def _model(args) -> Path:
-    from aefabmap.cli.demo import default_bundle
-
     return args.model or default_bundle()
 
 

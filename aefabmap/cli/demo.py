@@ -13,12 +13,12 @@ import logging
 import queue
 import subprocess
 import sys
-from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from aefabmap.cli.options import default_bundle
 from aefabmap_runtime.errors import AefabmapError, DataNotFoundError, TransportError
 
 if TYPE_CHECKING:
@@ -26,11 +26,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("aefabmap.demo")
 DEMO_KEY = "aefabmap/demo/camera/image"
-
-
-def default_bundle() -> Path:
-    """The model bundle shipped in the package (ORB, 500 words, trained on synthetic worlds)."""
-    return Path(str(resources.files("aefabmap") / "data" / "default_bundle"))
 
 
 def register(sub) -> None:

@@ -6,7 +6,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from aefabmap.cli.run_config import add_detector_options, build_run_config
+from aefabmap.cli.options import add_detector_options, build_run_config
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.core.detector import SCORERS, DetectorConfig
 from aefabmap_runtime.core.verify.verification import VerificationConfig

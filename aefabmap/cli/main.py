@@ -29,7 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for name in SUBCOMMAND_MODULES:
         importlib.import_module(f"aefabmap.cli.{name}").register(sub)
-    from aefabmap.cli.run_config import EXIT_CODES
+    from aefabmap.cli.options import EXIT_CODES
 
     for command in sub.choices.values():  # every command's help ends with the exit codes
         command.epilog = f"{command.epilog}\n\n{EXIT_CODES}" if command.epilog else EXIT_CODES

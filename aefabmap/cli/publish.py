@@ -11,7 +11,7 @@ import json
 import logging
 import threading
 
-from aefabmap.cli.run import add_zenoh_options, warn_exposure
+from aefabmap.cli.options import add_zenoh_options
 from aefabmap_runtime.errors import AefabmapError
 
 log = logging.getLogger("aefabmap.publish")
@@ -38,6 +38,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 
 def main(args: argparse.Namespace) -> int:
     from aefabmap_runtime.adapters.node import stop_on_signals
+    from aefabmap_runtime.adapters.node_session import warn_exposure
     from aefabmap_runtime.adapters.zenoh_transport import cli_session_config
     from aefabmap_runtime.tools.publisher import (
         camera_source,

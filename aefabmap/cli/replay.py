@@ -12,12 +12,19 @@ Ctrl-C/SIGTERM.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import dataclasses
 import json
 import logging
 import threading
 
+from aefabmap.cli.options import (
+    add_fleet_options,
+    add_foxglove_options,
+    add_mcap_profile_option,
+    add_state_options,
+    add_zenoh_options,
+    endpoints,
+    fleet_config,
+)
 from aefabmap_runtime.errors import AefabmapError, ConfigError, LogError
 
 log = logging.getLogger("aefabmap.replay")
@@ -39,18 +46,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
     p.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
     p.add_argument("--check", action="store_true", help="compare with the results in the log")
-    from aefabmap.cli.run import add_mcap_profile_option
-
     add_mcap_profile_option(p)
-    from aefabmap.cli.state_options import add_state_options
-
     add_state_options(p)
-    from aefabmap.cli.run import add_foxglove_options
-
     add_foxglove_options(p)
     add_playback_options(p)
-    from aefabmap.cli.run import add_fleet_options, add_zenoh_options
-
     add_zenoh_options(p, add_fleet_options(p))
     p.epilog = ("Network (--fleet only): with none of --connect/--listen/--config the replay listens on "
                 "tcp/127.0.0.1:7447 only, as `run` does; no multicast scouting.")
@@ -82,22 +81,8 @@ def playback_config(args: argparse.Namespace):
     return PlaybackConfig(rate=rate, wait_viewer_s=args.wait_viewer)
 
 
-def serve_until_stopped(view, fleet, stop: threading.Event) -> None:
-    """Keep the Foxglove server of ``view`` and the fleet node ``fleet`` (either may be None) up
-    after the replay until ``stop`` (Ctrl-C/SIGTERM)."""
-    if view is not None:
-        server = view.server
-        log.info("replay done; Foxglove server still up on ws://%s:%d until Ctrl-C", server.host, server.port)
-    if fleet is not None:
-        log.info("replay done; offering %d places to fleet %s as robot %s until Ctrl-C",
-                 fleet.fleet_stats().places_served, fleet.config.name, fleet.config.robot)
-    stop.wait()
-
-
 def _check_fleet_options(args: argparse.Namespace):
     """The replay's FleetConfig (None: no fleet); ConfigError for options that need one or clash."""
-    from aefabmap.cli.run_config import fleet_config
-
     fleet = fleet_config(args)
     if fleet is None and (args.connect or args.listen or args.config or args.allow_exposure):
         raise ConfigError("--connect/--listen/--config/--allow-exposure are for --fleet: a replay alone uses no network")
@@ -107,79 +92,30 @@ def _check_fleet_options(args: argparse.Namespace):
     return fleet
 
 
-def _join_fleet(args: argparse.Namespace, detector, config, stack):
-    """Open the session and join the fleet (closed by `stack`); the FleetNode wrapping detector."""
-    from aefabmap.cli.run import fleet_session, warn_exposure
-    from aefabmap_runtime.adapters.fleet import join_fleet
-    from aefabmap_runtime.adapters.zenoh_transport import cli_session_config, open_session
+def replay_io(args: argparse.Namespace):
+    """The replay_builder.ReplayIO of the parsed options (ConfigError when they clash)."""
+    from aefabmap_runtime.adapters.replay_builder import ReplayIO
 
-    sc = fleet_session(cli_session_config("listen", connect=args.connect, listen=args.listen,
-                                          config_file=args.config, allow_exposure=args.allow_exposure), config)
-    warn_exposure(sc, log)
-    session = stack.enter_context(open_session(sc))
-    return stack.enter_context(join_fleet(session, detector, config))
+    playback = playback_config(args)
+    fleet = _check_fleet_options(args)
+    return ReplayIO(logs=tuple(args.log), model=args.model, out=args.out, check=args.check, topic=args.topic,
+                    mcap_profile=args.mcap_profile, state=args.state, foxglove_port=args.foxglove,
+                    foxglove_host=args.foxglove_host, playback=playback, fleet=fleet, endpoints=endpoints(args))
 
 
 def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """stop: ends the replay between frames and the serving after it (set by SIGINT/SIGTERM)."""
-    from aefabmap.cli.run import start_live_view
-    from aefabmap.cli.run_config import logged_run_config
-    from aefabmap.cli.state_options import open_state
-    from aefabmap_runtime.adapters.bundle_reader import load_detector
-    from aefabmap_runtime.adapters.log_set import log_files
-    from aefabmap_runtime.adapters.mcap_log import (
-        RUN_CONFIG_METADATA,
-        McapLogConfig,
-        read_log_metadata,
-    )
-    from aefabmap_runtime.adapters.node import stop_on_signals
-    from aefabmap_runtime.adapters.replay import replay
-    from aefabmap_runtime.adapters.ros_bag import is_ros_bag
+    from aefabmap_runtime.adapters.replay_builder import ConfiguredReplay
 
     stop = stop if stop is not None else threading.Event()
-    state_dir = view = None
-    network = contextlib.ExitStack()
     try:
-        playback = playback_config(args)
-        fleet_config = _check_fleet_options(args)
-        # Replay with the whole configuration of the logged run (a bag has none: the defaults).
-        bag = len(args.log) == 1 and is_ros_bag(args.log[0])
-        source = args.log[0] if bag else log_files(args.log)
-        logged = {} if bag else read_log_metadata(source[0]).get(RUN_CONFIG_METADATA) or {}
-        detector_config = logged_run_config(logged).detector
-        # --foxglove draws the inlier matches (kept only then; they do not change any decision).
-        detector_config = dataclasses.replace(detector_config, verification=dataclasses.replace(
-            detector_config.verification, keep_inlier_points=args.foxglove is not None))
-        detector = load_detector(args.model, detector_config)
-        if args.state is not None:
-            state_dir = open_state(args.state, detector, log)
-        # A fleet node serves the places of a loaded state too: join once the map is there.
-        fleet = _join_fleet(args, detector, fleet_config, network) if fleet_config is not None else None
-        with stop_on_signals(stop):
-            view = start_live_view(args)
-            if playback.wait_viewer_s is not None:
-                log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
-            summary = replay(fleet if fleet is not None else detector, source, out_path=args.out, check=args.check,
-                             image_topic=args.topic, view=view, playback=playback, stop=stop,
-                             log_config=McapLogConfig(profile=args.mcap_profile))
-            if state_dir is not None:
-                info = state_dir.save(detector.state())
-                log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
-                state_dir.close()
-                state_dir = None
-            code = report_summary(args, summary)
-            if (view is not None or fleet is not None) and not stop.is_set():
-                serve_until_stopped(view, fleet, stop)
+        with ConfiguredReplay(replay_io(args), stop) as replayer:
+            code = report_summary(args, replayer.replay())
+            replayer.serve_until_stopped()
         return code
     except AefabmapError as exc:
         log.error("%s", exc)
         return exc.exit_code
-    finally:
-        if view is not None:
-            view.close()
-        network.close()
-        if state_dir is not None:
-            state_dir.close()
 
 
 def report_summary(args: argparse.Namespace, summary) -> int:

@@ -1,14 +1,17 @@
 """A node's part in a fleet over Zenoh (run --fleet NAME --robot ID).
 
-`FleetNode` wraps the detector as the frame loop's processor. For every place the own map
-stores it publishes a summary (runtime/aefabmap_runtime/core/fleet/fleet_wire.py) on
-``aefabmap/fleet/<fleet>/<robot>/place/<frame>``; it answers keypoint queries for those places
-and a query for all its summaries (a robot that joins late asks once), and holds a liveliness
-token. Other robots' summaries arrive on Zenoh's threads into a bounded inbox; the frame thread
-reads them into a FleetMap (runtime/aefabmap_runtime/core/fleet/fleet_map.py) before each frame, and after a frame the
-own map did not verify it checks the best remote places, fetching their keypoints on demand
-(one fetch at a time, with a timeout; cached). Every message from a peer is validated; a bad one
-is counted under a reason and dropped.
+`FleetNode` follows the detector's map as a listener (core/map/map_events.py): for every place
+the own map stores it publishes a summary (runtime/aefabmap_runtime/core/fleet/fleet_wire.py) on
+``aefabmap/fleet/<fleet>/<robot>/place/<frame>``, and it stops offering a place once the map
+evicts it; it answers keypoint queries for the places it offers and a query for all its
+summaries (a robot that joins late asks once), and holds a liveliness token. Other robots'
+summaries arrive on Zenoh's threads into a bounded inbox; before each frame the node reads them
+into a FleetMap (runtime/aefabmap_runtime/core/fleet/fleet_map.py), which the detector holds as
+its second candidate source (`LoopClosureDetector.attach_remote`): when the own map verified
+nothing the core checks the best remote places, fetching their keypoints through `fetch` (one
+fetch at a time, with a timeout; cached), and builds the frame's result with the remote match
+in it. The node only does the I/O: it never processes frames nor edits a result. Every
+message from a peer is validated; a bad one is counted under a reason and dropped.
 
 Catch-up: summaries published while two robots could not reach each other are lost to Zenoh.
 When a robot's liveliness token appears (again), the next frame asks that robot for its
@@ -17,7 +20,8 @@ waiting); a robot that joins asks everyone for everything once (`join`).
 
 Threads: Zenoh's callbacks only append to the inbox, flip liveliness flags, read `_served`
 (a dict the frame thread replaces entries of; single dict operations are atomic in CPython) and
-bump counters under a lock; the detector and the FleetMap are touched by the frame thread alone.
+bump counters under a lock; the detector and the FleetMap are touched by the frame thread alone
+(the listener calls come from it).
 """
 
 from __future__ import annotations
@@ -34,7 +38,6 @@ import zenoh
 
 from aefabmap_runtime.errors import ConfigError, TransportError
 from aefabmap_runtime.adapters.state_dir import bundle_id
-from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
 from aefabmap_runtime.core.fleet.fleet_map import FleetConfig, FleetMap
 from aefabmap_runtime.core.fleet.fleet_wire import (
     FleetMessageError,
@@ -45,7 +48,8 @@ from aefabmap_runtime.core.fleet.fleet_wire import (
     fleet_key,
 )
 from aefabmap_runtime.core.map.keypoint_store import PlaceKeypoints
-from aefabmap_runtime.core.records.messages import FleetStats, FrameResult, RemoteRobotStats
+from aefabmap_runtime.core.map.map_events import MapListener
+from aefabmap_runtime.core.records.messages import FleetStats, RemoteRobotStats
 
 log = logging.getLogger("aefabmap.fleet")
 
@@ -57,28 +61,27 @@ MAX_SUMMARY_BYTES = 1 << 20
 MAX_REPLY_BYTES = 1 << 22
 #: How long a robot that joins waits for the others' summaries (s).
 JOIN_TIMEOUT_S = 5.0
-#: Frames between sweeps of the served places against the own map (evictions the results do not name).
-_SWEEP_FRAMES = 200
 
 
-class FleetNode:
-    """The detector, plus the fleet (see the module doc); use as a context manager."""
+class FleetNode(MapListener):
+    """The detector's part in the fleet (see the module doc); use as a context manager. It
+    attaches itself to `detector` (listener, remote candidate source) and detaches on close."""
 
     def __init__(self, session: zenoh.Session, detector, config: FleetConfig) -> None:
-        if detector.store is None:
+        if detector.map.store is None:
             raise ConfigError("--fleet needs verification: other robots' places are verified before they count")
         self.detector, self.config, self.session = detector, config, session
         self.identity = bytes.fromhex(bundle_id(detector.manifest))
-        self.map = FleetMap(config, detector.new_scorer, self._room)
+        self.map = FleetMap(config, detector.new_scorer, detector.map.room)
         self._inbox: deque[tuple[str, bytes]] = deque()
         self._served: dict[int, tuple[bytes, PlaceKeypoints]] = {}  # own frame -> (summary, keypoints)
         self._frame_of_place: dict[int, int] = {}
-        self._pending: dict[int, tuple[np.ndarray, int]] = {}  # sequence -> (unique words, stamp)
+        # sequence -> stamp (ns) of the frames taken since the node joined, until they enter the map
+        self._stamps: dict[int, int] = {}
         self._alive: dict[str, bool] = {}
         self._returned: deque[str] = deque()  # robots whose token appeared, to catch up with
         self._replied: dict[str, list[int]] = {}  # asker -> [keypoint replies, bytes] (Zenoh threads write)
         self.out = FleetStats(fleet=config.name, robot=config.robot)
-        self._frames = 0
         self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
         self._unreadable = 0  # samples that could not be read, likewise
         self._drops_lock = threading.Lock()  # guards what Zenoh threads count: _drops, _unreadable, _replied
@@ -89,6 +92,8 @@ class FleetNode:
         except zenoh.ZError as exc:
             self.close()
             raise TransportError(f"cannot join fleet {config.name}: {str(exc)[:200]}") from exc
+        detector.add_listener(self)
+        detector.attach_remote(self.map, self.fetch)
 
     # ------------------------------------------------------------------ Zenoh side
 
@@ -232,7 +237,7 @@ class FleetNode:
         if self._alive.get(robot) is False:
             remote.stats.fetch_failures += 1
             return None
-        store = self.detector.store
+        store = self.detector.map.store
         t0 = time.monotonic()
         try:
             replies = self.session.get(  # ?robot=: the owner counts its replies per asker
@@ -259,34 +264,47 @@ class FleetNode:
         remote.stats.fetch_failures += 1
         return None
 
-    # ------------------------------------------------------------------ frame thread
+    # ------------------------------------------------------------------ frame thread (map events)
 
-    @property
-    def manifest(self) -> dict:
-        return self.detector.manifest
-
-    def __getattr__(self, name: str):
-        # The node reads the map's figures (places, map bytes, timings) from its processor.
-        if name == "detector":
-            raise AttributeError(name)
-        return getattr(self.detector, name)
-
-    def process(self, gray: np.ndarray, stamp_ns: int = 0) -> FrameResult:
+    def before_frame(self) -> None:
+        """Read the summaries that arrived into the FleetMap, then ask the robots that came back."""
         self._drain()
         if self._returned:  # after the drain: ask for what came after the places just read
             self.catch_up()
-        result = self.detector.process(gray, stamp_ns)
-        words, stamp, features = self.detector.last_input
-        observed = words[: self.detector.bundle.features.max_features]
-        self._pending[result.sequence] = (np.unique(observed[observed >= 0]), int(stamp))
-        self._publish_inserted(result)
-        if not result.verified and features is not None and len(features) > SAMPLE_SIZE["H"]:
-            self._match_remote(result, observed, features, words)  # (fewer keypoints: nothing to verify with)
-        self.map.fit()
-        self._frames += 1
-        if self._frames % _SWEEP_FRAMES == 0:
-            self._sweep()
-        return result
+
+    def frame_taken(self, sequence: int, words: np.ndarray, stamp_ns: int, features) -> None:
+        self._stamps[sequence] = int(stamp_ns)  # the summary of the place it becomes carries it
+
+    def place_inserted(self, place: int, frame: int, words: np.ndarray, keypoints: PlaceKeypoints | None) -> None:
+        """Offer the new place: its summary is published and kept for queries. Frames taken
+        before the node joined (a loaded map's queue) are offered after a restart (`_serve_stored`)."""
+        for seq in [s for s in self._stamps if s < frame]:
+            del self._stamps[seq]
+        stamp = self._stamps.pop(frame, None)
+        if stamp is None or keypoints is None:
+            return
+        old = self._frame_of_place.get(place)
+        if old is not None:
+            self._served.pop(old, None)
+        c = self.config
+        summary = PlaceSummary(c.robot, self.identity, frame, stamp, np.unique(words[words >= 0]),
+                               self.detector.map_epoch).encode()
+        self._served[frame] = (summary, keypoints)
+        self._frame_of_place[place] = frame
+        try:
+            self.session.put(fleet_key(c.name, c.robot, "place", str(frame)), summary)
+            self.out.summaries_out += 1
+            self.out.bytes_out += len(summary)
+        except zenoh.ZError as exc:
+            log.debug("summary of frame %d not published: %s", frame, str(exc)[:200])
+
+    def place_evicted(self, place: int) -> None:
+        self._served.pop(self._frame_of_place.pop(place, -1), None)
+
+    def map_loaded(self) -> None:
+        """Another map replaced the own one: offer its places instead."""
+        self._served, self._frame_of_place, self._stamps = {}, {}, {}
+        self._serve_stored()
 
     def _drain(self) -> None:
         with self._drops_lock:
@@ -298,7 +316,7 @@ class FleetNode:
         while self._inbox:
             robot, data = self._inbox.popleft()
             try:
-                summary = PlaceSummary.decode(data, self.identity, self.detector.bundle.vocabulary_size)
+                summary = PlaceSummary.decode(data, self.identity, self.detector.map.vocabulary_size)
             except FleetMessageError as exc:
                 self.map.refuse(robot, exc.reason)
                 continue
@@ -314,80 +332,19 @@ class FleetNode:
                      self.config.name, robot)
             self._returned.append(robot)
 
-    def _publish_inserted(self, result: FrameResult) -> None:
-        if result.evicted_place is not None:
-            self._served.pop(self._frame_of_place.pop(result.evicted_place, -1), None)
-        frame, place = result.inserted_frame, result.inserted_place
-        if frame is None or place is None:
-            return
-        for seq in [s for s in self._pending if s < frame]:
-            del self._pending[seq]
-        words, stamp = self._pending.pop(frame, (None, 0))
-        kps = self.detector.store.get(place)
-        if words is None or kps is None:
-            return
-        old = self._frame_of_place.get(place)
-        if old is not None:
-            self._served.pop(old, None)
-        c = self.config
-        summary = PlaceSummary(c.robot, self.identity, frame, stamp, words, self.detector.map_epoch).encode()
-        self._served[frame] = (summary, kps)
-        self._frame_of_place[place] = frame
-        try:
-            self.session.put(fleet_key(c.name, c.robot, "place", str(frame)), summary)
-            self.out.summaries_out += 1
-            self.out.bytes_out += len(summary)
-        except zenoh.ZError as exc:
-            log.debug("summary of frame %d not published: %s", frame, str(exc)[:200])
-
     def _serve_stored(self) -> None:
-        """Offer the places a loaded map (--state) already holds: a restarted node serves them
-        again (their summaries go out to robots that ask for all places; nothing is re-published)."""
-        det, c = self.detector, self.config
-        alive, frames = det.scorer.alive, det.place_frames()
-        for place in np.flatnonzero(alive[: frames.size]):
-            kps = det.store.get(int(place))
+        """Offer the places the own map already holds (a loaded map, --state): a restarted node
+        serves them again (their summaries go out to robots that ask for all places; nothing is
+        re-published)."""
+        own, c = self.detector.map, self.config
+        for place, frame in own.places():
+            kps = own.keypoints(place)
             if kps is None:
                 continue
-            frame = int(frames[place])
-            words = np.unique(np.asarray(det.scorer.place_words(int(place)), np.int64))
-            summary = PlaceSummary(c.robot, self.identity, frame, 0, words, det.map_epoch).encode()
+            words = np.unique(np.asarray(own.place_words(place), np.int64))
+            summary = PlaceSummary(c.robot, self.identity, frame, 0, words, own.map_epoch).encode()
             self._served[frame] = (summary, kps)
-            self._frame_of_place[int(place)] = frame
-
-    def _sweep(self) -> None:
-        """Stop serving own places the map no longer holds (several evictions in one step)."""
-        alive = self.detector.scorer.alive
-        frames = self.detector.place_frames()
-        for place, frame in list(self._frame_of_place.items()):
-            if place >= alive.size or not alive[place] or frames[place] != frame:
-                del self._frame_of_place[place]
-                self._served.pop(frame, None)
-
-    def _match_remote(self, result: FrameResult, observed: np.ndarray, features, words: np.ndarray) -> None:
-        v = self.detector.config.verification
-        match = self.map.match(
-            observed,
-            lambda bar: self.detector.place_check(features, words, replace(v, max_log10_nfa=bar)),
-            self.fetch, v.max_log10_nfa, result.sequence)
-        if match is None:
-            return
-        g = match.geometry
-        result.loop = result.verified = result.geometry_ok = True
-        result.verified_robot, result.verified_frame, result.verified_place = match.robot, match.frame, None
-        result.inliers, result.matches, result.geometry_model = int(g.inliers), int(g.matches), g.model
-        result.nfa, result.geometry_reason = float(g.nfa), ""
-        result.temporal_ok = None
-        result.geometry = [[float(x) for x in row] for row in g.matrix]
-        if g.rotation is not None and g.translation is not None:
-            result.relative_rotation = [[float(x) for x in row] for row in g.rotation]
-            result.relative_translation = [float(x) for x in g.translation]
-
-    def _room(self) -> tuple[int | None, int | None]:
-        c = self.detector.config
-        places = None if c.max_places is None else c.max_places - self.detector.n_places
-        nbytes = None if c.memory_mb is None else int(c.memory_mb * 2**20) - self.detector.map_bytes()
-        return places, nbytes
+            self._frame_of_place[place] = frame
 
     def fleet_stats(self) -> FleetStats:
         """The fleet's counters now (a copy; the stats and status messages carry it)."""
@@ -405,6 +362,9 @@ class FleetNode:
                        robots=robots)
 
     def close(self) -> None:
+        """Detach from the detector (no more frames reach the fleet) and leave the fleet."""
+        self.detector.remove_listener(self)
+        self.detector.detach_remote(self.map)
         for handle in self._handles:
             try:
                 handle.undeclare()

@@ -28,7 +28,7 @@ import zenoh
 from aefabmap_runtime.version import __version__
 from aefabmap_runtime.errors import InputError, TransportError
 from aefabmap_runtime.adapters.state_dir import bundle_id
-from aefabmap_runtime.core.records.messages import MESSAGE_FORMAT_VERSION, StatusMessage
+from aefabmap_runtime.core.records.messages import MESSAGE_FORMAT_VERSION, FleetStats, StatusMessage
 
 __all__ = ["RUNTIME_TOKEN_PREFIX", "STATUS_PREFIX", "HealthEndpoint", "StatusBoard", "find_runtimes",
            "query_status", "rss_mb", "status_key", "token_key", "wait_for_peer"]
@@ -111,6 +111,8 @@ class StatusBoard:
         self._fleet = None
         #: Returns the node's current warnings (StatusMessage.warnings); set by the node.
         self.warnings: Callable[[], list[str]] | None = None
+        #: Returns the fleet's counters (FleetNode.fleet_stats); set by a node in a fleet.
+        self.fleet_stats: Callable[[], FleetStats] | None = None
 
     def after_frame(self, loop, drops, result=None, detector=None) -> None:
         """Copy the frame loop's counters (and the result's timings, the map's size)."""
@@ -123,8 +125,7 @@ class StatusBoard:
                 map_mb = round(map_bytes() / 2**20, 3)
             except Exception:  # a detector without a sizable map: not told  # noqa: BLE001
                 map_mb = None
-        fleet_stats = getattr(detector, "fleet_stats", None)
-        fleet = fleet_stats() if callable(fleet_stats) else None
+        fleet = self.fleet_stats() if self.fleet_stats is not None else None
         with self._lock:
             self._counters = counters
             self._fleet = fleet

@@ -46,6 +46,7 @@ import numpy as np
 from aefabmap_runtime.errors import InputError, StateError
 from aefabmap_runtime.adapters.durable_files import fsync_dir, open_regular
 from aefabmap_runtime.core.features.features import Features
+from aefabmap_runtime.core.map.map_events import MapListener
 
 FORMAT = "aefabmap-map-journal"
 #: 2: a frame record may hold upright descriptors (its features flag is 2); 1 is still read.
@@ -103,12 +104,11 @@ def _header(bundle: str, first: int, detector) -> bytes:
 
 
 def _descriptor_dtype(detector) -> np.dtype:
-    return np.dtype(detector.kind.dtype).newbyteorder("<")
+    return np.dtype(detector.input_format.kind.dtype).newbyteorder("<")
 
 
-def encode_frame(detector, seq: int) -> bytes:
-    """The record payload of frame ``seq``: the detector's ``last_input``."""
-    words, stamp_ns, feats = detector.last_input
+def encode_frame(detector, seq: int, words: np.ndarray, stamp_ns: int, feats: Features | None) -> bytes:
+    """The record payload of frame ``seq`` as the detector took it (MapListener.frame_taken)."""
     n = int(words.size)
     if feats is None:
         head = _FRAME.pack(b"F", seq, stamp_ns, n, 0, 0, 0)
@@ -132,14 +132,15 @@ def decode_frame(payload: bytes, detector, label: str) -> tuple[int, np.ndarray,
     if len(payload) < _FRAME.size or payload[:1] != b"F":
         raise StateError(f"{label}: not a frame record")
     _, seq, stamp_ns, n, has, height, width = _FRAME.unpack_from(payload)
-    dtype, cols = _descriptor_dtype(detector), int(detector.kind.width)
+    fmt = detector.input_format
+    dtype, cols = _descriptor_dtype(detector), int(fmt.kind.width)
     per_kp = 4 + (2 * 4 + 4 + has * cols * dtype.itemsize if has else 0)
     if has > 2 or len(payload) != _FRAME.size + n * per_kp:
         raise StateError(f"{label}: frame record of {len(payload)} bytes does not hold {n} keypoints "
                          "of this bundle's feature kind")
     at = _FRAME.size
     words = np.frombuffer(payload, "<i4", n, at).astype(np.int64)
-    _check_words(words, detector, n if not has else min(n, detector.bundle.features.max_features), label)
+    _check_words(words, fmt.vocabulary_size, n if not has else min(n, fmt.observed_keypoints), label)
     if not has:
         return seq, words, stamp_ns, None
     if not (1 <= height < _MAX_IMAGE_SIDE and 1 <= width < _MAX_IMAGE_SIDE):
@@ -147,11 +148,11 @@ def decode_frame(payload: bytes, detector, label: str) -> tuple[int, np.ndarray,
     at += 4 * n
     xy = np.frombuffer(payload, "<f4", 2 * n, at).reshape(n, 2).astype(np.float32)
     sizes = np.frombuffer(payload, "<f4", n, at + 8 * n).astype(np.float32)
-    desc = np.frombuffer(payload, dtype, n * cols, at + 12 * n).reshape(n, cols).astype(detector.kind.dtype)
+    desc = np.frombuffer(payload, dtype, n * cols, at + 12 * n).reshape(n, cols).astype(fmt.kind.dtype)
     upright = None
     if has == 2:
         at += 12 * n + n * cols * dtype.itemsize
-        upright = np.frombuffer(payload, dtype, n * cols, at).reshape(n, cols).astype(detector.kind.dtype)
+        upright = np.frombuffer(payload, dtype, n * cols, at).reshape(n, cols).astype(fmt.kind.dtype)
     inside = np.all((xy >= -1) & (xy[:, :1] <= width + 1) & (xy[:, 1:] <= height + 1))
     if not (np.isfinite(xy).all() and inside and np.isfinite(sizes).all() and np.all(sizes >= 0)):
         raise StateError(f"{label}: keypoints outside the image or not finite")
@@ -160,9 +161,8 @@ def decode_frame(payload: bytes, detector, label: str) -> tuple[int, np.ndarray,
     return seq, words, stamp_ns, Features(xy, sizes, desc, (height, width), upright)
 
 
-def _check_words(words: np.ndarray, detector, observed: int, label: str) -> None:
-    """Observed words in [0, vocabulary); beyond them (verification only) NO_WORD (-1) too."""
-    v = int(detector.bundle.vocabulary_size)
+def _check_words(words: np.ndarray, v: int, observed: int, label: str) -> None:
+    """Observed words in [0, v), v the vocabulary size; beyond them (verification only) NO_WORD (-1) too."""
     if words.size and (int(words.max()) >= v or int(words.min()) < -1 or
                        (observed and int(words[:observed].min()) < 0)):
         raise StateError(f"{label}: word ids out of the bundle's vocabulary of {v}")
@@ -331,12 +331,14 @@ def _error_text(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
-class MapJournal:
+class MapJournal(MapListener):
     """Appends each frame the detector takes to the journal of ``directory`` (open
     map_state.MapStateDir) and keeps count of what the directory holds.
 
-    The Snapshotter drives it: ``after_frame()`` after every frame, ``rotate()`` when it takes a
-    snapshot's state, ``snapshot_durable()`` once that snapshot is on disk. A failed write never
+    It listens to the detector (core/map/map_events.py): `frame_taken` hands it each frame's
+    input, which it writes when the Snapshotter drives it: ``after_frame()`` after every frame,
+    ``rotate()`` when it takes a snapshot's state, ``snapshot_durable()`` once that snapshot is
+    on disk; ``close()`` stops listening. A failed write never
     raises: the segment is cut back to its last whole record, ``on_error`` gets a StateError,
     and frames are not written until the next snapshot has been taken (a frame after a missing
     one could not be replayed). sync_every_s: fdatasync the segment at most this often (s); a
@@ -355,7 +357,13 @@ class MapJournal:
         self._next = detector.next_sequence
         self._durable = (detector.next_sequence, detector.n_places)  # what DIR holds at start (loaded)
         self._t_sync = clock()
+        # (sequence, words, stamp_ns, features) of the last frame the detector took, until written
+        self._taken: tuple[int, np.ndarray, int, Features | None] | None = None
         self.rotate()
+        detector.add_listener(self)
+
+    def frame_taken(self, sequence: int, words: np.ndarray, stamp_ns: int, features: Features | None) -> None:
+        self._taken = (sequence, words, stamp_ns, features)
 
     @property
     def behind(self) -> bool:
@@ -368,12 +376,13 @@ class MapJournal:
         if now == self._next:
             return
         seq, self._next = self._next, now
+        taken, self._taken = self._taken, None
         if self._fd is None:
             return
-        if now != seq + 1 or self.detector.last_input is None:  # a frame went past unrecorded
+        if now != seq + 1 or taken is None or taken[0] != seq:  # a frame went past unrecorded
             self._fail(OSError(errno.EIO, f"frame {seq} was not recorded"), seq)
             return
-        self._append(encode_frame(self.detector, seq), seq)
+        self._append(encode_frame(self.detector, *taken), seq)
 
     def rotate(self) -> None:
         """Start a new segment at the detector's next frame (a snapshot's state is taken now)."""
@@ -404,7 +413,8 @@ class MapJournal:
         return StateReport(done, kept, places, self.detector.n_places, done - kept, self.write_failures, self.error)
 
     def close(self) -> None:
-        """Sync and close the segment; one with no frame that a snapshot covers is removed."""
+        """Stop listening; sync and close the segment (one with no frame that a snapshot covers is removed)."""
+        self.detector.remove_listener(self)
         current = self._current()
         self._close_fd()
         if current is not None and current.next == current.first and current.first <= self._durable[0]:

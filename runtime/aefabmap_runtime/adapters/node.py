@@ -1,8 +1,8 @@
 """The streaming runtime: Zenoh frames in -> detector -> JSON results out, logged to MCAP.
 
 `run_node` is the board-side loop (the camera side is ``runtime/aefabmap_runtime/tools/publisher.py``); it is
-pure of argparse (the CLI in ``aefabmap/cli`` builds its NodeOptions) and stops when the
-caller sets a ``threading.Event`` (the CLI sets it from SIGINT/SIGTERM).
+pure of argparse (``node_builder.run_configured_node`` builds its NodeOptions from a RunConfig)
+and stops when the caller sets a ``threading.Event`` (`stop_on_signals` sets it from SIGINT/SIGTERM).
 
 The detector is anything with ``process(gray (H, W) uint8, stamp_ns int) -> FrameResult``
 and a ``manifest`` dict: the per-frame core ``aefabmap_runtime.core.detector.LoopClosureDetector``
@@ -286,8 +286,8 @@ def run_node(
                         manifest=manifest if isinstance(manifest, dict) else None, log=log, t0=t0)
     with _Transport(options) as io, log.open(), _health(io.session, board) as health, \
             _fleet(io.session, detector, options.fleet) as fleet:
-        if fleet is not None:  # the frame loop feeds the fleet node, which wraps the detector
-            loop.detector, stats.fleet = fleet, fleet.fleet_stats
+        if fleet is not None:  # the fleet node follows the detector; the stats and status carry its counters
+            stats.fleet = board.fleet_stats = fleet.fleet_stats
         if isinstance(io.pub, RosResultPublisher):  # /diagnostics carries the status; status, the ROS warnings
             io.pub.status_source = lambda: board.status(health.zid)
             board.warnings = io.pub.warnings

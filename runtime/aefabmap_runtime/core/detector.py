@@ -1,31 +1,36 @@
-"""Per-frame loop-closure detection: features -> words -> FAB-MAP (or BoW) with delayed insertion.
+"""Per-frame loop-closure detection: features -> words -> FAB-MAP (or BoW) -> verification -> decision.
 
 The core class every adapter shares (eval over image folders, the Zenoh node, MCAP replay).
-It does no I/O: it takes decoded images and returns FrameResult records.
+It does no I/O: it takes decoded images and returns FrameResult records. What the frames
+build (places, keypoints, insertion queue, caps, state) is its map
+(runtime/aefabmap_runtime/core/map/place_map.py).
 """
 
 from __future__ import annotations
 
 import json
 import math
-import secrets
 import time
-from collections import deque
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
 
-from aefabmap_runtime.errors import ConfigError, InputError, StateError
+from aefabmap_runtime.errors import ConfigError, InputError
 from aefabmap_runtime.core.kernels import compiled
 from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
 from aefabmap_runtime.core.kernels.bits import nearest_two_kernel
 from aefabmap_runtime.core.rank.bow import BowIndex
 from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, Search, top_places
+from aefabmap_runtime.core.fleet.fleet_map import FleetMap, RemoteMatch
 from aefabmap_runtime.core.rank.fabmap import FabMap2
+from aefabmap_runtime.core.features.feature_kinds import FeatureKind
 from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features
 from aefabmap_runtime.core.map.keypoint_store import KeypointStore, PlaceKeypoints
-from aefabmap_runtime.core.records.map_state import MapState, check_ptr, pack_ragged
+from aefabmap_runtime.core.map.map_events import MapListener
+from aefabmap_runtime.core.map.place_map import Insertion, PlaceMap
+from aefabmap_runtime.core.records.map_state import MapState
 from aefabmap_runtime.core.records.messages import Candidate, FrameResult  # records live with the wire messages
 from aefabmap_runtime.core.verify.model_errors import epipolar_kernel, transfer_kernel
 from aefabmap_runtime.core.words.quantizer import quantize_raw
@@ -44,6 +49,9 @@ from aefabmap_runtime.core.verify.verification import (
     verify_pair_bruteforce,
 )
 from aefabmap_runtime.core.verify.word_matches import same_word_kernel
+
+#: Gets the keypoints of another robot's place, by (robot, frame); None when they cannot be had.
+Fetch = Callable[[str, int], PlaceKeypoints | None]
 
 
 class TrainedModel(Protocol):
@@ -159,8 +167,28 @@ class DetectorConfig:
         return json.loads(json.dumps(asdict(self)))
 
 
+@dataclass(frozen=True)
+class InputFormat:
+    """What `process_words` takes (a map journal records and checks frames by it).
+
+    kind: the feature kind of the descriptors (dtype, width). vocabulary_size: word ids lie in
+    [0, vocabulary_size). observed_keypoints: the bundle's keypoint budget: FAB-MAP observes the
+    words of the first ones (strongest first); keypoints beyond it carry NO_WORD.
+    """
+
+    kind: FeatureKind
+    vocabulary_size: int
+    observed_keypoints: int
+
+
 class LoopClosureDetector:
-    """Stateful per-frame detector for one model bundle (not thread-safe)."""
+    """Stateful per-frame detector for one model bundle (not thread-safe).
+
+    A frame goes extract -> words -> rank -> candidates -> verify -> decide -> result over the
+    detector's `map` (runtime/aefabmap_runtime/core/map/place_map.py: places, keypoints, insertion queue, caps, state).
+    Adapters follow the map through listeners (`add_listener`) and may attach other robots'
+    places as a second candidate source (`attach_remote`).
+    """
 
     def __init__(self, bundle: TrainedModel, config: DetectorConfig | None = None) -> None:
         self.bundle = bundle
@@ -176,35 +204,27 @@ class LoopClosureDetector:
         self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright)
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
-        self.scorer: Scorer = self._build_scorer()
-        self._pending: deque[tuple[int, np.ndarray, PlaceKeypoints | None]] = deque()
-        self.store: KeypointStore | None = None
+        scorer = self._build_scorer()
+        store = None
         if v.enabled:
-            self.store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
+            store = KeypointStore(self.kind, bundle.vocabulary_size, v.keypoints)
             # Verification's kernels: match counting and model errors for every kind, the two
             # matchers for binary ones.
             binary = (nearest_two_kernel, same_word_kernel) if self.kind.distance == "hamming" else ()
             compiled.prepare(distinct_kernel, transfer_kernel, epipolar_kernel, *binary)
+        self.map = PlaceMap(scorer, store, scorer_name=c.scorer, vocabulary_size=int(bundle.vocabulary_size),
+                            exclude=c.exclude, max_places=c.max_places, memory_mb=c.memory_mb)
         self.temporal = TemporalFilter(c.temporal_frames, c.temporal_tolerance) if c.temporal_frames else None
         self.chain = SequenceEvidence(c.sequence) if c.sequence.frames and v.enabled else None
-        # place id -> sequence of the frame that made it / last sequence inserted or matched.
-        self._place_frame = np.zeros(0, np.int64)
-        self._last_used = np.zeros(0, np.int64)
-        self._sequence = 0
-        # Names this map's frame numbering (a fleet tells other robots by it that a restarted
-        # node's frame numbers mean other places): drawn for an empty map, kept in its state.
-        self.map_epoch = secrets.randbits(64)
         self._last_scores: np.ndarray | None = None
         self.policy = CandidatePolicy(c.candidates)
-        # (words, stamp_ns, features) of the last frame taken: what a map journal records to
-        # replay it with process_words (runtime/aefabmap_runtime/adapters/map_journal.py).
-        self.last_input: tuple[np.ndarray, int, Features | None] | None = None
+        self._remote: tuple[FleetMap, Fetch] | None = None
 
     def new_scorer(self) -> Scorer:
         """An empty scorer like the own map's; other robots' places get one each (fleet_map.py).
         A FAB-MAP scorer shares the own one's read-only tables and new-place model."""
-        if isinstance(self.scorer, FabMapScorer):
-            return FabMapScorer(self.scorer.fabmap.empty_like(), self.config.fabmap_score)
+        if isinstance(self.map.scorer, FabMapScorer):
+            return FabMapScorer(self.map.scorer.fabmap.empty_like(), self.config.fabmap_score)
         return self._build_scorer()
 
     def _build_scorer(self) -> Scorer:
@@ -218,24 +238,45 @@ class LoopClosureDetector:
             return FabMapScorer(fabmap, c.fabmap_score)
         return BowScorer(BowIndex(bundle.vocabulary_size, bundle.training_observations))
 
+    # -- the map, read through ---------------------------------------------------------------
+
     @property
     def manifest(self) -> dict:
         return self.bundle.manifest
 
     @property
+    def input_format(self) -> InputFormat:
+        return InputFormat(self.kind, self.map.vocabulary_size, self._observed_keypoints)
+
+    @property
+    def scorer(self) -> Scorer:
+        """The map's place index."""
+        return self.map.scorer
+
+    @property
+    def store(self) -> KeypointStore | None:
+        """The map's keypoint store (None: verification off)."""
+        return self.map.store
+
+    @property
     def n_places(self) -> int:
         """Places in the map now."""
-        return self.scorer.n_alive
+        return self.map.n_places
 
     @property
     def next_sequence(self) -> int:
         """Sequence number the next frame gets (frames continue across a saved state)."""
-        return self._sequence
+        return self.map.next_sequence
 
     @property
     def frames_inserted(self) -> int:
         """Frames that have entered the map since it was started (evicted ones included)."""
-        return self._sequence - len(self._pending)
+        return self.map.frames_inserted
+
+    @property
+    def map_epoch(self) -> int:
+        """The map's epoch: names its frame numbering (PlaceMap.map_epoch)."""
+        return self.map.map_epoch
 
     def last_scores(self) -> np.ndarray | None:
         """Scores of every place id (probability or similarity) from the last processed frame."""
@@ -243,7 +284,36 @@ class LoopClosureDetector:
 
     def place_frames(self) -> np.ndarray:
         """(n_places,) sequence number of the frame that created each place id."""
-        return self._place_frame[: self._id_range()]
+        return self.map.place_frames()
+
+    def map_bytes(self) -> int:
+        """Memory of the map in bytes (PlaceMap.map_bytes: what memory_mb caps)."""
+        return self.map.map_bytes()
+
+    # -- followers and the second candidate source -------------------------------------------
+
+    def add_listener(self, listener: MapListener) -> None:
+        """Tell `listener` of every frame and map change from now on (core/map/map_events.py)."""
+        self.map.listeners.add(listener)
+
+    def remove_listener(self, listener: MapListener) -> None:
+        self.map.listeners.remove(listener)
+
+    def attach_remote(self, places: FleetMap, fetch: Fetch) -> None:
+        """Make other robots' places a second candidate source: a frame the own map verified
+        nothing for (and with keypoints enough to verify with) is matched against `places`
+        (FleetMap.match; built with `new_scorer` and `map.room`), whose keypoints `fetch` gets;
+        its result then carries that robot's verified place. ConfigError without verification."""
+        if self.map.store is None:
+            raise ConfigError("other robots' places need verification: they are verified before they count")
+        self._remote = (places, fetch)
+
+    def detach_remote(self, places: FleetMap | None = None) -> None:
+        """Stop asking the remote source (only when it is `places`, if given)."""
+        if self._remote is not None and (places is None or self._remote[0] is places):
+            self._remote = None
+
+    # -- a frame -----------------------------------------------------------------------------
 
     def words_of(self, features: Features) -> np.ndarray:
         """Word id of every keypoint (N,) int64 (repeats kept): the bundle's keypoint budget (the
@@ -260,15 +330,15 @@ class LoopClosureDetector:
         any it held. For tools that build a map from words alone (`process_words` without
         features stores no keypoints, and a place without keypoints is never verified), such as
         the pipeline benchmark, whose stored places must be verified as a live map's are."""
-        if self.store is None:
+        if self.map.store is None:
             raise ConfigError("verification is off: this detector stores no keypoints")
-        if not (0 <= place < self._id_range()) or not self.scorer.alive[place]:
+        if not self.map.holds(place):
             raise InputError(f"place {place} is not in the map")
-        self.store.put(place, self.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
-                                              features.upright))
+        self.map.store.put(place, self._pack(features, words))
 
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""
+        self.map.listeners.before_frame()
         t0 = time.perf_counter()
         feats = self.extractor.extract(image)
         t1 = time.perf_counter()
@@ -287,62 +357,47 @@ class LoopClosureDetector:
         FAB-MAP observes the words of the bundle's keypoint budget (the first
         `features.max_features`); verification uses every keypoint.
         """
+        self.map.listeners.before_frame()
         return self._step(words, stamp_ns, features, None)
 
     def _step(self, words: np.ndarray, stamp_ns: int, features: Features | None,
               stages: dict[str, float] | None) -> FrameResult:
-        """One frame: insert the frames now due, rank, verify, queue this frame, build its result.
-        stages: times of the stages before (process()); then the result's timings gain inference."""
+        """One frame: insert the frames now due, rank, verify, decide, queue this frame, build its
+        result. stages: times of the stages before (process()); then the result's timings gain
+        inference."""
         t0 = time.perf_counter()
         if features is not None and len(features) != words.size:
             raise InputError(f"features ({len(features)}) and words ({words.size}) differ in count")
         observed = words[: self._observed_keypoints] if features is not None else words
-        self.last_input = (words, int(stamp_ns), features)
-        seq = self._sequence
-        self._sequence += 1
-        inserted = self._insert_due(seq)
-        ranked = self.scorer.rank(observed)
+        self.map.listeners.frame_taken(self.map.next_sequence, words, int(stamp_ns), features)
+        seq, inserted = self.map.begin_frame()
+        ranked = self.map.scorer.rank(observed)
         top = top_places(ranked.order, self.config.candidates.top_k)  # verification and evidence share it
         self._last_scores = ranked.scores
-        verdict = None
-        query_kps = None
-        if self.store is not None:
-            if features is not None:
-                query_kps = self.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
-                                            features.upright)
-            verdict = self._verify(seq, features, words, ranked.order, top)
-            loop = verdict.verified
-        else:
-            loop = ranked.best is not None and ranked.score >= self.config.loop_threshold
-        if loop:
-            self._last_used[verdict.place if verdict is not None else ranked.best] = seq
-        self._pending.append((seq, observed, query_kps))
-        timings = {} if stages is None else dict(stages)
-        if stages is not None:
-            verify_ms = verdict.timing_ms if verdict is not None else 0.0
-            timings["inference"] = (time.perf_counter() - t0) * 1e3 - verify_ms
-        if verdict is not None:
-            timings["verification"] = verdict.timing_ms
+        query_kps = self._pack(features, words) if self.map.store is not None and features is not None else None
+        verdict = self._verify(seq, features, words, ranked.order, top) if self.map.store is not None else None
+        loop = self._decide(seq, ranked, verdict)
+        self.map.queue(seq, observed, query_kps)
+        remote_ms = self._match_remote(seq, observed, features, words, verdict)
+        timings = _timings(stages, t0, verdict, remote_ms)
         return self._result(seq, stamp_ns, len(features) if features is not None else int(words.size),
                             observed, ranked, top, inserted, loop, verdict, timings)
 
-    def _insert_due(self, seq: int) -> tuple[int | None, int | None, int | None]:
-        """Move the queued frames whose delay has passed into the map, evicting to stay within the
-        caps; returns (last inserted frame, its place id, last evicted place id)."""
-        inserted_frame = inserted_place = evicted = None
-        while self._pending and self._pending[0][0] <= seq - self.config.exclude:
-            inserted_frame, pending_words, pending_kps = self._pending.popleft()
-            evicted = self._make_room()
-            inserted_place = self._insert(pending_words, inserted_frame)
-            if self.store is not None:
-                # A reused id must not keep the keypoints of the place it belonged to before.
-                self.store.remove(inserted_place)
-                if pending_kps is not None:
-                    self.store.put(inserted_place, pending_kps)
-            trimmed = self._trim(inserted_place)
-            if trimmed is not None:
-                evicted = trimmed
-        return inserted_frame, inserted_place, evicted
+    def _pack(self, features: Features, words: np.ndarray) -> PlaceKeypoints:
+        return self.map.store.pack(features.keypoints, words, features.descriptors, features.image_shape,
+                                   features.upright)
+
+    def _decide(self, seq: int, ranked: Ranking, verdict: "_Verdict | None") -> bool:
+        """Whether query `seq` closes a loop onto an own place: verified, or without verification
+        the best score reaching loop_threshold. That place counts as used now (the caps evict
+        the least recently used)."""
+        if verdict is not None:
+            loop, place = verdict.verified, verdict.place
+        else:
+            loop, place = ranked.best is not None and ranked.score >= self.config.loop_threshold, ranked.best
+        if loop:
+            self.map.mark_used(place, seq)
+        return loop
 
     def _verify(self, seq: int, features: Features | None, words: np.ndarray, ranking: np.ndarray,
                 top: np.ndarray) -> "_Verdict":
@@ -350,31 +405,32 @@ class LoopClosureDetector:
         places (runtime/aefabmap_runtime/core/decide/candidates.py), `verify_pair` judges each pair."""
         t0 = time.perf_counter()
         verdict = _Verdict()
+        frames = self.map.place_frames()
         if features is not None and ranking.size and len(features) <= SAMPLE_SIZE["H"]:
             verdict.reason = "no_evidence"  # texture-poor frame: nothing to verify with
         elif features is not None and len(features) and ranking.size:
-            verdict.search = self.policy.search(seq, top, ranking, self.place_frames(), self.store.__contains__,
+            verdict.search = self.policy.search(seq, top, ranking, frames, self.map.store.__contains__,
                                                 self._pair_check(features, words))
         best = verdict.search.best
         verdict.geometry_ok = best is not None and bool(best.verified)
         if self.chain is not None:
-            self._chain_step(verdict)
+            self._chain_step(verdict, frames)
         verdict.verified = verdict.geometry_ok
         if self.temporal is not None:
-            matched = int(self._place_frame[verdict.search.best_place]) if verdict.geometry_ok else None
+            matched = int(frames[verdict.search.best_place]) if verdict.geometry_ok else None
             verdict.temporal_ok = self.temporal.update(matched)
             verdict.verified = verdict.geometry_ok and verdict.temporal_ok
         verdict.place = verdict.search.best_place if verdict.verified else None
         if verdict.geometry_ok:
-            self.policy.track.confirm(seq, int(self._place_frame[verdict.search.best_place]))
+            self.policy.track.confirm(seq, int(frames[verdict.search.best_place]))
         verdict.timing_ms = (time.perf_counter() - t0) * 1e3
         return verdict
 
-    def _chain_step(self, verdict: "_Verdict") -> None:
+    def _chain_step(self, verdict: "_Verdict", frames: np.ndarray) -> None:
         """Record this query's checked places as chain links; when no single pair passed, take the
         place ending the most significant accepted chain (runtime/aefabmap_runtime/core/decide/sequence.py)."""
         attempts = verdict.search.attempts
-        links = [Link(a.place, int(self._place_frame[a.place]), float(a.result.nfa)) for a in attempts
+        links = [Link(a.place, int(frames[a.place]), float(a.result.nfa)) for a in attempts
                  if np.isfinite(a.result.nfa)]
         chain = self.chain.update(links)
         if verdict.geometry_ok or chain is None:
@@ -384,12 +440,30 @@ class LoopClosureDetector:
         verdict.search.best_place = link.place
         verdict.geometry_ok, verdict.sequence_nfa = True, total
 
+    def _match_remote(self, seq: int, observed: np.ndarray, features: Features | None, words: np.ndarray,
+                      verdict: "_Verdict | None") -> float | None:
+        """The second candidate source (attach_remote): when the own map verified nothing and the
+        query has keypoints enough to verify with, the most significant verified place of
+        another robot goes into the verdict; then the remote places are fitted into the room the
+        own map leaves. Returns the time taken (ms), None without a remote source."""
+        if self._remote is None or verdict is None:
+            return None
+        t0 = time.perf_counter()
+        places, fetch = self._remote
+        if not verdict.verified and features is not None and len(features) > SAMPLE_SIZE["H"]:
+            v = self.config.verification
+            verdict.remote = places.match(
+                observed, lambda bar: self.place_check(features, words, replace(v, max_log10_nfa=bar)),
+                fetch, v.max_log10_nfa, seq)
+        places.fit()
+        return (time.perf_counter() - t0) * 1e3
+
     def _pair_check(self, features: Features, words: np.ndarray):
         """The policy's PairCheck for this query: verify it against one stored place."""
         verify = self.place_check(features, words)
 
         def check(pid: int, bruteforce: bool, retry_only: bool, upright: bool) -> GeometryResult | None:
-            place = self.store.get(pid)
+            place = self.map.store.get(pid)
             if place is None or len(place) == 0:
                 return None
             return verify(place, bruteforce, retry_only, upright)
@@ -419,36 +493,39 @@ class LoopClosureDetector:
 
         return check
 
+    # -- the result --------------------------------------------------------------------------
+
     def _result(self, seq: int, stamp_ns: int, n_keypoints: int, observed: np.ndarray, ranked: Ranking,
-                top: np.ndarray, inserted: tuple, loop: bool, verdict: "_Verdict | None",
+                top: np.ndarray, inserted: Insertion, loop: bool, verdict: "_Verdict | None",
                 timings: dict[str, float]) -> FrameResult:
-        """The frame's FrameResult, built in one place."""
+        """The frame's FrameResult, built in one place (a loop to another robot's place included)."""
         best = ranked.best
-        inserted_frame, inserted_place, evicted = inserted
-        geometry = _verdict_fields(verdict, self._place_frame) if verdict is not None else {}
+        frames = self.map.place_frames()
+        geometry = _verdict_fields(verdict, frames) if verdict is not None else {}
         return FrameResult(
             sequence=seq,
             stamp_ns=int(stamp_ns),
             n_keypoints=int(n_keypoints),
             n_words=int(np.unique(observed).size),
             best_place=best,
-            best_frame=int(self._place_frame[best]) if best is not None else None,
+            best_frame=int(frames[best]) if best is not None else None,
             score=float(ranked.score),
             p_new=ranked.p_new,
-            loop=bool(loop),
+            loop=bool(loop or (verdict is not None and verdict.remote is not None)),
             probability=ranked.probability,
             llr=ranked.llr,
-            inserted_frame=inserted_frame,
-            inserted_place=inserted_place,
-            evicted_place=evicted,
+            inserted_frame=inserted.frame,
+            inserted_place=inserted.place,
+            evicted_place=inserted.evicted,
             n_places=self.n_places,
             score_kind=self.config.fabmap_score if self.config.scorer == "fabmap" else "similarity",
             timings_ms=timings,
-            candidates=self._candidates(ranked, top, verdict.search if verdict is not None else None),
+            candidates=self._candidates(ranked, top, verdict.search if verdict is not None else None, frames),
             **geometry,
         )
 
-    def _candidates(self, ranked: Ranking, top_places: np.ndarray, search: Search | None) -> list[Candidate]:
+    def _candidates(self, ranked: Ranking, top_places: np.ndarray, search: Search | None,
+                    frames: np.ndarray) -> list[Candidate]:
         """The top places of the ranking (log-likelihood or similarity) and every place checked."""
         ranking = ranked.order
         top = [int(p) for p in top_places if np.isfinite(ranking[p])]  # removed places are -inf
@@ -461,7 +538,7 @@ class LoopClosureDetector:
         pids = top + [p for p in attempts if p not in top]
         out = []
         for pid in pids:
-            c = Candidate(place=pid, frame=int(self._place_frame[pid]), rank=int(np.sum(ranking > ranking[pid])))
+            c = Candidate(place=pid, frame=int(frames[pid]), rank=int(np.sum(ranking > ranking[pid])))
             if ranked.loglik_new is not None:  # FAB-MAP: order is the log-likelihood
                 c.probability = float(ranked.scores[pid])
                 c.llr = float(ranking[pid] - ranked.loglik_new)
@@ -476,45 +553,18 @@ class LoopClosureDetector:
             out.append(c)
         return out
 
-    def _id_range(self) -> int:
-        return self.scorer.n_places
-
-    def _insert(self, words: np.ndarray, frame: int) -> int:
-        pid = self.scorer.add(words)
-        if pid >= self._last_used.size:
-            grow = max(64, self._last_used.size)
-            self._last_used = np.concatenate([self._last_used, np.full(grow, -1, np.int64)])
-            self._place_frame = np.concatenate([self._place_frame, np.full(grow, -1, np.int64)])
-        self._last_used[pid] = frame
-        self._place_frame[pid] = frame
-        return pid
+    # -- state -------------------------------------------------------------------------------
 
     def state(self) -> MapState:
         """The whole map as arrays + scalars (runtime/aefabmap_runtime/core/records/map_state.py; the keypoints are packed by
-        ``MapState.resolve()``, e.g. in the thread that writes them): scorer postings, keypoint
-        store, place -> frame table, last-used order, delayed-insertion queue, frame counter,
-        track prior and temporal history. Loading it (load_state) into a detector on the same
-        bundle and settings continues the run with bit-identical results."""
-        st = MapState()
-        c = self.config
-        st.scalars.update(
-            scorer=c.scorer, verification=self.store is not None, vocabulary_size=int(self.bundle.vocabulary_size),
-            max_keypoints=self.store.max_keypoints if self.store is not None else None,
-            sequence=self._sequence, track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
-            n_places=self.scorer.n_places, n_alive=self.n_places, map_epoch=self.map_epoch,
-            # The settings the map was built with, whole (JSON; RunConfig's detector part).
-            config=json.dumps(c.to_dict(), sort_keys=True),
-        )
-        st.put("scorer", self.scorer.state())
-        st.arrays["place_frame"] = self._place_frame.copy()
-        st.arrays["last_used"] = self._last_used.copy()
-        pend = list(self._pending)
-        st.arrays["pending_seq"] = np.array([p[0] for p in pend], np.int64)
-        st.arrays["pending_words_ptr"], st.arrays["pending_words"] = pack_ragged([p[1] for p in pend], np.int64)
-        if self.store is not None:
-            st.put("store", self.store.state())
-            store, pending_kps = self.store, [p[2] for p in pend]
-            st.put("pending_kps", MapState(deferred=[("", lambda: store.pack_places(pending_kps))]))
+        ``MapState.resolve()``, e.g. in the thread that writes them): the map's (PlaceMap.state),
+        the track prior, the temporal and chain history and the settings. Loading it (load_state)
+        into a detector on the same bundle and settings continues the run with bit-identical
+        results."""
+        st = self.map.state()
+        st.scalars.update(track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
+                          # The settings the map was built with, whole (JSON; RunConfig's detector part).
+                          config=json.dumps(self.config.to_dict(), sort_keys=True))
         if self.temporal is not None:
             st.put("temporal", self.temporal.state())
         if self.chain is not None:
@@ -524,43 +574,11 @@ class LoopClosureDetector:
     def load_state(self, st: MapState) -> None:
         """Replace the map by a checked state (see state()); raises StateError on any mismatch
         with this detector's bundle or settings, or an array out of shape or bounds."""
-        c = self.config
-        scorer = st.scalar("scorer", str)
-        if scorer != c.scorer:
-            raise StateError(f"map state was built with the {scorer!r} scorer, this run uses {c.scorer!r}")
-        if st.scalar("verification", bool) != (self.store is not None):
-            raise StateError("map state and this run differ in geometric verification (on/off)")
-        v = int(self.bundle.vocabulary_size)
-        if st.scalar("vocabulary_size", int) != v:
-            raise StateError(f"map state has a vocabulary of {st.scalars['vocabulary_size']} words, the bundle {v}")
-        if self.store is not None:
-            # A map kept with another verification budget loads when every stored place fits this
-            # run's cap (the keypoint store checks the counts): places keep the keypoints they have.
-            st.scalar("max_keypoints", (int, type(None)))
-        seq = st.scalar("sequence", int, lo=0, hi=2**62)
-        track_seq = st.scalar("track_seq", int, lo=-2, hi=seq)
-        track_frame = st.scalar("track_frame", int, lo=-1, hi=max(seq, 1))
-        self.scorer.load_state(st.part("scorer"))
-        n = self.scorer.n_places
-        if st.scalar("n_places", int) != n or st.scalar("n_alive", int) != self.scorer.n_alive:
-            raise StateError("map state: place counts disagree with the place index")
-        place_frame = st.array("place_frame", "iu", (None,), lo=-1, hi=max(seq, 1))
-        last_used = st.array("last_used", "iu", (place_frame.size,), lo=-1, hi=max(seq, 1))
-        if place_frame.size < n or place_frame.size > max(64, 2 * n):
-            raise StateError(f"map state: place tables hold {place_frame.size} ids for {n} places")
-        if np.any(place_frame[:n][self.scorer.alive] < 0):
-            raise StateError("map state: a stored place has no frame")
-        pseq = st.array("pending_seq", "iu", (None,), lo=0, hi=max(seq, 1))
-        if pseq.size > 1 and np.any(np.diff(pseq) <= 0):
-            raise StateError("map state: the insertion queue is not in frame order")
-        pwords = st.array("pending_words", "iu", (None,), lo=0, hi=v)
-        pptr = check_ptr(st, "pending_words_ptr", pseq.size, pwords.size)
-        pkps: list = [None] * pseq.size
-        if self.store is not None:
-            self.store.load_state(st.part("store"), n)
-            if any(not self.scorer.alive[p] for p in self.store._places):
-                raise StateError("map state: the keypoint store holds a removed place")
-            pkps = self.store.unpack_places(st.part("pending_kps"), pseq.size)
+
+        def track(seq: int) -> tuple[int, int]:
+            return st.scalar("track_seq", int, lo=-2, hi=seq), st.scalar("track_frame", int, lo=-1, hi=max(seq, 1))
+
+        track_seq, track_frame = self.map.load_state(st, track)
         if self.temporal is not None:
             self.temporal.load_state(st.part("temporal"))
         if self.chain is not None:
@@ -569,72 +587,14 @@ class LoopClosureDetector:
                 self.chain.load_state(chain)
             else:  # a map saved without chains (another setting, an older version) starts with none
                 self.chain.reset()
-        self._place_frame, self._last_used = place_frame, last_used
-        self._pending = deque(
-            (int(s), pwords[pptr[i]:pptr[i + 1]], pkps[i]) for i, s in enumerate(pseq.tolist())
-        )
-        self._sequence = seq
-        # A map saved before epochs were kept gets a new one (its fleet peers forget it once).
-        if "map_epoch" in st.scalars:
-            self.map_epoch = st.scalar("map_epoch", int, lo=0, hi=2**64)
-        else:
-            self.map_epoch = secrets.randbits(64)
         self.policy.track.seq, self.policy.track.frame = track_seq, track_frame
         self._last_scores = None
-
-    def map_bytes(self) -> int:
-        """Memory of the map (index postings, word lists, per-place arrays), in bytes.
-
-        The one place where per-place memory is accounted: whatever else is kept per place
-        (e.g. keypoints for verification) must be added here so that memory_mb holds.
-        """
-        index = self.scorer.nbytes()
-        kps = self.store.nbytes() if self.store is not None else 0
-        return index + self._last_used.nbytes + self._place_frame.nbytes + kps
-
-    def _over_budget(self, extra_places: int = 1) -> bool:
-        c = self.config
-        if c.max_places is not None and self.n_places + extra_places > c.max_places:
-            return True
-        if c.memory_mb is not None and self.n_places > 0:
-            # Leave room for one more place of the average size before inserting it.
-            per_place = self.map_bytes() / self.n_places
-            return self.map_bytes() + per_place > c.memory_mb * 2**20
-        return False
-
-    def _make_room(self) -> int | None:
-        """Evict least-recently-used places until one more fits; returns the last evicted id."""
-        evicted = None
-        while self.n_places > 0 and self._over_budget():
-            evicted = self._evict_lru()
-        return evicted
-
-    def _trim(self, keep: int) -> int | None:
-        """Evict least-recently-used places other than `keep` while the map exceeds memory_mb;
-        returns the last evicted id. `_make_room` leaves room for a place of the average size,
-        but an insertion can take more at once (a full posting buffer grows by a quarter), and
-        the cap is a bound, not an average."""
-        c = self.config
-        evicted = None
-        while c.memory_mb is not None and self.n_places > 1 and self.map_bytes() > c.memory_mb * 2**20:
-            evicted = self._evict_lru(keep)
-        return evicted
-
-    def _evict_lru(self, keep: int | None = None) -> int:
-        alive = self.scorer.alive
-        used = np.where(alive, self._last_used[: alive.size], np.iinfo(np.int64).max)
-        if keep is not None:
-            used[keep] = np.iinfo(np.int64).max
-        evicted = int(np.argmin(used))
-        self.scorer.remove(evicted)
-        if self.store is not None:
-            self.store.remove(evicted)
-        return evicted
 
 
 @dataclass
 class _Verdict:
-    """Verification of one query (internal): the policy's search, then the temporal check."""
+    """Verification of one query (internal): the policy's search, then the temporal check; a
+    verified place of another robot (`remote`) when the own map verified nothing."""
 
     search: Search = field(default_factory=Search)
     geometry_ok: bool = False
@@ -644,10 +604,27 @@ class _Verdict:
     timing_ms: float = 0.0
     reason: str | None = None
     sequence_nfa: float | None = None
+    remote: RemoteMatch | None = None
+
+
+def _timings(stages: dict[str, float] | None, t0: float, verdict: _Verdict | None, remote_ms: float | None
+             ) -> dict[str, float]:
+    """The result's timings (ms): the stages before (process(): features, quantise), inference
+    (the step since t0 less verification and the remote match), verification, remote."""
+    timings = {} if stages is None else dict(stages)
+    verify_ms = verdict.timing_ms if verdict is not None else 0.0
+    if stages is not None:
+        timings["inference"] = (time.perf_counter() - t0) * 1e3 - verify_ms - (remote_ms or 0.0)
+    if verdict is not None:
+        timings["verification"] = verify_ms
+    if remote_ms is not None:
+        timings["remote"] = remote_ms
+    return timings
 
 
 def _verdict_fields(verdict: _Verdict, place_frame: np.ndarray) -> dict:
-    """FrameResult's verification fields."""
+    """FrameResult's verification fields: the own map's verdict, or the remote match that
+    replaces it (then the own search's tries and sequence evidence stay)."""
     best = verdict.search.best
     out = dict(verified=bool(verdict.verified), geometry_ok=bool(verdict.geometry_ok), temporal_ok=verdict.temporal_ok,
                candidates_tried=verdict.search.tried, geometry_reason=verdict.reason, sequence_nfa=verdict.sequence_nfa)
@@ -658,8 +635,20 @@ def _verdict_fields(verdict: _Verdict, place_frame: np.ndarray) -> dict:
                        "temporal" if best.verified or verdict.sequence_nfa is not None else best.reason))
     if verdict.verified and verdict.place is not None:
         out.update(verified_place=int(verdict.place), verified_frame=int(place_frame[verdict.place]),
-                   geometry=[[float(x) for x in row] for row in best.matrix])
-        if best.rotation is not None and best.translation is not None:
-            out.update(relative_rotation=[[float(x) for x in row] for row in best.rotation],
-                       relative_translation=[float(x) for x in best.translation])
+                   **_pose_fields(best))
+    if verdict.remote is not None:
+        g = verdict.remote.geometry
+        out.update(verified=True, geometry_ok=True, temporal_ok=None, verified_robot=verdict.remote.robot,
+                   verified_frame=verdict.remote.frame, verified_place=None, inliers=int(g.inliers),
+                   matches=int(g.matches), geometry_model=g.model, nfa=float(g.nfa), geometry_reason="",
+                   **_pose_fields(g))
+    return out
+
+
+def _pose_fields(g: GeometryResult) -> dict:
+    """The verified pair's model matrix and, when calibrated, the relative pose (plain lists)."""
+    out = {"geometry": [[float(x) for x in row] for row in g.matrix]}
+    if g.rotation is not None and g.translation is not None:
+        out.update(relative_rotation=[[float(x) for x in row] for row in g.rotation],
+                   relative_translation=[float(x) for x in g.translation])
     return out

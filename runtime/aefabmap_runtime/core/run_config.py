@@ -1,10 +1,10 @@
 """The run configuration: everything that decides a run's results, as one typed, frozen record.
 
-`RunConfig` is what `run`, `eval`, `replay` and `slam` build (aefabmap/cli/run_config.py builds
+`RunConfig` is what `run`, `eval`, `replay` and `slam` build (aefabmap/cli/options.py builds
 it from options or a profile), what `run` writes whole into its log's metadata and its state
-directory, and what `replay` reads back whole, so a replay decides every frame as the run did.
-The dict form is plain JSON; reading it back checks every key and type (logs and state files are
-input like any other).
+directory, and what `replay` reads back whole (`logged_run_config`, older logs included), so a
+replay decides every frame as the run did. The dict form is plain JSON; reading it back checks
+every key and type (logs and state files are input like any other).
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
 RUN_CONFIG_FORMAT = 1
 #: Most frames a node may buffer: a queue is for bursts, not for hours of backlog.
 MAX_QUEUE = 10_000
+#: Key of the RunConfig inside a log's run metadata (aefabmap.run_config), beside the transport's settings.
+RUN_CONFIG_KEY = "run"
 
 
 @dataclass(frozen=True)
@@ -170,3 +172,32 @@ def recorded_settings_differences(recorded: object, config: DetectorConfig) -> l
     except (TypeError, ValueError, RecursionError):
         return ["(unreadable record)"]
     return [d for d in differ if not d.endswith("keep_inlier_points")]
+
+
+def logged_run_config(logged: object) -> RunConfig:
+    """The RunConfig a run wrote into its log's run metadata (`logged`: that record). Logs written
+    before the whole configuration was kept carry only the map caps and the camera (they ran as
+    _BEFORE_WHOLE_CONFIG says); ConfigError when the record is malformed."""
+    if not isinstance(logged, dict):
+        raise ConfigError("the log's run configuration is not an object")
+    if RUN_CONFIG_KEY in logged:
+        doc = logged[RUN_CONFIG_KEY]
+        detector = doc.get("detector") if isinstance(doc, dict) else None
+        if isinstance(detector, dict) and "sequence" not in detector:
+            detector = {**detector, **_BEFORE_CHAINS}
+        if isinstance(detector, dict):
+            doc = {**doc, "detector": settings_before_upright(detector)}
+        return RunConfig.from_dict(doc)
+    legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
+    camera = logged.get("camera")
+    detector = {**legacy, "verification": {"camera": camera}, **_BEFORE_WHOLE_CONFIG}
+    doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
+           "detector": settings_before_upright(detector)}
+    return RunConfig.from_dict(doc)
+
+
+#: Logs written before evidence over consecutive frames existed ran without it.
+_BEFORE_CHAINS = {"sequence": {"frames": 0}}
+#: Logs written before the whole configuration was kept also retried only FAB-MAP's best candidate
+#: and kept the track for 3 frames.
+_BEFORE_WHOLE_CONFIG = {**_BEFORE_CHAINS, "candidates": {"bruteforce_fallback": 1, "track_memory": 3}}

@@ -30,23 +30,24 @@ from aefabmap_runtime.tools.synthetic_observations import synthetic_observations
 
 
 def fill_map(detector, places: int, keypoints: int, seed: int = 0) -> None:
-    """Insert ``places`` synthetic places straight into the map (no queries: only the map's
-    contents matter to a snapshot), each with ``keypoints`` stored keypoints."""
+    """Add ``places`` synthetic places straight to the detector's map (no queries: only the map's
+    contents matter to a snapshot), one per frame, each with ``keypoints`` stored keypoints."""
     rng = np.random.default_rng(seed)
-    v = detector.bundle.vocabulary_size
+    own = detector.map
+    v = own.vocabulary_size
     obs = synthetic_observations(places, v, min(300, v // 2), seed)
     h, w = 480, 640
-    for i, words in enumerate(obs):
+    for words in obs:
         kw = rng.choice(words, keypoints) if keypoints else np.zeros(0, np.int64)
-        # The detector's own insertion path (no public bulk-insert: the map grows frame by frame).
-        pid = detector._insert(kw if keypoints else words, i)
-        if detector.store is not None and keypoints:
+        kps = None
+        if own.store is not None and keypoints:
             xy = rng.random((keypoints, 2)).astype(np.float32) * [w, h]
-            desc = rng.integers(0, 256, (keypoints, detector.store.kind.store_bytes), dtype=np.uint8)
+            desc = rng.integers(0, 256, (keypoints, own.store.kind.store_bytes), dtype=np.uint8)
             # Upright descriptors where the detector extracts them (VerificationConfig.upright).
-            upright = desc[::-1].copy() if detector.extractor.upright else None
-            detector.store.put(pid, detector.store.pack(xy, kw, desc, (h, w), upright))
-    detector._sequence = places
+            upright = desc[::-1].copy() if detector.config.verification.upright else None
+            kps = own.store.pack(xy, kw, desc, (h, w), upright)
+        frame, _ = own.begin_frame()  # nothing is queued: the frame only gets its number
+        own.add_place(kw if keypoints else words, frame, kps)
 
 
 def bench(model: str, places: int, keypoints: int) -> dict:
@@ -68,7 +69,7 @@ def bench(model: str, places: int, keypoints: int) -> dict:
             t4 = [c() for c in clocks]
     assert again.n_places == det.n_places and again.map_bytes() == det.map_bytes()
     return {
-        "places": places, "keypoints_per_place": keypoints, "vocabulary": det.bundle.vocabulary_size,
+        "places": places, "keypoints_per_place": keypoints, "vocabulary": det.map.vocabulary_size,
         "state_s": round(t1[0] - t0[0], 3), "save_s": round(t2[0] - t1[0], 3), "load_s": round(t4[0] - t3[0], 3),
         "state_cpu_s": round(t1[1] - t0[1], 3), "save_cpu_s": round(t2[1] - t1[1], 3),
         "load_cpu_s": round(t4[1] - t3[1], 3), "load_average": os.getloadavg()[0],

@@ -65,7 +65,7 @@ def _until(condition, timeout_s: float = 10.0) -> bool:
 
 
 def _feed(node: FleetNode, images) -> list:
-    return [node.process(im, 0) for im in images]
+    return [node.detector.process(im, 0) for im in images]
 
 
 def test_a_robot_verifies_a_view_of_anothers_place_fetching_its_keypoints(hub, route):
@@ -77,8 +77,8 @@ def test_a_robot_verifies_a_view_of_anothers_place_fetching_its_keypoints(hub, r
         _feed(a, route[:6])
         offered = a.fleet_stats().places_served
         assert offered == 5  # frames 0-4 entered a's map (exclude 1)
-        assert _until(lambda: (b.process(np.zeros((480, 640), np.uint8), 0), b.map.n_places)[1] == offered)
-        r = b.process(route[3], 0)
+        assert _until(lambda: (b.detector.process(np.zeros((480, 640), np.uint8), 0), b.map.n_places)[1] == offered)
+        r = b.detector.process(route[3], 0)
         assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
         assert r.verified_place is None and r.loop
         s = b.fleet_stats().robots["a"]
@@ -87,7 +87,7 @@ def test_a_robot_verifies_a_view_of_anothers_place_fetching_its_keypoints(hub, r
         to_b = a.fleet_stats().robots["b"]  # a holds none of b's places, but counts what it sent b
         assert to_b.keypoint_replies == a.fleet_stats().keypoint_replies and 0 < to_b.bytes_out < a.fleet_stats().bytes_out
         # b's own map never holds a's places: a frame of b's own route verifies to b (robot null)
-        r2 = b.process(route[3], 0)  # again: still a's place (b stored its own copy only after exclude)
+        r2 = b.detector.process(route[3], 0)  # again: still a's place (b stored its own copy only after exclude)
         assert r2.verified
     finally:
         a.close(), b.close(), sa.close(), sb.close()
@@ -100,12 +100,12 @@ def test_a_late_joiner_gets_every_place_with_one_query_and_a_leaver_is_noticed(h
     try:
         assert _until(lambda: c.robots_alive() == ["a"])
         assert c.join(timeout_s=5) == 5
-        c.process(np.zeros((480, 640), np.uint8), 0)
+        c.detector.process(np.zeros((480, 640), np.uint8), 0)
         assert c.map.n_places == 5
         a.close()
         sa.close()  # robot a leaves: its liveliness token goes
         assert _until(lambda: c.fleet_stats().robots["a"].alive is False)
-        r = c.process(route[3], 0)  # a's places stay usable, but their keypoints cannot be fetched
+        r = c.detector.process(route[3], 0)  # a's places stay usable, but their keypoints cannot be fetched
         assert not r.verified and r.verified_robot is None
         s = c.fleet_stats().robots["a"]
         assert s.places == 5 and s.fetches >= 1 and s.fetch_failures == s.fetches
@@ -135,14 +135,14 @@ def test_hostile_peers_are_counted_and_cannot_crash_or_overfill_a_node(hub, rout
             st = b.fleet_stats()
             return sum(st.refused_elsewhere.values()) + sum(sum(r.refused.values()) for r in st.robots.values())
 
-        assert _until(lambda: (b.process(np.zeros((480, 640), np.uint8), 0), refused() >= 6 and
+        assert _until(lambda: (b.detector.process(np.zeros((480, 640), np.uint8), 0), refused() >= 6 and
                                b.fleet_stats().robots.get("x") is not None and
                                b.fleet_stats().robots["x"].summaries >= 40)[1])
         assert b.map.n_places <= 4
         # the peer answers keypoint queries with garbage: the fetch is refused and counted
         replies = evil.declare_queryable(fleet_key("test", "x", "keypoints", "*"),
                                          lambda q: q.reply(str(q.key_expr), b"AEFK" + b"\0" * 40))
-        r = b.process(route[3], 0)
+        r = b.detector.process(route[3], 0)
         assert not r.verified
         st = b.fleet_stats().robots["x"]
         assert st.fetches >= 1 and st.fetch_failures == st.fetches and st.refused.get("malformed", 0) >= 1
@@ -169,7 +169,7 @@ def test_a_restarted_node_serves_the_places_of_its_loaded_map(hub, route):
         assert _until(lambda: c.robots_alive() == ["a"])
         assert again.fleet_stats().places_served == 5
         assert c.join(timeout_s=5) == 5
-        r = c.process(route[3], 0)
+        r = c.detector.process(route[3], 0)
         assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
     finally:
         again.close(), s2.close(), c.close(), sc.close()
@@ -184,7 +184,7 @@ def test_places_stored_while_a_robot_was_unreachable_arrive_when_it_is_back(hub,
     try:
         assert _until(lambda: a.robots_alive() == ["b"] and b.robots_alive() == ["a"])
         _feed(a, route[:4])  # frames 0-2 stored (exclude 1)
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 3)
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 3)
         detector = a.detector
         a.close()
         sa.close()
@@ -196,7 +196,7 @@ def test_places_stored_while_a_robot_was_unreachable_arrive_when_it_is_back(hub,
         a = FleetNode(sa, detector, FleetConfig(name="test", robot="a"))  # back, serving its whole map
         assert a.fleet_stats().places_served == 7
         assert _until(lambda: b.robots_alive() == ["a"])
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 7)
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 7)
         held = sorted(b.map.robots["a"].place_of)
         assert held == list(range(7)) and b.map.last_frame("a") == 6
         assert b.fleet_stats().robots["a"].summaries - received == 4  # only the missed ones were sent again
@@ -227,7 +227,7 @@ def _image_log(path, images):
     """An MCAP log of `images` (PNG) by a run whose places enter the map after one frame (exclude 1)."""
     import cv2
 
-    from aefabmap.cli.run_config import RUN_CONFIG_KEY
+    from aefabmap_runtime.core.run_config import RUN_CONFIG_KEY
     from aefabmap_runtime.adapters.mcap_log import McapLogWriter
     from aefabmap_runtime.core.run_config import RunConfig
 
@@ -254,8 +254,8 @@ def test_replay_fleet_offers_the_map_it_builds_from_a_log_until_stopped(hub, rou
     try:
         replayer.start()
         # the replay's places reach b live or by catch-up; they stay offered after the replay ends
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 5, timeout_s=60)
-        r = b.process(route[3], 0)
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 5, timeout_s=60)
+        r = b.detector.process(route[3], 0)
         assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
         assert replayer.is_alive()  # serving until stopped
     finally:
@@ -308,18 +308,18 @@ def test_a_robot_restarted_without_its_map_is_forgotten_and_read_again(hub, rout
     try:
         assert _until(lambda: b.robots_alive() == ["a"])
         _feed(a, route[:6])  # frames 0-4 stored: route 0-4
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 5)
-        assert b.process(route[3], 0).verified_frame in (2, 3, 4)  # fetched and cached
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 5)
+        assert b.detector.process(route[3], 0).verified_frame in (2, 3, 4)  # fetched and cached
         old_epoch = b.map.epoch("a")
         a.close(), sa.close()
         sa = _peer(hub)
         fresh = load_detector(default_bundle(), DetectorConfig(exclude=1))  # no --state
         a = FleetNode(sa, fresh, FleetConfig(name="test", robot="a"))
         _feed(a, route[6:9])  # its frames 0-1 are route 6-7 now
-        assert _until(lambda: (b.process(blank, 0), b.map.epoch("a"))[1] == fresh.map_epoch)
-        assert _until(lambda: (b.process(blank, 0), sorted(b.map.robots["a"].place_of))[1] == [0, 1])
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.epoch("a"))[1] == fresh.map_epoch)
+        assert _until(lambda: (b.detector.process(blank, 0), sorted(b.map.robots["a"].place_of))[1] == [0, 1])
         assert fresh.map_epoch != old_epoch and b.fleet_stats().robots["a"].map_restarts == 1
-        r = b.process(route[3], 0)  # route 3 is no place of a's new map: never a loop to a's frame 3
+        r = b.detector.process(route[3], 0)  # route 3 is no place of a's new map: never a loop to a's frame 3
         assert r.verified_robot != "a" or r.verified_frame not in (2, 3, 4)
     finally:
         a.close(), b.close(), sa.close(), sb.close()
@@ -330,7 +330,7 @@ def test_nodes_that_only_connect_to_the_router_join_as_clients_and_exchange_plac
     nodes clients, which the router serves (here: replay --fleet and a robot, neither listening)."""
     from aefabmap.cli import replay as cli_replay
     from aefabmap.cli.demo import default_bundle
-    from aefabmap.cli.run import fleet_session
+    from aefabmap_runtime.adapters.node_session import fleet_session
     from tests.conftest import cli_args
 
     fleet = FleetConfig(name="test", robot="b")
@@ -350,8 +350,8 @@ def test_nodes_that_only_connect_to_the_router_join_as_clients_and_exchange_plac
     blank = np.zeros((480, 640), np.uint8)
     try:
         replayer.start()
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 5, timeout_s=60)
-        r = b.process(route[3], 0)
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 5, timeout_s=60)
+        r = b.detector.process(route[3], 0)
         assert r.verified and r.verified_robot == "a"
     finally:
         stop.set()
@@ -376,22 +376,23 @@ def test_places_stored_during_a_network_partition_arrive_once_it_heals(route):
     try:
         assert _until(lambda: b.robots_alive() == ["a"])
         _feed(a, route[:4])  # frames 0-2 stored
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 3)
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 3)
         r2.close()  # the partition
         assert _until(lambda: b.robots_alive() == [])
         _feed(a, route[4:8])  # frames 3-6 stored: b hears nothing of them
         assert a.fleet_stats().places_served == 7 and b.map.n_places == 3
         r2 = open_session(SessionConfig(listen=(e2,), connect=(e1,), mode="router"))  # healed
         assert _until(lambda: b.robots_alive() == ["a"], 60)
-        assert _until(lambda: (b.process(blank, 0), b.map.n_places)[1] == 7)
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 7)
         assert sorted(b.map.robots["a"].place_of) == list(range(7))
     finally:
         a.close(), b.close(), sa.close(), sb.close(), r2.close(), r1.close()
 
 
-def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub, tmp_path):
-    """Two views of one 3-D point cloud (tests/runtime/core/decide/test_candidates.py): a's place, b's
-    query; with --camera the remote loop carries b's camera pose in a's place frame."""
+def _holding_a_calibrated_place(hub, tmp_path):
+    """Robot b in the fleet (a detector with --camera) holding robot a's place 7, whose keypoints it
+    fetched before, and b's query of the same scene (tests/runtime/core/decide/test_candidates.py):
+    (b's session, b, the scene, the query's words, the query)."""
     from aefabmap_runtime.core.verify.verification import VerificationConfig
     from tests.runtime.core.decide.test_candidates import CAMERA, calibrated_scene
     from tests.runtime.core.verify.test_verification import _detector
@@ -401,14 +402,18 @@ def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub
     words = np.arange(scene.n) % det.bundle.vocabulary_size
     sb = _peer(hub)
     b = FleetNode(sb, det, FleetConfig(name="test", robot="b"))
+    b.map.add(PlaceSummary("a", b.identity, 7, 0, np.unique(words), epoch=5))
+    place = scene.frame(scene.points)
+    b.map._cache[("a", 7)] = det.map.store.pack(place.keypoints, words, place.descriptors, (480, 640))
+    return sb, b, scene, words, scene.frame(scene.query)
+
+
+def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub, tmp_path):
+    """Two views of one 3-D point cloud: a's place, b's query; with --camera the remote loop
+    carries b's camera pose in a's place frame."""
+    sb, b, scene, words, query = _holding_a_calibrated_place(hub, tmp_path)
     try:
-        b.map.add(PlaceSummary("a", b.identity, 7, 0, np.unique(words), epoch=5))
-        place = scene.frame(scene.points)
-        b.map._cache[("a", 7)] = det.store.pack(place.keypoints, words, place.descriptors, (480, 640))  # fetched before
-        query = scene.frame(scene.query)
-        result = det.process_words(words, features=query)
-        assert not result.verified  # b's own map is empty
-        b._match_remote(result, words, query, words)
+        result = b.detector.process_words(words, features=query)  # b's own map is empty: the core asks a's places
         assert result.verified and result.verified_robot == "a" and result.verified_frame == 7
         assert result.geometry_model == "E" and result.relative_rotation is not None
         R = np.asarray(result.relative_rotation)  # as for the own places (test_candidates.py)
@@ -416,6 +421,60 @@ def test_a_calibrated_loop_to_another_robots_place_carries_the_relative_pose(hub
         assert np.allclose(result.relative_translation, scene.centre / np.linalg.norm(scene.centre), atol=0.01)
     finally:
         b.close(), sb.close()
+
+
+def test_the_core_builds_a_remote_loops_result_once_and_the_node_never_edits_it(hub, tmp_path, monkeypatch):
+    """The frame loop's processor is the detector alone: a fleet node processes nothing and stands
+    in for nothing; a loop to another robot's place is in the FrameResult the core builds, and
+    nothing edits that result afterwards."""
+    from aefabmap_runtime.core import detector as core_detector
+
+    assert not any(hasattr(FleetNode, name) for name in ("process", "process_words", "__getattr__", "manifest"))
+    built, build = [], core_detector.FrameResult
+
+    def record(**fields):
+        result = build(**fields)
+        built.append((result, result.to_dict()))
+        return result
+
+    monkeypatch.setattr(core_detector, "FrameResult", record)
+    sb, b, _, words, query = _holding_a_calibrated_place(hub, tmp_path)
+    try:
+        result = b.detector.process_words(words, features=query)
+        (first, as_built), = built
+        assert first is result and as_built["loop"] and as_built["verified_robot"] == "a"
+        assert as_built["verified_place"] is None and as_built["temporal_ok"] is None
+        assert result.to_dict() == as_built and "remote" in result.timings_ms
+        assert b.fleet_stats().robots["a"].loops == 1
+    finally:
+        b.close(), sb.close()
+    alone = b.detector.process_words(words, features=query)  # b left the fleet: no other robot is asked
+    assert not alone.loop and alone.verified_robot is None and "remote" not in alone.timings_ms
+
+
+def test_a_node_offers_exactly_the_places_its_map_holds(hub, route):
+    """Insertions, evictions (a cap) and a loaded map reach the node as map events: what it
+    offers is always what the own map holds."""
+    from aefabmap.cli.demo import default_bundle
+
+    sa = _peer(hub)
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1, max_places=3))
+    a = FleetNode(sa, det, FleetConfig(name="test", robot="a"))
+    try:
+        for im in route[:7]:
+            det.process(im, 0)
+            assert sorted(a._served) == sorted(frame for _, frame in det.map.places())
+        assert a.fleet_stats().places_served == 3 and a.fleet_stats().summaries_out == 6
+        other = load_detector(default_bundle(), DetectorConfig(exclude=1, max_places=3))
+        for im in route[7:10]:
+            other.process(im, 0)
+        det.load_state(other.state().resolve())
+        assert sorted(a._served) == sorted(frame for _, frame in det.map.places()) == [0, 1]
+        vocabulary = det.map.vocabulary_size
+        assert {PlaceSummary.decode(summary, a.identity, vocabulary).epoch for summary, _ in a._served.values()} == {
+            other.map_epoch}  # offered under the loaded map's numbering
+    finally:
+        a.close(), sa.close()
 
 
 def test_a_peer_declaring_many_robots_cannot_grow_the_node_without_bound(hub):
@@ -426,7 +485,7 @@ def test_a_peer_declaring_many_robots_cannot_grow_the_node_without_bound(hub):
     try:
         assert _until(lambda: len(b.robots_alive()) == 4)
         assert len(b._alive) == 4 and len(b._returned) <= 4
-        b.process(np.zeros((480, 640), np.uint8), 0)  # catch-up queries to the robots it holds: no crash
+        b.detector.process(np.zeros((480, 640), np.uint8), 0)  # catch-up queries to the robots it holds: no crash
         followed = b.robots_alive()
         tokens.pop(int(followed[0][1:])).undeclare()  # one of them leaves: a newcomer takes its room
         newcomer = evil.liveliness().declare_token(fleet_key("test", "late", "alive"))

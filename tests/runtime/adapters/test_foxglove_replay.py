@@ -110,11 +110,11 @@ def fake_detector(monkeypatch):
 
 @pytest.fixture
 def holding(monkeypatch):
-    """Set once the CLI starts serving after the replay (the real serve_until_stopped still runs)."""
-    from aefabmap.cli import replay as cli_replay
+    """Set once the replay starts serving after it (the real serve_until_stopped still runs)."""
+    from aefabmap_runtime.adapters import replay_builder
 
-    event, real = threading.Event(), cli_replay.serve_until_stopped
-    monkeypatch.setattr(cli_replay, "serve_until_stopped", lambda view, fleet, stop: (event.set(), real(view, fleet, stop)))
+    event, real = threading.Event(), replay_builder.serve_until_stopped
+    monkeypatch.setattr(replay_builder, "serve_until_stopped", lambda view, fleet, stop: (event.set(), real(view, fleet, stop)))
     return event
 
 

@@ -253,7 +253,9 @@ def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, mon
     out = tmp_path / "out.mcap"
     args = cli_args("replay", src, "--model", bundle, "--out", out, "--foxglove", "0")
     held = []  # the server is kept up after the replay until Ctrl-C: test_foxglove_replay.py
-    monkeypatch.setattr(cli_replay, "serve_until_stopped", lambda view, fleet, stop: held.append(view.server.port))
+    from aefabmap_runtime.adapters import replay_builder
+
+    monkeypatch.setattr(replay_builder, "serve_until_stopped", lambda view, fleet, stop: held.append(view.server.port))
     assert cli_replay.main(args) == 0
     assert len(held) == 1
     assert configs[0].verification.keep_inlier_points  # the view draws them

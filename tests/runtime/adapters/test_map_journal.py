@@ -25,6 +25,7 @@ from aefabmap_runtime.adapters.state_dir import (
 )
 from aefabmap_runtime.core.decide.candidates import CandidateConfig
 from aefabmap_runtime.core.detector import DetectorConfig
+from aefabmap_runtime.core.map.map_events import MapListener
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 from tests.conftest import make_synthetic_bundle
 
@@ -335,15 +336,21 @@ def test_segments_after_a_gap_are_not_replayed_and_are_removed(bundle, images, r
 
 def test_journal_records_round_trip_the_detector_input(bundle, images):
     det = load_detector(bundle, CONFIG)
+    taken = []
+
+    class Taken(MapListener):
+        def frame_taken(self, sequence, words, stamp_ns, features):
+            taken.append((sequence, words, stamp_ns, features))
+
+    det.add_listener(Taken())
     det.process(images[0], 123)
-    words, _, feats = det.last_input
-    seq, w, s, f = map_journal.decode_frame(map_journal.encode_frame(det, 0), det, "r")
+    (_, words, _, feats), = taken
+    seq, w, s, f = map_journal.decode_frame(map_journal.encode_frame(det, *taken[0]), det, "r")
     assert (seq, s) == (0, 123) and np.array_equal(w, words) and f.image_shape == feats.image_shape
     assert all(np.array_equal(a, b) for a, b in ((f.keypoints, feats.keypoints), (f.sizes, feats.sizes),
                                                    (f.descriptors, feats.descriptors), (f.upright, feats.upright)))
     # A frame of format 1 (no upright descriptors; features flag 1) still reads, without them.
-    det.last_input = (words, 123, dataclasses.replace(feats, upright=None))
-    old = map_journal.encode_frame(det, 0)
+    old = map_journal.encode_frame(det, 0, words, 123, dataclasses.replace(feats, upright=None))
     assert old[21] == 1  # after b"F", sequence, stamp and the keypoint count
     _, _, _, f = map_journal.decode_frame(old, det, "r")
     assert f.upright is None and np.array_equal(f.descriptors, feats.descriptors)

@@ -242,7 +242,7 @@ def test_rss_is_measured():
 
 
 def test_cli_options_parse():
-    from aefabmap.cli import publish, replay, run
+    from aefabmap.cli import options, publish, replay, run
 
     parser = argparse.ArgumentParser(prog="aefabmap")
     subparsers = parser.add_subparsers(dest="command")
@@ -266,10 +266,10 @@ def test_cli_options_parse():
     assert r.log == ["A.mcap", "logs/"]
     a = parser.parse_args("run --model B --key k --mcap logs/ --mcap-max-mb 5 --log-budget-mb 20".split())
     assert (a.mcap, a.mcap_max_mb, a.log_budget_mb, a.log_min_free_mb) == ("logs/", 5.0, 20.0, None)
-    rotation = run.log_rotation_config(a)
+    rotation = options.log_rotation_config(a)
     assert (rotation.max_mb, rotation.budget_mb, rotation.images_threshold_bytes) == (5.0, 20.0, 500 * 2**20)
     a = parser.parse_args("run --model B --key k --mcap L.mcap --log-min-free-mb 50 10".split())
-    assert (run.log_rotation_config(a).images_min_free_mb, run.log_rotation_config(a).results_min_free_mb) == (50, 10)
+    assert (options.log_rotation_config(a).images_min_free_mb, options.log_rotation_config(a).results_min_free_mb) == (50, 10)
 
 
 def test_cli_run_stops_on_sigint_with_a_finished_log(tmp_path, monkeypatch):

@@ -287,7 +287,7 @@ def test_replay_builds_a_map_offline_and_continues_it(bundle, tmp_path, capsys):
     _write_log(tmp_path / "all.mcap", images, 0)
     _write_log(tmp_path / "a.mcap", images[:60], 0)
     _write_log(tmp_path / "b.mcap", images[60:], 60)
-    from aefabmap.cli.run_config import logged_run_config
+    from aefabmap_runtime.core.run_config import logged_run_config
 
     # These logs carry no run configuration, so `replay` runs them as such logs ran (logged_run_config).
     as_logged = logged_run_config({}).detector

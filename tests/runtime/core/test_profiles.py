@@ -7,7 +7,7 @@ import argparse
 import pytest
 
 from aefabmap.cli.main import build_parser
-from aefabmap.cli.run_config import build_run_config
+from aefabmap.cli.options import build_run_config
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.core.profiles import PROFILES, get_profile
 

@@ -3,8 +3,9 @@
 A node of a fleet (runtime/aefabmap_runtime/adapters/fleet.py) hands `FleetMap` the place summaries other robots
 publish. Each remote robot gets its own FAB-MAP scorer (runtime/aefabmap_runtime/core/rank/scorer.py) built as the
 detector builds its own, so its places are ranked against the same new-place model; its frame
-numbers never mix with another robot's. After the own detector has judged a frame and verified
-nothing, `FleetMap.match` ranks every remote robot's places, takes each robot's best `top_k`,
+numbers never mix with another robot's. The detector holds the FleetMap as its second candidate
+source (LoopClosureDetector.attach_remote): when its own map verified nothing for a frame,
+`FleetMap.match` ranks every remote robot's places, takes each robot's best `top_k`,
 gets their keypoints (a cache, else the caller's fetch, which may fail) and verifies them as the
 own places are verified, against a bar stricter by the log10 of the number of remote pairs
 checked (each is one more chance of a false alarm). The own map comes first: remote places live
@@ -102,7 +103,7 @@ class FleetMap:
     """Remote robots' places within caps; see the module doc.
 
     make_scorer: a fresh, empty scorer like the own map's (LoopClosureDetector.new_scorer).
-    room: (places, bytes) the own map leaves for remote places now (None: no such cap).
+    room: (places, bytes) the own map leaves for remote places now (None: no such cap; PlaceMap.room).
     """
 
     def __init__(self, config: FleetConfig, make_scorer: Callable[[], Scorer],

@@ -162,6 +162,10 @@ class KeypointStore:
     def __contains__(self, place_id: int) -> bool:
         return int(place_id) in self._places
 
+    def place_ids(self) -> list[int]:
+        """The ids of the places stored, in the order they were put."""
+        return list(self._places)
+
     def state(self) -> MapState:
         """Stored places as arrays: ids (P,), their keypoints packed (pack_places).
 

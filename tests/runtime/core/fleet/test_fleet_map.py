@@ -11,6 +11,7 @@ from aefabmap_runtime.adapters.bundle_reader import load_detector
 from aefabmap_runtime.core.detector import DetectorConfig
 from aefabmap_runtime.core.fleet.fleet_map import FleetConfig, FleetMap
 from aefabmap_runtime.core.fleet.fleet_wire import PlaceSummary
+from aefabmap_runtime.core.map.map_events import MapListener
 
 ID = bytes(32)
 
@@ -29,17 +30,38 @@ def _detector():
     return load_detector(default_bundle(), DetectorConfig(exclude=1))
 
 
+class _Recorder(MapListener):
+    """What a detector tells its listeners: the frames it took and the places it inserted."""
+
+    def __init__(self) -> None:
+        self.taken, self.inserted = [], []
+
+    def frame_taken(self, sequence, words, stamp_ns, features) -> None:
+        self.taken.append((words, features))
+
+    def place_inserted(self, place, frame, words, keypoints) -> None:
+        self.inserted.append((frame, words, keypoints))
+
+
+def _run(det, images) -> _Recorder:
+    rec = _Recorder()
+    det.add_listener(rec)
+    try:
+        for im in images:
+            det.process(im)
+    finally:
+        det.remove_listener(rec)
+    return rec
+
+
 def _places_of(det, images):
     """(summary, keypoints) of every place robot "a" stores from images (as a FleetNode would publish)."""
-    out, pending = [], {}
-    for im in images:
-        r = det.process(im)
-        words, _, _ = det.last_input
-        pending[r.sequence] = np.unique(words[: det.bundle.features.max_features])
-        if r.inserted_frame is not None:
-            kps = det.store.get(r.inserted_place)
-            out.append((PlaceSummary("a", ID, r.inserted_frame, 0, pending.pop(r.inserted_frame)), kps))
-    return out
+    return [(PlaceSummary("a", ID, frame, 0, np.unique(words)), kps) for frame, words, kps in _run(det, images).inserted]
+
+
+def _query(det, image):
+    """(words, features) of `image` as the detector took it (its own map judged it too)."""
+    return _run(det, [image]).taken[-1]
 
 
 def _map(det, room=(None, None), **kw):
@@ -59,9 +81,7 @@ def test_a_view_of_another_robots_place_verifies_to_that_robots_frame(route):
         fetched.append((robot, frame))
         return kps.get(frame)
 
-    r = b.process(route[2])  # robot b's first frame: its own map is empty
-    assert not r.verified
-    words, _, features = b.last_input
+    words, features = _query(b, route[2])  # robot b's first frame: its own map is empty
     observed = words[: b.bundle.features.max_features]
     v = b.config.verification
     from dataclasses import replace
@@ -83,8 +103,7 @@ def test_a_fetch_that_fails_verifies_nothing_and_raises_nothing(route):
     fleet = _map(b)
     for summary, _ in _places_of(a, route[:4]):
         fleet.add(summary)
-    b.process(route[1])
-    words, _, features = b.last_input
+    words, features = _query(b, route[1])
     observed = words[: b.bundle.features.max_features]
     assert fleet.match(observed, lambda bar: b.place_check(features, words), lambda robot, frame: None, -4.0) is None
 

@@ -306,7 +306,7 @@ def test_fabmap_observes_the_bundle_budget_and_verification_matches_more(tmp_pat
     r = det.process(frame)
     assert r.n_keypoints == len(feats) and np.array_equal(seen[-1], words[:budget])
     assert r.n_words == np.unique(words[:budget]).size
-    assert len(det._pending[-1][2]) == len(feats) and np.array_equal(det._pending[-1][1], words[:budget])
+    assert len(det.map.queued()[-1][2]) == len(feats) and np.array_equal(det.map.queued()[-1][1], words[:budget])
     # With the verification budget at the bundle's, nothing more is extracted.
     small = _detector(tmp_path / "small", verification=VC(keypoints=None))
     assert small.extractor.config.max_features == budget
