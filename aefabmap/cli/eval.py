@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 from aefabmap.cli.options import add_detector_options, build_run_config
@@ -51,7 +52,9 @@ def run(args) -> int:
     if args.state is not None:
         if len(scorers) > 1:
             raise ConfigError("--state keeps one map: choose --scorer fabmap or bow, not both")
-        save_state = _state_saver(args.state)
+        from aefabmap_runtime.adapters.node_state import new_map_saver
+
+        save_state = new_map_saver(args.state, logging.getLogger("aefabmap.eval"))
     run_config = build_run_config(args, keep_inlier_points=bool(args.failures))
     verification = run_config.detector.verification
     rows, runs, table = {}, {}, {}
@@ -87,27 +90,6 @@ def run(args) -> int:
     if args.score_matrix:
         save_score_matrix(runs[scorers[0]].score_matrix, args.score_matrix)
     return 0
-
-
-def _state_saver(path):
-    """detector -> None: saves its map to the empty state directory ``path`` (checked now, before the run)."""
-    import logging
-
-    from aefabmap_runtime.adapters.state_dir import MapStateDir
-
-    probe = MapStateDir(path, "")
-    if probe.current_or_none() is not None or (probe.path / "CURRENT").exists():
-        raise ConfigError(f"state directory {path} already holds a map; eval builds a new one")
-
-    def save(detector) -> None:
-        from aefabmap_runtime.adapters.state_dir import bundle_id
-
-        with MapStateDir(path, bundle_id(detector.manifest)) as directory:
-            info = directory.save(detector.state())
-        logging.getLogger("aefabmap.eval").info("map state saved to %s: %d places, %d bytes",
-                                                info.path, info.n_places, info.nbytes)
-
-    return save
 
 
 def evidence_records(args, run, verification: VerificationConfig) -> list[dict]:

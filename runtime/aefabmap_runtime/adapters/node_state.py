@@ -10,6 +10,7 @@ from pathlib import Path
 from aefabmap_runtime.adapters.map_journal import MapJournal, StateReport
 from aefabmap_runtime.adapters.state_dir import MapStateDir, SnapshotPolicy, Snapshotter, bundle_id, load_map
 from aefabmap_runtime.core.run_config import recorded_settings_differences
+from aefabmap_runtime.errors import ConfigError
 
 
 def open_state(path: str | Path, detector, logger: logging.Logger) -> MapStateDir:
@@ -33,6 +34,21 @@ def open_state(path: str | Path, detector, logger: logging.Logger) -> MapStateDi
         directory.close()
         raise
     return directory
+
+
+def new_map_saver(path: str | Path, logger: logging.Logger):
+    """detector -> None: saves its map to the state directory ``path``, which must hold no map
+    (checked now, before the run: `eval --state` builds a new one)."""
+    probe = MapStateDir(path, "")
+    if probe.current_or_none() is not None or (probe.path / "CURRENT").exists():
+        raise ConfigError(f"state directory {path} already holds a map; eval builds a new one")
+
+    def save(detector) -> None:
+        with MapStateDir(path, bundle_id(detector.manifest)) as directory:
+            info = directory.save(detector.state())
+        logger.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
+
+    return save
 
 
 def _log_journal(journal, path, logger: logging.Logger) -> None:
