@@ -110,7 +110,7 @@ def node_options(config: RunConfig, io: NodeIO, session: SessionConfig, detector
     """The frame loop's settings; the log's run metadata holds the whole RunConfig."""
     # The map this run starts from (a loaded state's frame counter, 0: empty), so that a replay of
     # a log set spanning restarts rebuilds each run's map (runtime/aefabmap_runtime/adapters/replay.py).
-    map_start = {"frame": detector.next_sequence, "places": detector.n_places}
+    map_start = {"frame": getattr(detector, "next_sequence", 0), "places": getattr(detector, "n_places", 0)}
     return NodeOptions(key=io.key if io.ros is None else io.ros.image_key, mcap_path=io.mcap, session=session,
                        queue_size=config.queue, stats_period_s=io.stats_period_s, image_log_every=io.image_every,
                        run_config={RUN_CONFIG_KEY: config.to_dict(), "map_start": map_start},
