@@ -64,6 +64,9 @@ def register(sub) -> None:
     sq.add_argument("--calls", action="store_true", help="then a second pass under the profiler: CPU ms per frame "
                     "inside OpenCV, onnxruntime and aefabmap's compiled kernels (the rest: Python and numpy)")
     add_verification_options(sq, "--verify-keypoints", "--verify-bruteforce", "--no-verify-upright", bench=True)
+    sq.add_argument("--workers", type=int, default=1, metavar="N",
+                    help="then a run with N threads working on frames on N cores: CPU ms per frame, frames per "
+                    "second and stages beside the one-thread run's (default 1: that run only)")
     sq.add_argument("--json", type=Path, metavar="OUT")
     sq.set_defaults(func=run_sequence)
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
@@ -226,7 +229,7 @@ def run_sequence(args) -> int:
                                              limit=args.limit, scatter=args.scatter, single_core=not args.all_cores,
                                              calls=args.calls, verify_keypoints=args.verify_keypoints,
                                              verify_bruteforce=args.verify_bruteforce,
-                                             verify_upright=args.verify_upright))
+                                             verify_upright=args.verify_upright, workers=args.workers))
     _emit(doc, args.json)
     s, c = doc["stages_ms"], doc["stages_cpu_ms"]
     print(f"\n{doc['images']}: {doc['frames']} frames of {doc['image_size_wh']}, {doc['loops']} loops, "
@@ -243,6 +246,12 @@ def run_sequence(args) -> int:
     print(f"{doc['frames_per_second']} frames per second")
     if "calls_cpu_ms_per_frame" in doc:
         print("CPU ms per frame (mean) inside: " + ", ".join(f"{k} {v:.2f}" for k, v in doc["calls_cpu_ms_per_frame"].items()))
+    if len(doc["workers"]) > 1:
+        print(f"\n{'workers':<8}{'CPU ms/frame':>13}{'frames/s':>10}{'wall s':>8}  mean wall ms per frame: "
+              + " ".join(STAGES))
+        for n, w in doc["workers"].items():
+            print(f"{n:<8}{w['cpu_ms_per_frame']:>13.2f}{w['frames_per_second']:>10.2f}{w['wall_s']:>8.1f}  "
+                  + " ".join(f"{w['stages_ms_mean'][k]:.2f}" for k in STAGES))
     return 0
 
 

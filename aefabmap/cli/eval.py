@@ -7,7 +7,7 @@ import json
 import logging
 from pathlib import Path
 
-from aefabmap.cli.options import add_detector_options, build_run_config
+from aefabmap.cli.options import add_detector_options, add_workers_option, build_run_config
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.core.detector import SCORERS, DetectorConfig
 from aefabmap_runtime.core.verify.verification import VerificationConfig
@@ -20,6 +20,7 @@ def register(sub) -> None:
     p.add_argument("--gt", required=True, type=Path, metavar="GT.npy", help="bool N x N ground truth")
     p.add_argument("--tolerance", type=int, default=10, help="frames of tolerance for the tolerant metrics (default 10)")
     add_detector_options(p, scorers=SCORERS + ("both",))
+    add_workers_option(p)
     p.add_argument("--json", type=Path, metavar="OUT.json")
     p.add_argument("--frames", type=Path, metavar="OUT.jsonl",
                    help="per-frame evidence, one JSON line per frame (candidates, checks, choice, correctness)")
@@ -61,7 +62,8 @@ def run(args) -> int:
     for scorer in scorers:
         config = dataclasses.replace(run_config.detector, scorer=scorer)
         rows[scorer], runs[scorer] = evaluate_bundle(args.model, args.images, args.gt, config, args.tolerance,
-                                                     not args.no_progress, after_run=save_state)
+                                                     not args.no_progress, after_run=save_state,
+                                                     workers=run_config.workers)
         # The product's output (verified) first, then the raw score it starts from.
         if "verified" in rows[scorer]:
             table[f"{scorer} verified (output)"] = rows[scorer]["verified"]

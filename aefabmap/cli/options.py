@@ -174,6 +174,13 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
     add_verification_options(p.add_argument_group("verification"))
 
 
+def add_workers_option(p: argparse.ArgumentParser) -> None:
+    """--workers: threads that work on frames (RunConfig.workers)."""
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help=f"threads that work on frames: the next frames are read, decoded and extracted while one "
+                   f"is decided; the results are the same (default {RunConfig().workers}; 2 on a second core)")
+
+
 def add_verification_options(g, *flags: str, bench: bool = False) -> None:
     """The verification options named by `flags` (default: all of them, in that order) in g, a parser
     or argument group. bench: the benchmarks' shorter help (they run the runtime's defaults)."""
@@ -249,4 +256,5 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
     )
     fleet = fleet_config(args)
     return RunConfig(model=str(opts.get("model", "")), detector=detector, profile=opts.get("profile"),
-                     queue=pick("queue", RunConfig().queue, prof.queue if prof else None), fleet=fleet)
+                     queue=pick("queue", RunConfig().queue, prof.queue if prof else None), fleet=fleet,
+                     workers=pick("workers", RunConfig().workers))

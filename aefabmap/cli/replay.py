@@ -19,12 +19,14 @@ import threading
 from aefabmap.cli.options import (
     add_fleet_options,
     add_foxglove_options,
+    add_workers_option,
     add_mcap_profile_option,
     add_state_options,
     add_zenoh_options,
     endpoints,
     fleet_config,
 )
+from aefabmap_runtime.core.run_config import check_workers
 from aefabmap_runtime.errors import AefabmapError, ConfigError, LogError
 
 log = logging.getLogger("aefabmap.replay")
@@ -50,6 +52,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     add_state_options(p)
     add_foxglove_options(p)
     add_playback_options(p)
+    add_workers_option(p)
     add_zenoh_options(p, add_fleet_options(p))
     p.epilog = ("Network (--fleet only): with none of --connect/--listen/--config the replay listens on "
                 "tcp/127.0.0.1:7447 only, as `run` does; no multicast scouting.")
@@ -100,7 +103,8 @@ def replay_io(args: argparse.Namespace):
     fleet = _check_fleet_options(args)
     return ReplayIO(logs=tuple(args.log), model=args.model, out=args.out, check=args.check, topic=args.topic,
                     mcap_profile=args.mcap_profile, state=args.state, foxglove_port=args.foxglove,
-                    foxglove_host=args.foxglove_host, playback=playback, fleet=fleet, endpoints=endpoints(args))
+                    foxglove_host=args.foxglove_host, playback=playback, fleet=fleet, endpoints=endpoints(args),
+                    workers=check_workers(args.workers if args.workers is not None else 1))
 
 
 def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:

@@ -20,6 +20,7 @@ from aefabmap.cli.options import (
     add_log_rotation_options,
     add_mcap_profile_option,
     add_state_options,
+    add_workers_option,
     add_zenoh_options,
     build_run_config,
     endpoints,
@@ -71,6 +72,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     logs.add_argument("--image-every", type=int, default=1, metavar="N",
                    help="log every N-th image (default 1: exact replay possible; 0: no images)")
     add_detector_options(p, profile=True)
+    add_workers_option(p)
     add_fleet_options(p)
     add_state_options(p, snapshots=True)
     add_foxglove_options(p)

@@ -28,11 +28,26 @@ from aefabmap_runtime.core.records.messages import FrameResult, LatencySummary, 
 
 
 class FrameProcessor(Protocol):
-    """What the frame loop needs from the per-frame core (LoopClosureDetector or a stand-in)."""
+    """What the frame loop needs from the per-frame core (LoopClosureDetector or a stand-in).
+    A processor that also has `prepare`, `process_prepared` and `refuse_prepared` (as the
+    detector) can have its frames prepared on other threads (frame_pipeline.py)."""
 
     manifest: dict
 
     def process(self, gray: np.ndarray, stamp_ns: int) -> Any: ...
+
+
+@dataclass
+class PreparedInput:
+    """One frame made ready off its turn (FrameLoop.prepare_*, any thread): the decoded image
+    and the processor's prepared frame, or why it cannot be used (error and its reason);
+    decode_ms: the decode time."""
+
+    gray: np.ndarray | None = None
+    frame: Any = None
+    error: Exception | None = None
+    reason: str | None = None
+    decode_ms: float = 0.0
 
 
 @dataclass
@@ -78,6 +93,58 @@ class FrameLoop:
         self.frames_in = 0
         self.processed = 0
         self.loops = 0
+
+    @property
+    def prepares(self) -> bool:
+        """Whether the processor prepares frames apart from deciding them (see FrameProcessor)."""
+        return all(hasattr(self.detector, a) for a in ("prepare", "process_prepared", "refuse_prepared"))
+
+    def prepare_payload(self, payload: bytes | bytearray | memoryview, encoding: str,
+                        extract: bool = True) -> PreparedInput:
+        """Decode a frame payload and, with `extract` (and a processor that `prepares`), prepare it
+        (thread-safe; no counter changes: `finish` counts). Without, `finish` runs `process`."""
+        t0 = time.perf_counter()
+        try:
+            gray = decode_frame(payload, encoding)
+        except FrameError as exc:
+            return PreparedInput(error=exc, reason=exc.reason)
+        return self._prepare(gray, (time.perf_counter() - t0) * 1e3, extract)
+
+    def prepare_file(self, path: str | Path, extract: bool = True) -> PreparedInput:
+        """Read, decode and prepare an image file (thread-safe, as `prepare_payload`)."""
+        t0 = time.perf_counter()
+        try:
+            gray = load_image(path)
+        except FrameError as exc:
+            return PreparedInput(error=exc, reason=exc.reason)
+        except InputError as exc:
+            return PreparedInput(error=exc, reason="corrupt")
+        return self._prepare(gray, (time.perf_counter() - t0) * 1e3, extract)
+
+    def finish(self, prepared: PreparedInput, stamp_ns: int) -> FrameOutcome:
+        """Decide a prepared frame (frames in the order they came): what `step` gives for it."""
+        self.frames_in += 1
+        if prepared.gray is None:
+            return self._refuse(prepared.error, prepared.reason)
+        if prepared.frame is None and prepared.error is None:
+            return self._detect(prepared.gray, stamp_ns, prepared.decode_ms)
+        if prepared.error is not None:
+            self.detector.refuse_prepared()
+            out = self._refuse(prepared.error, prepared.reason)
+            out.gray, out.decode_ms = prepared.gray, prepared.decode_ms
+            return out
+        result = self.detector.process_prepared(prepared.frame, stamp_ns)
+        self.processed += 1
+        self.loops += bool(result.loop)
+        return FrameOutcome(result, prepared.gray, None, prepared.decode_ms)
+
+    def _prepare(self, gray: np.ndarray, decode_ms: float, extract: bool) -> PreparedInput:
+        if not (extract and self.prepares):
+            return PreparedInput(gray, decode_ms=decode_ms)
+        try:
+            return PreparedInput(gray, self.detector.prepare(gray), decode_ms=decode_ms)
+        except (InputError, BundleError) as exc:  # a model failing on one frame costs that frame
+            return PreparedInput(gray, error=exc, reason="rejected", decode_ms=decode_ms)
 
     def step(self, payload: bytes | bytearray | memoryview, encoding: str, stamp_ns: int) -> FrameOutcome:
         """Decode a frame payload (runtime/aefabmap_runtime/adapters/frames.py encodings) and detect on it."""

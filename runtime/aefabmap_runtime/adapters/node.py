@@ -36,7 +36,8 @@ import numpy as np
 
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.adapters.fleet import FleetNode, join_fleet
-from aefabmap_runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome
+from aefabmap_runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome, PreparedInput
+from aefabmap_runtime.adapters.frame_pipeline import FramePipeline
 from aefabmap_runtime.adapters.health import HealthEndpoint, StatusBoard, peak_rss_mb, rss_mb
 from aefabmap_runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
 from aefabmap_runtime.adapters.rmw_zenoh import (
@@ -55,6 +56,7 @@ from aefabmap_runtime.adapters.zenoh_transport import (
     stats_key_for,
 )
 from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
+from aefabmap_runtime.core.run_config import check_workers
 from aefabmap_runtime.core.records.messages import FleetStats, LatencySummary, RunSummary, StatsMessage
 
 __all__ = ["FrameProcessor", "NodeOptions", "RunStats", "RunSummary", "rss_mb", "run_node", "stop_on_signals"]
@@ -82,6 +84,8 @@ class NodeOptions:
     log_rotation: file size limit, disk budget and free-space thresholds of the log set
     (runtime/aefabmap_runtime/adapters/rotating_log.py; mcap_path may then be a directory or a ``{n}`` pattern).
     fleet: join this fleet (runtime/aefabmap_runtime/adapters/fleet.py): offer the own places, verify other robots'.
+    workers: threads that work on frames (runtime/aefabmap_runtime/adapters/frame_pipeline.py): the next
+    frames received are decoded and extracted while one is decided; the same results, in order.
     """
 
     key: str
@@ -97,8 +101,10 @@ class NodeOptions:
     ros: RosOptions | None = None
     log_rotation: LogRotationConfig | None = None
     fleet: FleetConfig | None = None
+    workers: int = 1
 
     def __post_init__(self) -> None:
+        check_workers(self.workers)
         if not self.stats_period_s > 0:
             raise ConfigError(f"stats period must be > 0 s, got {self.stats_period_s!r}")
 
@@ -297,19 +303,33 @@ def run_node(
             view.attach_log(log)
         emitter = StatsEmitter(options.stats_period_s, t0, loop, stats, io.sub.drops, io.pub, log, on_stats, view)
         output = ResultOutput(io.pub, log, stats, view)
-        while not stop_event.is_set() and (options.max_frames is None or loop.processed < options.max_frames):
-            frame = io.sub.receive(emitter.tick(), stop_event)
-            if frame is not None:
-                if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)
-                    loop.bad.count("bad_attachment", frame.meta.problem)
-                if frame.error is not None:
-                    outcome = loop.refuse(frame.error)
-                else:
-                    outcome = loop.step(frame.payload, frame.encoding, frame.stamp_ns)
-                board.after_frame(loop, io.sub.drops, outcome.result, loop.detector)  # before the result goes out
-                output.send(frame, outcome)
-                if snapshotter is not None:
-                    snapshotter.after_frame()
+        def decided(frame: ReceivedFrame, outcome: FrameOutcome) -> None:
+            board.after_frame(loop, io.sub.drops, outcome.result, loop.detector)  # before the result goes out
+            output.send(frame, outcome)
+            if snapshotter is not None:
+                snapshotter.after_frame()
+
+        def counted(frame: ReceivedFrame) -> None:
+            if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)
+                loop.bad.count("bad_attachment", frame.meta.problem)
+
+        # Frames in flight (workers > 1): received frames are prepared ahead and decided in order;
+        # the node waits for the transport only when none is in flight.
+        with FramePipeline(loop, options.workers, before=counted) as pipe:
+            while not stop_event.is_set() and \
+                    (options.max_frames is None or loop.processed + pipe.pending < options.max_frames):
+                wait_s = emitter.tick()
+                frame = io.sub.receive(wait_s if not pipe.pending else 0.0, stop_event)
+                if frame is not None:
+                    if frame.error is not None:
+                        pipe.put_prepared(frame, PreparedInput(error=frame.error, reason=frame.error.reason),
+                                          frame.stamp_ns)
+                    else:
+                        pipe.put_payload(frame, frame.payload, frame.encoding, frame.stamp_ns)
+                if pipe.pending and (frame is None or pipe.full):
+                    decided(*pipe.take())
+            while pipe.pending:  # frames received are decided and published, also on a stop
+                decided(*pipe.take())
         emitter.emit()
         if snapshotter is not None:
             snapshotter.final()

@@ -115,7 +115,8 @@ def node_options(config: RunConfig, io: NodeIO, session: SessionConfig, detector
                        queue_size=config.queue, stats_period_s=io.stats_period_s, image_log_every=io.image_every,
                        run_config={RUN_CONFIG_KEY: config.to_dict(), "map_start": map_start},
                        result_key=io.results_key, ros=io.ros, log_rotation=io.log_rotation,
-                       log_config=McapLogConfig(profile=io.mcap_profile), fleet=config.fleet)
+                       log_config=McapLogConfig(profile=io.mcap_profile), fleet=config.fleet,
+                       workers=config.workers)
 
 
 def start_live_view(port: int | None, host: str = "127.0.0.1"):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.adapters.frame_loop import FrameLoop
+from aefabmap_runtime.adapters.frame_pipeline import FramePipeline
 from aefabmap_runtime.adapters.log_set import LogSet, LogSetReader
 from aefabmap_runtime.adapters.mcap_log import (
     McapLogConfig,
@@ -340,6 +341,7 @@ def replay(
     view=None,
     playback: PlaybackConfig | None = None,
     stop: threading.Event | None = None,
+    workers: int = 1,
 ) -> ReplaySummary:
     """Run ``detector`` (see frame_loop.FrameProcessor) over the images of ``mcap_path``: an aefabmap
     log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/aefabmap_runtime/adapters/ros_bag.py).
@@ -355,6 +357,8 @@ def replay(
     view: a foxglove_view.LiveView shown every replayed frame (its log is set to ``out_path``'s).
     playback: pace and viewer wait (default: as fast as possible, no wait). stop: set it to end
     the replay between frames (or the viewer wait); the summary then says ``stopped``.
+    workers: threads that work on frames (runtime/aefabmap_runtime/adapters/frame_pipeline.py;
+    the same results).
     Raises LogError when the source cannot be read (or is of a newer format) or the output
     not written, ConfigError when waiting for a viewer without a view, TransportError when none
     came in time.
@@ -386,27 +390,35 @@ def replay(
         ))
     if view is not None and writer is not None:
         view.attach_log(writer)
+
+    def decided(image, out) -> None:
+        if out.result is None:
+            return  # counted by the frame loop
+        result = out.result
+        replayed.append(result)
+        restarts.replayed_run.append(getattr(image, "run", 0))
+        if on_result is not None:
+            on_result(result.to_dict())
+        if writer is not None:
+            writer.write_image(image.payload, image.encoding, image.stamp_ns, sequence=result.sequence,
+                               gray=out.gray)
+        if view is not None:
+            view.on_frame(image.payload, image.encoding, out.gray, result)
+        if writer is not None:
+            writer.write_result(result)
+
     try:
-        for image in reader.frames():
-            if not pacer.wait(image.stamp_ns):
-                stopped = True
-                break
-            restarts.before(image)
-            out = loop.step(image.payload, image.encoding, image.stamp_ns)
-            if out.result is None:
-                continue  # counted by the frame loop
-            result = out.result
-            replayed.append(result)
-            restarts.replayed_run.append(getattr(image, "run", 0))
-            if on_result is not None:
-                on_result(result.to_dict())
-            if writer is not None:
-                writer.write_image(image.payload, image.encoding, image.stamp_ns, sequence=result.sequence,
-                                   gray=out.gray)
-            if view is not None:
-                view.on_frame(image.payload, image.encoding, out.gray, result)
-            if writer is not None:
-                writer.write_result(result)
+        # Frames in flight: decoded and extracted ahead, decided in order (restarts switch maps just before).
+        with FramePipeline(loop, workers, before=restarts.before) as pipe:
+            for image in reader.frames():
+                if not pacer.wait(image.stamp_ns):
+                    stopped = True
+                    break
+                pipe.put_payload(image, image.payload, image.encoding, image.stamp_ns)
+                while pipe.full:
+                    decided(*pipe.take())
+            while pipe.pending and not stopped:
+                decided(*pipe.take())
         duration = time.monotonic() - t0
         if writer is not None:
             writer.write_stats(loop.stats_message(uptime_s=duration, fps=round(loop.processed / duration, 2)

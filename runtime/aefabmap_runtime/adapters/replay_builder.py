@@ -38,6 +38,7 @@ class ReplayIO:
     logged results. topic: the image topic (None: the log's). state: the state directory the map is
     loaded from and saved to (None: none). foxglove_port / foxglove_host: the live view (port None:
     none). playback: pace and viewer wait. fleet: join it over `endpoints` (None: no network).
+    workers: threads that work on frames (frame_pipeline.py; the same results).
     """
 
     logs: tuple[str, ...]
@@ -52,6 +53,7 @@ class ReplayIO:
     playback: PlaybackConfig = field(default_factory=PlaybackConfig)
     fleet: FleetConfig | None = None
     endpoints: Endpoints = field(default_factory=Endpoints)
+    workers: int = 1
 
 
 class ConfiguredReplay:
@@ -103,7 +105,7 @@ class ConfiguredReplay:
             log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
         summary = replay(self.detector, self.source, out_path=io.out,
                          check=io.check, image_topic=io.topic, view=self.view, playback=playback, stop=self.stop,
-                         log_config=McapLogConfig(profile=io.mcap_profile))
+                         log_config=McapLogConfig(profile=io.mcap_profile), workers=io.workers)
         if self.state_dir is not None:
             info = self.state_dir.save(self.detector.state())
             log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)

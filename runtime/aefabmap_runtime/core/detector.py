@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -181,6 +182,16 @@ class InputFormat:
     observed_keypoints: int
 
 
+@dataclass(frozen=True)
+class PreparedFrame:
+    """A frame's features and the word of every keypoint (`words_of`), computed before its turn
+    (LoopClosureDetector.prepare). stages_ms: the times of those stages (features, quantise)."""
+
+    features: Features
+    words: np.ndarray
+    stages_ms: dict[str, float]
+
+
 class LoopClosureDetector:
     """Stateful per-frame detector for one model bundle (not thread-safe).
 
@@ -202,6 +213,8 @@ class LoopClosureDetector:
         if v.enabled and v.keypoints is not None and v.keypoints > extract.max_features:
             extract = replace(extract, max_features=v.keypoints)
         self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright)
+        self._extractors = threading.local()  # each thread's extractor (`prepare`)
+        self._extractors.extractor = self.extractor
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
         scorer = self._build_scorer()
@@ -339,13 +352,36 @@ class LoopClosureDetector:
     def process(self, image: np.ndarray, stamp_ns: int = 0) -> FrameResult:
         """Run one grayscale (H, W) uint8 image through the detector."""
         self.map.listeners.before_frame()
+        frame = self._prepare(image, self.extractor)
+        return self._step(frame.words, stamp_ns, frame.features, dict(frame.stages_ms))
+
+    def prepare(self, image: np.ndarray) -> PreparedFrame:
+        """The part of `process` that needs no map: the image's features and words. Thread-safe
+        (each thread extracts with its own extractor), so frames can be prepared ahead on other
+        threads and then taken in order by `process_prepared`, with the results `process` gives.
+        Raises InputError for an image the extractor refuses."""
+        extractor = getattr(self._extractors, "extractor", None)
+        if extractor is None:
+            extractor = self._extractors.extractor = FeatureExtractor(self.extractor.config, self.extractor.upright)
+        return self._prepare(image, extractor)
+
+    def process_prepared(self, frame: PreparedFrame, stamp_ns: int = 0) -> FrameResult:
+        """The rest of `process` for a frame `prepare` gave (frames in the order they were taken)."""
+        self.map.listeners.before_frame()
+        return self._step(frame.words, stamp_ns, frame.features, dict(frame.stages_ms))
+
+    def refuse_prepared(self) -> None:
+        """A frame `prepare` refused takes its turn: the map's listeners hear of it as of any frame
+        (`process` tells them before it extracts)."""
+        self.map.listeners.before_frame()
+
+    def _prepare(self, image: np.ndarray, extractor: FeatureExtractor) -> PreparedFrame:
         t0 = time.perf_counter()
-        feats = self.extractor.extract(image)
+        feats = extractor.extract(image)
         t1 = time.perf_counter()
         words = self.words_of(feats)
         t2 = time.perf_counter()
-        stages = {"features": (t1 - t0) * 1e3, "quantise": (t2 - t1) * 1e3}
-        return self._step(words, stamp_ns, feats, stages)
+        return PreparedFrame(feats, words, {"features": (t1 - t0) * 1e3, "quantise": (t2 - t1) * 1e3})
 
     def process_words(self, words: np.ndarray, stamp_ns: int = 0, features: Features | None = None) -> FrameResult:
         """Score one frame given its keypoints' word ids, then queue it for delayed insertion.

@@ -23,6 +23,8 @@ from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
 RUN_CONFIG_FORMAT = 1
 #: Most frames a node may buffer: a queue is for bursts, not for hours of backlog.
 MAX_QUEUE = 10_000
+#: Most threads a run may work on frames with (a board has 4 cores; more gains nothing and costs memory).
+MAX_WORKERS = 16
 #: Key of the RunConfig inside a log's run metadata (aefabmap.run_config), beside the transport's settings.
 RUN_CONFIG_KEY = "run"
 
@@ -38,6 +40,8 @@ class RunConfig:
     queue: frames the live node buffers between the transport and the detector.
     fleet: the fleet the live node joins (run --fleet; None: none); its remote loops depend on
         what other robots offered, so a replay cannot decide them again.
+    workers: threads that work on frames, the next frames prepared while one is decided
+        (runtime/aefabmap_runtime/adapters/frame_pipeline.py); the results do not depend on it.
     """
 
     model: str = ""
@@ -45,8 +49,10 @@ class RunConfig:
     profile: str | None = None
     queue: int = 2
     fleet: FleetConfig | None = None
+    workers: int = 1
 
     def __post_init__(self) -> None:
+        check_workers(self.workers)
         if self.fleet is not None and not isinstance(self.fleet, FleetConfig):
             raise ConfigError(f"fleet must be a FleetConfig, got {type(self.fleet).__name__}")
         if not isinstance(self.detector, DetectorConfig):
@@ -79,6 +85,13 @@ class RunConfig:
         except (ValueError, RecursionError) as exc:
             raise ConfigError(f"run configuration is not JSON: {exc}") from exc
         return cls.from_dict(doc)
+
+
+def check_workers(workers) -> int:
+    """`workers` as an int in [1, MAX_WORKERS] (ConfigError otherwise)."""
+    if not isinstance(workers, int) or isinstance(workers, bool) or not 1 <= workers <= MAX_WORKERS:
+        raise ConfigError(f"workers must be an integer in [1, {MAX_WORKERS}], got {str(workers)[:40]}")
+    return workers
 
 
 def _from_plain(cls, doc: object, where: str):

@@ -6,6 +6,9 @@ file-name order, on one pinned core with one thread everywhere (as ``bench pipel
 evaluation, no ground truth: what a board pays per frame of this sequence. Printed and saved per
 stage (wall and CPU ms, median / p95 / mean), with the total and the frames per second; with
 `calls`, also the CPU ms per frame spent inside each library's compiled calls (call_profile.py).
+With `workers` N > 1, a second run goes over the same images with N threads working on frames
+(runtime/aefabmap_runtime/adapters/frame_pipeline.py) on N pinned cores: its CPU ms per frame, frames per
+second and per-stage wall ms beside the one-thread run's (`workers` in the document).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 
 from aefabmap_runtime.errors import BundleError, ConfigError, InputError
 from aefabmap_runtime.core.kernels.compiled import KERNEL_CHOICES
+from aefabmap_runtime.core.run_config import check_workers
 from aefabmap_runtime.tools.stream_bench import (
     SINGLE_THREAD_ENV,
     _stats,
@@ -41,6 +45,7 @@ class SequenceBenchConfig:
     verify_keypoints / verify_bruteforce / verify_upright: VerificationConfig.keypoints,
     CandidateConfig.bruteforce_fallback and VerificationConfig.upright (None: the runtime's), as
     `run` and `eval` set them with --verify-keypoints, --verify-bruteforce and --no-verify-upright.
+    workers: above 1, a second run with that many threads on as many cores (module docstring).
     """
 
     images: str
@@ -53,8 +58,10 @@ class SequenceBenchConfig:
     verify_keypoints: int | None = None
     verify_bruteforce: int | None = None
     verify_upright: bool | None = None
+    workers: int = 1
 
     def __post_init__(self) -> None:
+        check_workers(self.workers)
         if self.limit is not None and self.limit < 1:
             raise ConfigError(f"limit must be >= 1 images, got {self.limit}")
         if self.scatter not in KERNEL_CHOICES:
@@ -73,7 +80,41 @@ def bench_sequence(config: SequenceBenchConfig) -> dict:
         raise BundleError(f"model bundle {config.bundle} does not exist")
     if not Path(config.images).is_dir():
         raise InputError(f"image folder {config.images} does not exist")
-    return run_benchmark(_bench_here, config)
+    doc = run_benchmark(_bench_here, config)
+    doc["workers"] = {"1": _summary(doc)}
+    if config.workers > 1:
+        doc["workers"][str(config.workers)] = run_benchmark(_bench_workers_here, config)
+    return doc
+
+
+def _summary(doc: dict) -> dict:
+    """The figures compared across worker counts, from a one-thread run's document."""
+    return {"cpu_ms_per_frame": doc["cpu_ms_per_frame"], "frames_per_second": doc["frames_per_second"],
+            "wall_s": doc["wall_s"], "stages_ms_mean": {k: v["mean"] for k, v in doc["stages_ms"].items()},
+            "loops": doc["loops"], "cores": 1 if doc["single_core"] else None}
+
+
+def _bench_workers_here(config: SequenceBenchConfig) -> dict:
+    """The images decided with config.workers threads on as many pinned cores: CPU ms per frame
+    (the process's), frames per second and the stages' mean wall ms per frame."""
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.adapters.frame_loop import FrameLoop
+    from aefabmap_runtime.adapters.frame_pipeline import pipelined
+    from aefabmap_runtime.adapters.image_folder import list_images
+
+    cores = prepare_process(config, cores=config.workers)
+    paths = list_images(config.images)[: config.limit]
+    loop = FrameLoop(load_detector(config.bundle, config.detector_config()), strict=True)
+    stages: dict[str, list[float]] = {k: [] for k in STAGES}
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _, out in pipelined(loop, ((i, p, i) for i, p in enumerate(paths)), config.workers):
+        stage = {"decode": out.decode_ms, "verification": 0.0, **out.result.timings_ms}
+        for name in STAGES:
+            stages[name].append(stage.get(name, 0.0))
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    return {"cpu_ms_per_frame": round(cpu * 1e3 / len(paths), 3), "frames_per_second": round(len(paths) / wall, 2),
+            "wall_s": round(wall, 3), "stages_ms_mean": {k: _stats(v)["mean"] for k, v in stages.items()},
+            "loops": loop.loops, "cores": cores}
 
 
 def _bench_here(config: SequenceBenchConfig) -> dict:
@@ -92,7 +133,7 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
     cpu: dict[str, list[float]] = {k: [] for k in STAGES}
     total_wall, total_cpu, tried = [], [], []
     image_size = None
-    t_start = time.perf_counter()
+    t_start, c_start = time.perf_counter(), time.process_time()
     for i, path in enumerate(paths):
         w0, c0 = time.perf_counter(), time.process_time()
         out = loop.step_file(path, i)
@@ -107,7 +148,7 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
         tried.append(out.result.candidates_tried)
         if image_size is None and out.gray is not None:
             image_size = [int(out.gray.shape[1]), int(out.gray.shape[0])]
-    seconds = time.perf_counter() - t_start
+    seconds, cpu_seconds = time.perf_counter() - t_start, time.process_time() - c_start
     manifest = det.manifest
     doc = {
         "benchmark": "sequence",
@@ -133,6 +174,8 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
         "total_ms": _stats(total_wall),
         "total_cpu_ms": _stats(total_cpu),
         "frames_per_second": round(len(paths) / seconds, 2) if seconds > 0 else None,
+        "wall_s": round(seconds, 3),
+        "cpu_ms_per_frame": round(cpu_seconds * 1e3 / len(paths), 3),
         "machine": machine_info(),
     }
     if config.calls:

@@ -18,6 +18,7 @@ from tqdm import tqdm
 from aefabmap_runtime.errors import InputError
 from aefabmap_runtime.adapters.bundle_reader import load_detector
 from aefabmap_runtime.adapters.frame_loop import FrameLoop
+from aefabmap_runtime.adapters.frame_pipeline import pipelined
 from aefabmap_runtime.adapters.image_folder import list_images
 from aefabmap_runtime.adapters.npy_file import load_npy
 from aefabmap_runtime.core.detector import (
@@ -79,8 +80,10 @@ class SequenceRun:
                          for r in self.results], np.float64)
 
 
-def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix: bool = True, show_progress: bool = True) -> SequenceRun:
-    """Run every image through the detector; keep the full score rows when keep_matrix."""
+def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix: bool = True, show_progress: bool = True,
+                 workers: int = 1) -> SequenceRun:
+    """Run every image through the detector; keep the full score rows when keep_matrix.
+    workers: threads that work on frames (adapters/frame_pipeline.py; the same results)."""
     n = len(images)
     matrix = np.zeros((n, n), np.float32) if keep_matrix and n <= 20000 else None
     results = []
@@ -89,8 +92,10 @@ def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix:
         stages["verification"] = []
     loop = FrameLoop(detector, strict=True)  # an unreadable frame stops the run: gt indices must hold
     t_start = time.perf_counter()
-    for i, path in enumerate(tqdm(images, desc="frames", disable=not show_progress, mininterval=1.0)):
-        out = loop.step_file(path, stamp_ns=i)
+    frames = ((i, path, i) for i, path in enumerate(images))
+    progress = tqdm(total=len(images), desc="frames", disable=not show_progress, mininterval=1.0)
+    for i, out in pipelined(loop, frames, workers):
+        progress.update()
         res = out.result
         stages["decode"].append(out.decode_ms)
         for k, v in res.timings_ms.items():
@@ -101,6 +106,7 @@ def run_sequence(detector: LoopClosureDetector, images: list[Path], keep_matrix:
                 frames = detector.place_frames()
                 matrix[i, frames] = row
         results.append(res)
+    progress.close()
     wall = time.perf_counter() - t_start
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return SequenceRun(results, {k: np.asarray(v) for k, v in stages.items()}, matrix, peak, wall)
@@ -151,15 +157,16 @@ def public(metrics: dict) -> dict:
 
 
 def evaluate_bundle(bundle_path, images_dir, gt_path, config: DetectorConfig | None = None, tolerance: int = 10,
-                    show_progress: bool = True, after_run=None) -> tuple[dict, SequenceRun]:
+                    show_progress: bool = True, after_run=None, workers: int = 1) -> tuple[dict, SequenceRun]:
     """Run a bundle over an image directory and score it against gt_path.
 
     after_run: called with the detector once every frame went through (e.g. to save its map).
+    workers: threads that work on frames (run_sequence).
     """
     images = list_images(images_dir)
     gt = load_ground_truth(gt_path, len(images))
     detector = load_detector(bundle_path, config)
-    run = run_sequence(detector, images, show_progress=show_progress)
+    run = run_sequence(detector, images, show_progress=show_progress, workers=workers)
     if after_run is not None:
         after_run(detector)
     if detector.store is not None:

@@ -195,9 +195,10 @@ def run_benchmark(fn, config) -> dict:
         compiled.use(previous)
 
 
-def prepare_process(config) -> int | None:
+def prepare_process(config, cores: int = 1) -> int | list[int] | None:
     """Kernels as config.scatter asks (KERNEL_CHOICES; "auto": the preferred compiled form), and with
-    config.single_core one OpenCV thread on one pinned CPU; returns that CPU (None: not pinned)."""
+    config.single_core one OpenCV thread on one pinned CPU; returns that CPU (None: not pinned).
+    cores > 1: pinned to that many CPUs instead (the last ones), whose list is returned."""
     import cv2
 
     from aefabmap_runtime.core.kernels import compiled
@@ -206,7 +207,7 @@ def prepare_process(config) -> int | None:
     if not config.single_core:
         return None
     cv2.setNumThreads(1)
-    return pin_one_cpu()
+    return pin_one_cpu() if cores == 1 else pin_cpus(cores)
 
 
 def run_spawned_single_thread(fn, *args):
@@ -226,6 +227,16 @@ def run_spawned_single_thread(fn, *args):
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+def pin_cpus(n: int) -> list[int] | None:
+    """Pin this process to the last n CPUs it may run on (all of them when fewer); their numbers."""
+    try:
+        cpus = sorted(os.sched_getaffinity(0))[-n:]
+        os.sched_setaffinity(0, set(cpus))
+        return cpus
+    except (AttributeError, OSError):
+        return None
 
 
 def pin_one_cpu() -> int | None:
