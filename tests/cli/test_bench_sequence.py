@@ -69,3 +69,27 @@ def test_bench_sequence_refuses_bad_settings_in_one_line_before_loading(tmp_path
     code = main(["bench", "sequence", "--images", str(tmp_path), *option])
     assert code == 2
     assert len([r for r in caplog.records if r.levelname == "ERROR"]) == 1
+
+
+@pytest.mark.timeout(180)
+def test_bench_sequence_workers_reports_both_thread_counts(tmp_path, capsys):
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
+
+    make_demo_sequence(tmp_path / "seq", n_frames=12, seed=6, size=(320, 240))
+    out = tmp_path / "sequence.json"
+    code = main(["bench", "sequence", "--images", str(tmp_path / "seq"), "--exclude", "2", "--workers", "2",
+                 "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    one, two = doc["workers"]["1"], doc["workers"]["2"]
+    for run in (one, two):
+        assert run["cpu_ms_per_frame"] > 0 and run["frames_per_second"] > 0 and run["wall_s"] > 0
+        assert set(run["stages_ms_mean"]) == {"decode", "features", "quantise", "inference", "verification"}
+    assert one["loops"] == two["loops"] == doc["loops"] and one["cores"] == 1
+    assert "workers" in capsys.readouterr().out
+
+
+def test_bench_sequence_refuses_a_bad_worker_count(tmp_path, caplog):
+    code = main(["bench", "sequence", "--images", str(tmp_path), "--workers", "0"])
+    assert code != 0
+    assert any("workers" in r.getMessage() for r in caplog.records)

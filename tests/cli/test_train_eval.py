@@ -111,3 +111,34 @@ def test_eval_refuses_a_malformed_camera(tmp_path, caplog):
                  "--gt", str(tmp_path / "gt.npy"), "--camera", "400,400,320"])
     assert code != 0
     assert "camera" in caplog.text
+
+
+@pytest.mark.timeout(300)
+def test_eval_with_two_workers_writes_the_same_records(tmp_path):
+    """eval --workers 2: the per-frame evidence and the metrics of --workers 1 (timings aside)."""
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap_runtime.tools.synthetic_route import make_demo_sequence
+
+    seq = tmp_path / "seq"
+    make_demo_sequence(seq, n_frames=30, seed=2, size=(320, 240))
+    gt = np.zeros((30, 30), bool)
+    gt_path = tmp_path / "gt.npy"
+    np.save(gt_path, gt)
+    docs, records = {}, {}
+    for workers in ("1", "2"):
+        out, frames = tmp_path / f"w{workers}.json", tmp_path / f"w{workers}.jsonl"
+        assert main(["eval", "--model", str(default_bundle()), "--images", str(seq), "--gt", str(gt_path),
+                     "--exclude", "3", "--workers", workers, "--json", str(out), "--frames", str(frames),
+                     "--no-progress"]) == 0
+        docs[workers] = _without_timing(json.loads(out.read_text()))
+        records[workers] = frames.read_text()
+    assert records["1"] == records["2"] and len(records["1"].splitlines()) == 30
+    assert docs["1"] == docs["2"]
+
+
+def _without_timing(doc):
+    """An eval document without what differs from run to run (times, memory)."""
+    if isinstance(doc, dict):
+        return {k: _without_timing(v) for k, v in doc.items()
+                if k not in ("ms_per_frame", "verification_ms", "wall_s", "peak_rss_mb")}
+    return doc

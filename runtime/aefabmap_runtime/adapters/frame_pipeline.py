@@ -9,7 +9,9 @@ compiled kernels release Python's lock while they work, so threads share the cor
 
 `workers` counts the threads that work on frames, the caller's included: 1 runs everything on the
 caller's thread as before; N adds N - 1 threads. While the caller waits for the oldest frame it
-prepares a later one itself. At most `depth` frames are in flight (bounded memory).
+prepares a later one itself. At most `depth` frames are in flight (bounded memory). With N > 1,
+OpenCV's own thread pool is held at one thread while the pipeline is open: the cores go to frames,
+not to OpenCV's threads waiting on one another.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Generic, TypeVar
+
+import cv2
 
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.adapters.frame_loop import FrameLoop, FrameOutcome, PreparedInput
@@ -71,6 +75,10 @@ class FramePipeline(Generic[T]):
         self.depth = max(1, depth if depth is not None else 2 * self.workers if self.workers > 1 else 1)
         self._pool = ThreadPoolExecutor(self.workers - 1, thread_name_prefix="aefabmap-frame") \
             if self.workers > 1 else None
+        self._opencv_threads = None
+        if self._pool is not None:
+            self._opencv_threads = cv2.getNumThreads()
+            cv2.setNumThreads(1)
         self._jobs: deque[_Job[T]] = deque()
         # One worker: each frame is decoded and processed at its turn, exactly as FrameLoop.step does.
         self._extract = self.workers > 1
@@ -90,6 +98,9 @@ class FramePipeline(Generic[T]):
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
+        if self._opencv_threads is not None:
+            cv2.setNumThreads(self._opencv_threads)
+            self._opencv_threads = None
 
     @property
     def pending(self) -> int:

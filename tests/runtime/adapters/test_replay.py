@@ -479,3 +479,31 @@ def test_a_stop_ends_a_paced_replay_between_frames(tmp_path):
                      stop=stop)
     assert summary.stopped and summary.frames_processed == 2 and seen == [0, 1]
     assert time.monotonic() - t0 < 3.0 + 2.5  # one capped gap, then the stop within its wait
+
+
+def test_a_node_and_a_replay_with_two_workers_give_one_threads_results(tmp_path):
+    """`run --workers 2` on a live stream and `replay --workers 2` of its log: every frame decided in
+    order, and the replay's --check (all fields but the timings) passes against the live results,
+    as does a one-thread replay."""
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
+
+    config = DetectorConfig(exclude=3)
+    listen, connect = session_pair()
+    log_path = tmp_path / "two.mcap"
+    images, _ = generate_loop_sequence(24, seed=5, size=(320, 240))
+    with NodeThread(detector=load_detector(default_bundle(), config), session_config=listen, key=KEY,
+                    mcap_path=log_path, queue_size=64, stats_period_s=1.0, workers=2) as node:
+        with open_session(connect) as s:
+            results = JsonCollector(s, "robot/camera/lcd")
+            publish_frames(connect, KEY, array_source(images, "png"), rate_hz=50, wait_for_subscriber_s=10)
+            docs = results.wait_for(lambda d: d["sequence"] == 23, timeout_s=60)
+            results.close()
+        summary = node.finish()
+    assert summary.frames_processed == 24 and summary.bad_total == 0
+    assert [d["sequence"] for d in docs] == list(range(24)) and any(d["verified"] for d in docs)
+    for workers in (2, 1):
+        replayed = replay(load_detector(default_bundle(), config), log_path, check=True, workers=workers)
+        assert replayed.check.ok and replayed.check.compared == 24, replayed.check.describe()
