@@ -24,6 +24,7 @@ API int64_t aefabmap_kernels_version(void) { return 1; }
 #include <immintrin.h>
 #define POPCNT_TARGET __attribute__((target("popcnt")))
 #define AVX2_TARGET __attribute__((target("avx2,popcnt")))
+#define AVX512_POPCNT_TARGET __attribute__((target("avx512f,avx512vpopcntdq,avx2,popcnt")))
 #else
 #define HAVE_DISPATCH 0
 #define POPCNT_TARGET
@@ -159,6 +160,45 @@ static AVX2_TARGET int nearest_two_avx2_256(const uint64_t *a, const uint64_t *b
     return 0;
 }
 
+/* The same search with AVX-512's vector popcount, eight searched rows per step: each lane keeps its
+ * two lowest keys as nearest_two_avx2_256 does, so the two lowest of all are among those sixteen and
+ * the tail's (the same result, fewer instructions per distance). */
+static AVX512_POPCNT_TARGET int nearest_two_avx512_256(const uint64_t *a, const uint64_t *bt, int32_t *dist,
+                                                       int32_t *index, int64_t n, int64_t m) {
+    const int64_t none = (int64_t)1 << 62;
+    const uint64_t *b0 = bt, *b1 = bt + m, *b2 = bt + 2 * m, *b3 = bt + 3 * m;
+    const int64_t m8 = m - m % 8;
+    for (int64_t i = 0; i < n; i++) {
+        const uint64_t *ai = a + i * 4;
+        const __m512i a0 = _mm512_set1_epi64((long long)ai[0]), a1 = _mm512_set1_epi64((long long)ai[1]);
+        const __m512i a2 = _mm512_set1_epi64((long long)ai[2]), a3 = _mm512_set1_epi64((long long)ai[3]);
+        __m512i lowest = _mm512_set1_epi64(none), next = lowest, j8 = _mm512_setr_epi64(0, 1, 2, 3, 4, 5, 6, 7);
+        const __m512i eight = _mm512_set1_epi64(8);
+        for (int64_t j = 0; j < m8; j += 8) {
+            __m512i d = _mm512_popcnt_epi64(_mm512_xor_si512(a0, _mm512_loadu_si512((const void *)(b0 + j))));
+            d = _mm512_add_epi64(d, _mm512_popcnt_epi64(_mm512_xor_si512(a1, _mm512_loadu_si512((const void *)(b1 + j)))));
+            d = _mm512_add_epi64(d, _mm512_popcnt_epi64(_mm512_xor_si512(a2, _mm512_loadu_si512((const void *)(b2 + j)))));
+            d = _mm512_add_epi64(d, _mm512_popcnt_epi64(_mm512_xor_si512(a3, _mm512_loadu_si512((const void *)(b3 + j)))));
+            __m512i k = _mm512_or_si512(_mm512_slli_epi64(d, 32), j8);
+            __mmask8 below_lowest = _mm512_cmpgt_epi64_mask(lowest, k), below_next = _mm512_cmpgt_epi64_mask(next, k);
+            next = _mm512_mask_blend_epi64(below_lowest, _mm512_mask_blend_epi64(below_next, next, k), lowest);
+            lowest = _mm512_mask_blend_epi64(below_lowest, lowest, k);
+            j8 = _mm512_add_epi64(j8, eight);
+        }
+        int64_t keys[16], best = none, second = none;
+        _mm512_storeu_si512((void *)keys, lowest);
+        _mm512_storeu_si512((void *)(keys + 8), next);
+        for (int t = 0; t < 16; t++) keep_two(keys[t], &best, &second);
+        for (int64_t j = m8; j < m; j++) {
+            int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
+                      + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
+            keep_two((d << 32) | j, &best, &second);
+        }
+        write_two(best, second, none, dist + 2 * i, index + 2 * i);
+    }
+    return 0;
+}
+
 static POPCNT_TARGET int nearest_two_popcnt(const uint64_t *a, const uint64_t *bt, int32_t *dist, int32_t *index,
                                             int64_t n, int64_t w, int64_t m) {
     NEAREST_TWO_BODY
@@ -171,6 +211,8 @@ API int nearest_two(const uint64_t *a, const uint64_t *bt, int32_t *dist, int32_
                     int64_t m) {
 #if HAVE_DISPATCH
     __builtin_cpu_init();
+    if (w == 4 && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vpopcntdq"))
+        return nearest_two_avx512_256(a, bt, dist, index, n, m);
     if (w == 4 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("popcnt"))
         return nearest_two_avx2_256(a, bt, dist, index, n, m);
     if (__builtin_cpu_supports("popcnt")) return nearest_two_popcnt(a, bt, dist, index, n, w, m);
