@@ -15,6 +15,7 @@ import numpy as np
 
 from aefabmap_runtime.errors import ConfigError, InputError
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind, get_kind
+from aefabmap_runtime.core.features.orb_description import OrbDescriber
 
 #: Shortest image side (px) the extractor works on, before and after resizing: OpenCV's
 #: ORB pyramid shrinks each level by 1.2 and asserts when a level reaches 0 px.
@@ -203,6 +204,9 @@ class FeatureExtractor:
         # Bucketing proposes more keypoints than it keeps, then spreads the budget over a grid.
         self._detector = self.kind.create(c.max_features * (c.bucket_oversample if c.bucket_grid else 1))
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if c.clahe else None
+        # ORB: OpenCV detects, the compiled kernel describes both orientations from one blurred
+        # pyramid, OpenCV's bytes (features/orb_description.py); None: OpenCV describes.
+        self._describer = OrbDescriber.for_detector(self._detector)
 
     def extract(self, image: np.ndarray) -> Features:
         """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array.
@@ -232,8 +236,36 @@ class FeatureExtractor:
             work = stretch_contrast(work)
         if self._clahe is not None:
             work = self._clahe.apply(work)
+        if self._describer is not None:
+            packed = self._pack_described(self._detector.detect(work, None), scale, gray.shape, work)
+            if packed is not None:
+                return packed
         kps, desc = self._detector.detectAndCompute(work, None)
         return self._pack(kps, desc, scale, gray.shape, work)
+
+    def _pack_described(self, kps, scale: float, shape, work: np.ndarray) -> Features | None:
+        """As `_pack`, with the kept keypoints described by the compiled kernel (None: it cannot
+        describe one of them; the caller lets OpenCV describe the frame)."""
+        c = self.config
+        n = len(kps)
+        if n == 0:
+            return self._pack(kps, None, scale, shape, work)
+        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
+        # One pass over the KeyPoint objects for every attribute used (each pass costs per keypoint).
+        attrs = np.fromiter(((k.response, k.size, k.angle, k.octave) for k in kps), np.dtype((np.float32, 4)), n)
+        order = np.lexsort((pts[:, 0], pts[:, 1], -attrs[:, 0]))
+        if c.bucket_grid:
+            order = order[_bucket_turns(pts[order], work.shape, c.bucket_grid)]
+        order = order[: c.max_features]
+        kept = attrs[order]
+        described = self._describer.describe(work, pts[order], kept[:, 2], kept[:, 3].astype(np.int32),
+                                             oriented=True, upright=self.upright)
+        if described is None:
+            return None
+        desc, upright = described
+        return Features(pts[order] / scale, kept[:, 1] / scale, self.kind.finish(desc, c.rootsift),
+                        (int(shape[0]), int(shape[1])),
+                        self.kind.finish(upright, c.rootsift) if upright is not None else None)
 
     def _pack(self, kps, desc, scale: float, shape, work: np.ndarray) -> Features:
         c = self.config

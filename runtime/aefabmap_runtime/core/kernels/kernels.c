@@ -16,7 +16,7 @@
 #define API __attribute__((visibility("default")))
 
 /* Version of this library's functions and arguments: native.py refuses a library built from other sources. */
-API int64_t aefabmap_kernels_version(void) { return 1; }
+API int64_t aefabmap_kernels_version(void) { return 2; }
 
 /* ---- popcount: the CPU instruction where it has one (x86-64 without POPCNT gets libgcc's) ---- */
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -425,4 +425,89 @@ API int select_words(int32_t *products, const int32_t *upper_offset, const int32
     }
     free(floors);
     return 0;
+}
+
+
+/* ---- ORB descriptors of detected keypoints, oriented and upright (features/orb_description.py) ---- */
+
+/* To nearest, ties to even, as OpenCV's cvRound in the default rounding mode: adding and removing
+ * 1.5 * 2^23 leaves a float of magnitude under 2^22 rounded to an integer (no libm call, vectorisable). */
+static inline float round_even(float v) {
+    const float shift = 12582912.0f; /* built without -ffast-math: the two steps are kept */
+    return (v + shift) - shift;
+}
+
+/* levels: n_levels addresses of the blurred pyramid levels (uint8, row strides `steps`, sizes rows x cols);
+ * inv_scale (n_levels,) float32: 1 / the level's scale; x, y (n,) float32: keypoint positions on level 0;
+ * angle (n,) float32 degrees; octave (n,) int32; pattern (pairs, 4) int32: x1, y1, x2, y2 of each bit's
+ * pair around the centre, bit j of byte j / 8 at position j % 8; oriented / upright: (n, pairs / 8) uint8
+ * outputs, either may be NULL. Bit j is 1 when the level's value at the first point is below the value
+ * at the second (oriented: the points turned by the keypoint's angle in float32, as OpenCV's ORB turns
+ * them). Returns the number of keypoints whose points leave their level (their rows are zero), -1 for
+ * an octave outside the levels, -2 when out of memory. */
+API int64_t orb_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
+                         int64_t n_levels, const float *inv_scale, const float *x, const float *y, const float *angle,
+                         const int32_t *octave, int64_t n, const int32_t *pattern, int64_t pairs, uint8_t *oriented,
+                         uint8_t *upright) {
+    const int64_t width = pairs / 8, points = 2 * pairs;
+    const float to_radians = (float)(3.14159265358979323846 / 180.f);
+    float *px = (float *)malloc((size_t)points * sizeof(float)), *py = (float *)malloc((size_t)points * sizeof(float));
+    int32_t *offset = (int32_t *)malloc((size_t)points * sizeof(int32_t));
+    if (!px || !py || !offset) {
+        free(px); free(py); free(offset);
+        return -2;
+    }
+    int reach = 0; /* every turned point lies within max |x| + max |y| of the centre */
+    for (int64_t j = 0; j < points; j++) {
+        px[j] = (float)pattern[2 * j];
+        py[j] = (float)pattern[2 * j + 1];
+        int r = abs(pattern[2 * j]) + abs(pattern[2 * j + 1]);
+        reach = r > reach ? r : reach;
+    }
+    reach += 1;
+    int64_t outside = 0;
+    for (int64_t i = 0; i < n; i++) {
+        int32_t o = octave[i];
+        if (o < 0 || o >= n_levels) {
+            free(px); free(py); free(offset);
+            return -1;
+        }
+        const int64_t step = steps[o];
+        const int cx = (int)round_even(x[i] * inv_scale[o]), cy = (int)round_even(y[i] * inv_scale[o]);
+        uint8_t *d_or = oriented ? oriented + i * width : NULL;
+        uint8_t *d_up = upright ? upright + i * width : NULL;
+        if (cx - reach < 0 || cy - reach < 0 || cx + reach >= cols[o] || cy + reach >= rows[o]) {
+            if (d_or) memset(d_or, 0, (size_t)width);
+            if (d_up) memset(d_up, 0, (size_t)width);
+            outside++;
+            continue;
+        }
+        const uint8_t *center = (const uint8_t *)levels[o] + cy * step + cx;
+        if (d_or) {
+            const float rad = angle[i] * to_radians;
+            const float a = (float)cos((double)rad), b = (float)sin((double)rad);
+            for (int64_t j = 0; j < points; j++) {
+                const float tx = px[j] * a - py[j] * b, ty = px[j] * b + py[j] * a;
+                offset[j] = (int32_t)round_even(ty) * (int32_t)step + (int32_t)round_even(tx);
+            }
+            for (int64_t byte = 0; byte < width; byte++) {
+                unsigned v = 0;
+                const int32_t *off = offset + byte * 16;
+                for (int k = 0; k < 8; k++) v |= (unsigned)(center[off[2 * k]] < center[off[2 * k + 1]]) << k;
+                d_or[byte] = (uint8_t)v;
+            }
+        }
+        if (d_up) {
+            for (int64_t byte = 0; byte < width; byte++) {
+                unsigned v = 0;
+                for (int k = 0; k < 8; k++) {
+                    const int32_t *p = pattern + (byte * 8 + k) * 4;
+                    v |= (unsigned)(center[p[1] * step + p[0]] < center[p[3] * step + p[2]]) << k;
+                }
+                d_up[byte] = (uint8_t)v;
+            }
+        }
+    }
+    free(px); free(py); free(offset);
+    return outside;
 }

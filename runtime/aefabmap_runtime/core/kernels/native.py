@@ -22,7 +22,7 @@ from aefabmap_runtime.errors import ConfigError
 
 #: The interface version kernels.c reports (aefabmap_kernels_version): a library built from other
 #: sources is not used.
-VERSION = 1
+VERSION = 2
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -36,6 +36,7 @@ _SIGNATURES = {
     "transfer_errors": (None, [_P, _P, _P, _P, _P, _I64]),
     "epipolar_errors": (None, [_P, _P, _P, ctypes.c_double, _P, _I64]),
     "select_words": (ctypes.c_int, [_P, _P, _P, _P, _P, _P, _P, _I64, _I64, _I64]),
+    "orb_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _I64, _P, _I64, _P, _P]),
 }
 
 
@@ -183,3 +184,37 @@ def select_words(products, upper_offset, width, bits, centroids, half_sq_norms, 
     _memory(_lib.select_words(_writable(products, np.int32, 2), _arg(upper_offset, np.int32, 1),
                               _arg(width, np.int32, 1), _arg(bits, np.uint8, 2), _arg(centroids, np.float32, 2),
                               _arg(half_sq_norms, np.float64, 1), _writable(best, np.int32, 1), n, k, d))
+
+
+def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upright) -> int:
+    """ORB descriptors of keypoints on a blurred pyramid (features/orb_description.py).
+
+    levels: list of (rows, cols) uint8 arrays (rows may be strided); inv_scale (L,) float32; x, y,
+    angle (N,) float32; octave (N,) int32 in [0, L); pattern (P, 4) int32; oriented, upright:
+    (N, P / 8) uint8 or None. Returns the number of keypoints too near a level's edge to describe
+    (their rows are zero)."""
+    n, n_levels = x.size, len(levels)
+    _same(n, y.size, angle.size, octave.size)
+    _same(n_levels, inv_scale.size)
+    if pattern.ndim != 2 or pattern.shape[1] != 4 or pattern.shape[0] % 8:
+        raise ConfigError(f"orb_describe: pattern {pattern.shape} is not (8k, 4)")
+    for out in (oriented, upright):
+        if out is not None and out.shape != (n, pattern.shape[0] // 8):
+            raise ConfigError(f"orb_describe: output {out.shape} is not ({n}, {pattern.shape[0] // 8})")
+    if any(lv.dtype != np.uint8 or lv.ndim != 2 or lv.strides[1] != 1 for lv in levels):
+        raise ConfigError("orb_describe: levels must be 2-D uint8 arrays with contiguous rows")
+    addresses = np.array([lv.__array_interface__["data"][0] for lv in levels], np.intp)
+    steps = np.array([lv.strides[0] for lv in levels], np.int64)
+    rows = np.array([lv.shape[0] for lv in levels], np.int64)
+    cols = np.array([lv.shape[1] for lv in levels], np.int64)
+    status = _lib.orb_describe(
+        _arg(addresses, np.intp, 1), _arg(steps, np.int64, 1), _arg(rows, np.int64, 1), _arg(cols, np.int64, 1),
+        n_levels, _arg(inv_scale, np.float32, 1), _arg(x, np.float32, 1), _arg(y, np.float32, 1),
+        _arg(angle, np.float32, 1), _arg(octave, np.int32, 1), n, _arg(pattern, np.int32, 2), pattern.shape[0],
+        None if oriented is None else _writable(oriented, np.uint8, 2),
+        None if upright is None else _writable(upright, np.uint8, 2))
+    if status == -2:
+        raise MemoryError("compiled kernel: out of memory")
+    if status < 0:
+        raise ConfigError("orb_describe: a keypoint's octave lies outside the pyramid")
+    return int(status)
