@@ -146,16 +146,12 @@ class FramePipeline(Generic[T]):
         return oldest.context, self.loop.finish(prepared, oldest.stamp_ns)
 
 
-def pipelined(loop: FrameLoop, frames: Iterable[tuple[T, Any, int]], workers: int = 1,
-              kind: str = "file") -> Iterator[tuple[T, FrameOutcome]]:
-    """Decide every frame of `frames`, (context, path or (payload, encoding), stamp_ns), in order,
-    with `workers` threads (see the module doc); yields (context, outcome) as each is decided."""
+def pipelined(loop: FrameLoop, files: Iterable[tuple[T, Any, int]], workers: int = 1) -> Iterator[tuple[T, FrameOutcome]]:
+    """Decide every image file of `files`, (context, path, stamp_ns), in order, with `workers`
+    threads (see the module doc); yields (context, outcome) as each is decided."""
     with FramePipeline(loop, workers) as pipe:
-        for context, source, stamp_ns in frames:
-            if kind == "file":
-                pipe.put_file(context, source, stamp_ns)
-            else:
-                pipe.put_payload(context, source[0], source[1], stamp_ns)
+        for context, path, stamp_ns in files:
+            pipe.put_file(context, path, stamp_ns)
             while pipe.full:
                 yield pipe.take()
         while pipe.pending:

@@ -316,15 +316,15 @@ def run_node(
         # Frames in flight (workers > 1): received frames are prepared ahead and decided in order;
         # the node waits for the transport only when none is in flight.
         with FramePipeline(loop, options.workers, before=counted) as pipe:
-            while not stop_event.is_set() and \
-                    (options.max_frames is None or loop.processed + pipe.pending < options.max_frames):
-                wait_s = emitter.tick()
-                frame = io.sub.receive(wait_s if not pipe.pending else 0.0, stop_event)
-                if frame is not None:
-                    if frame.error is not None:
+            while not stop_event.is_set() and (options.max_frames is None or loop.processed < options.max_frames):
+                frame = None
+                if options.max_frames is None or loop.processed + pipe.pending < options.max_frames:
+                    wait_s = emitter.tick()
+                    frame = io.sub.receive(wait_s if not pipe.pending else 0.0, stop_event)
+                    if frame is not None and frame.error is not None:
                         pipe.put_prepared(frame, PreparedInput(error=frame.error, reason=frame.error.reason),
                                           frame.stamp_ns)
-                    else:
+                    elif frame is not None:
                         pipe.put_payload(frame, frame.payload, frame.encoding, frame.stamp_ns)
                 if pipe.pending and (frame is None or pipe.full):
                     decided(*pipe.take())
