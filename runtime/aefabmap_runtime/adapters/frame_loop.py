@@ -148,25 +148,11 @@ class FrameLoop:
 
     def step(self, payload: bytes | bytearray | memoryview, encoding: str, stamp_ns: int) -> FrameOutcome:
         """Decode a frame payload (runtime/aefabmap_runtime/adapters/frames.py encodings) and detect on it."""
-        self.frames_in += 1
-        t0 = time.perf_counter()
-        try:
-            gray = decode_frame(payload, encoding)
-        except FrameError as exc:
-            return self._refuse(exc, exc.reason)
-        return self._detect(gray, stamp_ns, (time.perf_counter() - t0) * 1e3)
+        return self.finish(self.prepare_payload(payload, encoding, extract=False), stamp_ns)
 
     def step_file(self, path: str | Path, stamp_ns: int) -> FrameOutcome:
         """Read and decode an image file, then detect on it."""
-        self.frames_in += 1
-        t0 = time.perf_counter()
-        try:
-            gray = load_image(path)
-        except FrameError as exc:
-            return self._refuse(exc, exc.reason)
-        except InputError as exc:
-            return self._refuse(exc, "corrupt")
-        return self._detect(gray, stamp_ns, (time.perf_counter() - t0) * 1e3)
+        return self.finish(self.prepare_file(path, extract=False), stamp_ns)
 
     def refuse(self, error: FrameError) -> FrameOutcome:
         """Count a frame its transport could not unwrap (e.g. broken ROS 2 CDR) as bad."""

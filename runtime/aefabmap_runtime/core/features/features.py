@@ -243,6 +243,16 @@ class FeatureExtractor:
         kps, desc = self._detector.detectAndCompute(work, None)
         return self._pack(kps, desc, scale, gray.shape, work)
 
+    def _kept(self, pts: np.ndarray, response: np.ndarray, shape_hw: tuple[int, int]) -> np.ndarray:
+        """Indices of the keypoints kept (pts (N, 2) on the detection image, response (N,)), in
+        their order: strongest first, ties broken by position (a fixed order for fixed input),
+        spread over the grid when bucketing, at most max_features."""
+        c = self.config
+        order = np.lexsort((pts[:, 0], pts[:, 1], -response))
+        if c.bucket_grid:
+            order = order[_bucket_turns(pts[order], shape_hw, c.bucket_grid)]
+        return order[: c.max_features]
+
     def _pack_described(self, kps, scale: float, shape, work: np.ndarray) -> Features | None:
         """As `_pack`, with the kept keypoints described by the compiled kernel (None: it cannot
         describe one of them; the caller lets OpenCV describe the frame)."""
@@ -253,10 +263,7 @@ class FeatureExtractor:
         pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
         # One pass over the KeyPoint objects for every attribute used (each pass costs per keypoint).
         attrs = np.fromiter(((k.response, k.size, k.angle, k.octave) for k in kps), np.dtype((np.float32, 4)), n)
-        order = np.lexsort((pts[:, 0], pts[:, 1], -attrs[:, 0]))
-        if c.bucket_grid:
-            order = order[_bucket_turns(pts[order], work.shape, c.bucket_grid)]
-        order = order[: c.max_features]
+        order = self._kept(pts, attrs[:, 0], work.shape)
         kept = attrs[order]
         described = self._describer.describe(work, pts[order], kept[:, 2], kept[:, 3].astype(np.int32),
                                              oriented=True, upright=self.upright)
@@ -282,11 +289,7 @@ class FeatureExtractor:
         # each fromiter still has a cost, so only the attributes used are read: docs/results.md,
         # "Per frame".)
         pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
-        resp = np.fromiter((k.response for k in kps), np.float32, n)
-        order = np.lexsort((pts[:, 0], pts[:, 1], -resp))
-        if c.bucket_grid:
-            order = order[_bucket_turns(pts[order], work.shape, c.bucket_grid)]
-        order = order[: c.max_features]
+        order = self._kept(pts, np.fromiter((k.response for k in kps), np.float32, n), work.shape)
         pts = pts[order] / scale
         sizes = np.fromiter((k.size for k in kps), np.float32, n)[order] / scale
         upright = self.kind.finish(self._upright(work, kps, order, desc), c.rootsift) if self.upright else None
