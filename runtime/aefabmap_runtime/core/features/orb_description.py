@@ -107,12 +107,11 @@ def probe_pattern(orb) -> np.ndarray | None:
     s = read(xx + yy - centre, 5, 6)  # x + y: the separable blur reaches 3 + 3 along it
     if x is None or y is None or s is None:
         return None
-    cols = []
-    for (xi, yi, si) in zip(x, y, s):
+    cols = []  # x1, y1, x2, y2: a coordinate the x or y steps could not settle comes from x + y
+    for xi, yi, si in zip(x, y, s):
         xi = np.where(np.isnan(xi), si - yi, xi)
-        yi = np.where(np.isnan(yi), si - xi, yi)
-        cols += [xi, yi]
-    points = np.stack([cols[0], cols[1], cols[2], cols[3]], axis=1)
+        cols += [xi, np.where(np.isnan(yi), si - xi, yi)]
+    points = np.stack(cols, axis=1)
     if np.isnan(points).any() or np.abs(points).max() > 15:
         return None
     return points.astype(np.int32)
@@ -135,11 +134,8 @@ class OrbDescriber:
             return None
         if orb.getPatchSize() != 31 or orb.getWTA_K() != 2 or orb.getFirstLevel() != 0 or orb.getEdgeThreshold() < 31:
             return None
-        pattern = _pattern_of(orb.getNLevels(), orb.getScaleFactor(), orb.getFastThreshold())
-        if pattern is None:
-            return None
-        describer = cls(orb.getNLevels(), orb.getScaleFactor(), pattern)
-        return describer if describer._agrees_with(orb) else None
+        pattern = _checked_pattern(orb.getNLevels(), orb.getScaleFactor())
+        return None if pattern is None else cls(orb.getNLevels(), orb.getScaleFactor(), pattern)
 
     def describe(self, image: np.ndarray, xy: np.ndarray, angle: np.ndarray, octave: np.ndarray,
                  oriented: bool = True, upright: bool = False) -> tuple[np.ndarray | None, np.ndarray | None] | None:
@@ -160,7 +156,7 @@ class OrbDescriber:
                                       self.pattern, out_o, out_u)
         return None if outside else (out_o, out_u)
 
-    def _agrees_with(self, orb) -> bool:
+    def agrees_with(self, orb) -> bool:
         """Whether this describer gives OpenCV's bytes, oriented and upright, for `orb`'s
         keypoints on a seeded textured test image."""
         rng = np.random.default_rng(0)
@@ -182,10 +178,12 @@ class OrbDescriber:
 
 
 @functools.lru_cache(maxsize=4)
-def _pattern_of(n_levels: int, scale_factor: float, fast_threshold: int) -> np.ndarray | None:
-    """The probed pattern (once per process and ORB setting)."""
-    probe = cv2.ORB_create(nfeatures=1, scaleFactor=scale_factor, nlevels=n_levels, fastThreshold=fast_threshold)
-    pattern = probe_pattern(probe)
-    if pattern is not None:
-        pattern.setflags(write=False)
+def _checked_pattern(n_levels: int, scale_factor: float) -> np.ndarray | None:
+    """The probed pattern, once it reproduced OpenCV's bytes with this pyramid (None: not), once
+    per process and pyramid setting (every thread's extractor asks)."""
+    orb = cv2.ORB_create(scaleFactor=scale_factor, nlevels=n_levels)
+    pattern = probe_pattern(orb)
+    if pattern is None or not OrbDescriber(n_levels, scale_factor, pattern).agrees_with(orb):
+        return None
+    pattern.setflags(write=False)
     return pattern
