@@ -120,6 +120,16 @@ static AVX2_TARGET inline __m256i byte_counts(__m256i v) {
     return _mm256_add_epi8(_mm256_shuffle_epi8(table, lo), _mm256_shuffle_epi8(table, hi));
 }
 
+/* The vector forms' tail: searched rows j in [from, m) of a 256-bit query row ai, into best / second. */
+static POPCNT_TARGET inline void keep_tail_256(const uint64_t *ai, const uint64_t *bt, int64_t m, int64_t from,
+                                               int64_t *best, int64_t *second) {
+    for (int64_t j = from; j < m; j++) {
+        int64_t d = __builtin_popcountll(ai[0] ^ bt[j]) + __builtin_popcountll(ai[1] ^ bt[m + j])
+                  + __builtin_popcountll(ai[2] ^ bt[2 * m + j]) + __builtin_popcountll(ai[3] ^ bt[3 * m + j]);
+        keep_two((d << 32) | j, best, second);
+    }
+}
+
 /* 256-bit rows (w == 4), four searched rows per step: the same keys d * 2^32 + j and minima as
  * NEAREST_TWO_BODY (a byte holds at most 32 set bits of the four words, so byte sums cannot wrap).
  * Each lane keeps its two lowest keys; keys are distinct (they hold j), so the two lowest of all
@@ -150,11 +160,7 @@ static AVX2_TARGET int nearest_two_avx2_256(const uint64_t *a, const uint64_t *b
         _mm256_storeu_si256((__m256i *)keys, lowest);
         _mm256_storeu_si256((__m256i *)(keys + 4), next);
         for (int t = 0; t < 8; t++) keep_two(keys[t], &best, &second);
-        for (int64_t j = m4; j < m; j++) {
-            int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
-                      + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
-            keep_two((d << 32) | j, &best, &second);
-        }
+        keep_tail_256(ai, bt, m, m4, &best, &second);
         write_two(best, second, none, dist + 2 * i, index + 2 * i);
     }
     return 0;
@@ -189,11 +195,7 @@ static AVX512_POPCNT_TARGET int nearest_two_avx512_256(const uint64_t *a, const 
         _mm512_storeu_si512((void *)keys, lowest);
         _mm512_storeu_si512((void *)(keys + 8), next);
         for (int t = 0; t < 16; t++) keep_two(keys[t], &best, &second);
-        for (int64_t j = m8; j < m; j++) {
-            int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
-                      + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
-            keep_two((d << 32) | j, &best, &second);
-        }
+        keep_tail_256(ai, bt, m, m8, &best, &second);
         write_two(best, second, none, dist + 2 * i, index + 2 * i);
     }
     return 0;
@@ -443,8 +445,8 @@ static inline float round_even(float v) {
  * pair around the centre, bit j of byte j / 8 at position j % 8; oriented / upright: (n, pairs / 8) uint8
  * outputs, either may be NULL. Bit j is 1 when the level's value at the first point is below the value
  * at the second (oriented: the points turned by the keypoint's angle in float32, as OpenCV's ORB turns
- * them). Returns the number of keypoints whose points leave their level (their rows are zero), -1 for
- * an octave outside the levels, -2 when out of memory. */
+ * them). Returns the number of keypoints whose points leave their level (their rows are zero), -1 when
+ * out of memory, -2 for an octave outside the levels. */
 API int64_t orb_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
                          int64_t n_levels, const float *inv_scale, const float *x, const float *y, const float *angle,
                          const int32_t *octave, int64_t n, const int32_t *pattern, int64_t pairs, uint8_t *oriented,
@@ -455,7 +457,7 @@ API int64_t orb_describe(const intptr_t *levels, const int64_t *steps, const int
     int32_t *offset = (int32_t *)malloc((size_t)points * sizeof(int32_t));
     if (!px || !py || !offset) {
         free(px); free(py); free(offset);
-        return -2;
+        return -1;
     }
     int reach = 0; /* every turned point lies within max |x| + max |y| of the centre */
     for (int64_t j = 0; j < points; j++) {
@@ -470,7 +472,7 @@ API int64_t orb_describe(const intptr_t *levels, const int64_t *steps, const int
         int32_t o = octave[i];
         if (o < 0 || o >= n_levels) {
             free(px); free(py); free(offset);
-            return -1;
+            return -2;
         }
         const int64_t step = steps[o];
         const int cx = (int)round_even(x[i] * inv_scale[o]), cy = (int)round_even(y[i] * inv_scale[o]);

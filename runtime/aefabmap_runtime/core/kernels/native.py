@@ -214,7 +214,6 @@ def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upri
         None if oriented is None else _writable(oriented, np.uint8, 2),
         None if upright is None else _writable(upright, np.uint8, 2))
     if status == -2:
-        raise MemoryError("compiled kernel: out of memory")
-    if status < 0:
         raise ConfigError("orb_describe: a keypoint's octave lies outside the pyramid")
+    _memory(status)
     return int(status)
