@@ -87,6 +87,11 @@ def bench_sequence(config: SequenceBenchConfig) -> dict:
     return doc
 
 
+def _stage_ms(out) -> dict[str, float]:
+    """One frame's ms per stage (STAGES; verification 0 where none ran)."""
+    return {"decode": out.decode_ms, "verification": 0.0, **out.result.timings_ms}
+
+
 def _summary(doc: dict) -> dict:
     """The figures compared across worker counts, from a one-thread run's document."""
     return {"cpu_ms_per_frame": doc["cpu_ms_per_frame"], "frames_per_second": doc["frames_per_second"],
@@ -108,7 +113,7 @@ def _bench_workers_here(config: SequenceBenchConfig) -> dict:
     stages: dict[str, list[float]] = {k: [] for k in STAGES}
     w0, c0 = time.perf_counter(), time.process_time()
     for _, out in pipelined(loop, ((i, p, i) for i, p in enumerate(paths)), config.workers):
-        stage = {"decode": out.decode_ms, "verification": 0.0, **out.result.timings_ms}
+        stage = _stage_ms(out)
         for name in STAGES:
             stages[name].append(stage.get(name, 0.0))
     wall, cpu = time.perf_counter() - w0, time.process_time() - c0
@@ -138,7 +143,7 @@ def _bench_here(config: SequenceBenchConfig) -> dict:
         w0, c0 = time.perf_counter(), time.process_time()
         out = loop.step_file(path, i)
         wall_ms, cpu_ms = (time.perf_counter() - w0) * 1e3, (time.process_time() - c0) * 1e3
-        stage = {"decode": out.decode_ms, "verification": 0.0, **out.result.timings_ms}
+        stage = _stage_ms(out)
         share = cpu_ms / wall_ms if wall_ms > 0 else 1.0  # CPU shared out by the stages' wall times
         for name in STAGES:
             wall[name].append(stage.get(name, 0.0))

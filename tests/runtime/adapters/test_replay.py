@@ -168,6 +168,20 @@ def test_cli_replay_main(live_log, tmp_path, monkeypatch, capsys):
     assert cli_replay.main(args) == 6  # LogError exit code
 
 
+def _live_run(detector, images, encoding: str, log_path, *, rate_hz: float, **options):
+    """A live node logging to log_path while `images` are published to it: (its result docs,
+    up to the last frame's, and its summary)."""
+    listen, connect = session_pair()
+    with NodeThread(detector=detector, session_config=listen, key=KEY, mcap_path=log_path, stats_period_s=1.0,
+                    **options) as node:
+        with open_session(connect) as s:
+            results = JsonCollector(s, "robot/camera/lcd")
+            publish_frames(connect, KEY, array_source(images, encoding), rate_hz=rate_hz, wait_for_subscriber_s=10)
+            docs = results.wait_for(lambda d: d["sequence"] == len(images) - 1, timeout_s=60)
+            results.close()
+        return docs, node.finish()
+
+
 def test_real_detector_live_then_replay_check(tmp_path):
     """The lead's LoopClosureDetector on a small synthetic bundle: live log -> replay --check OK."""
     from aefabmap_runtime.adapters.bundle_reader import load_detector
@@ -176,17 +190,9 @@ def test_real_detector_live_then_replay_check(tmp_path):
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")
     config = DetectorConfig(exclude=2)
-    listen, connect = session_pair()
     log_path = tmp_path / "real.mcap"
-    images = sample_images(20, size=(160, 120))
-    with NodeThread(detector=load_detector(bundle, config), session_config=listen, key=KEY,
-                    mcap_path=log_path, queue_size=32, stats_period_s=1.0) as node:
-        with open_session(connect) as s:
-            results = JsonCollector(s, "robot/camera/lcd")
-            publish_frames(connect, KEY, array_source(images, "jpeg"), rate_hz=100, wait_for_subscriber_s=10)
-            docs = results.wait_for(lambda d: d["sequence"] == 19, timeout_s=60)
-            results.close()
-        summary = node.finish()
+    docs, summary = _live_run(load_detector(bundle, config), sample_images(20, size=(160, 120)), "jpeg", log_path,
+                              rate_hz=100, queue_size=32)
     assert summary.frames_processed == 20 and summary.bad_total == 0
     assert any(d["inserted_place"] is not None for d in docs)
     replayed = replay(load_detector(bundle, config), log_path, check=True)
@@ -491,17 +497,10 @@ def test_a_node_and_a_replay_with_two_workers_give_one_threads_results(tmp_path)
     from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
     config = DetectorConfig(exclude=3)
-    listen, connect = session_pair()
     log_path = tmp_path / "two.mcap"
     images, _ = generate_loop_sequence(24, seed=5, size=(320, 240))
-    with NodeThread(detector=load_detector(default_bundle(), config), session_config=listen, key=KEY,
-                    mcap_path=log_path, queue_size=64, stats_period_s=1.0, workers=2) as node:
-        with open_session(connect) as s:
-            results = JsonCollector(s, "robot/camera/lcd")
-            publish_frames(connect, KEY, array_source(images, "png"), rate_hz=50, wait_for_subscriber_s=10)
-            docs = results.wait_for(lambda d: d["sequence"] == 23, timeout_s=60)
-            results.close()
-        summary = node.finish()
+    docs, summary = _live_run(load_detector(default_bundle(), config), images, "png", log_path, rate_hz=50,
+                              queue_size=64, workers=2)
     assert summary.frames_processed == 24 and summary.bad_total == 0
     assert [d["sequence"] for d in docs] == list(range(24)) and any(d["verified"] for d in docs)
     for workers in (2, 1):
