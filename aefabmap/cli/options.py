@@ -45,7 +45,8 @@ def add_zenoh_options(p: argparse.ArgumentParser, group=None, *, config: bool = 
                    "endpoint without mutual TLS needs --allow-exposure)")
     g.add_argument("--allow-exposure", action="store_true",
                    help="accept a session other hosts reach without authentication (a non-loopback listen "
-                   "endpoint without mutual TLS, or multicast scouting), from --listen or --config; logged at start")
+                   "endpoint without mutual TLS, or multicast scouting), from --listen or --config, and a "
+                   "non-loopback --foxglove-host; logged at start")
     if config:
         g.add_argument("--config", metavar="zenoh.json5", default=None,
                        help="zenoh JSON5 configuration file (--connect/--listen override it)")
@@ -97,7 +98,7 @@ def add_foxglove_options(p: argparse.ArgumentParser) -> None:
                    "deploy/foxglove_layout.json; needs aefabmap[foxglove])")
     p.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
                    help="address the Foxglove server binds (default 127.0.0.1: this machine only; the protocol "
-                   "has no authentication)")
+                   "has no authentication, so a non-loopback HOST needs --allow-exposure)")
 
 
 def add_fleet_options(p: argparse.ArgumentParser):
@@ -106,9 +107,10 @@ def add_fleet_options(p: argparse.ArgumentParser):
     fl.add_argument("--fleet", default=None, metavar="NAME",
                     help="join this fleet: offer this map's places to the other robots of the same bundle and "
                     "verify loops to theirs (a token: letters, digits, '_', '-')")
-    fl.add_argument("--robot", default=None, metavar="ID", help="this robot's id in the fleet (same rules)")
+    fl.add_argument("--robot", default=None, metavar="ID", help="this robot's id in the fleet (same rules; with "
+                    "deploy/zenoh-fleet-robot.json5, its certificate's common name)")
     fl.add_argument("--fleet-timeout-ms", type=int, default=None, metavar="MS",
-                    help="how long a fetch of another robot's keypoints may wait (default 300)")
+                    help="how long a frame may wait for other robots' keypoints, all robots together (default 300)")
     return fl
 
 

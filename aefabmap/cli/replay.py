@@ -87,8 +87,10 @@ def playback_config(args: argparse.Namespace):
 def _check_fleet_options(args: argparse.Namespace):
     """The replay's FleetConfig (None: no fleet); ConfigError for options that need one or clash."""
     fleet = fleet_config(args)
-    if fleet is None and (args.connect or args.listen or args.config or args.allow_exposure):
-        raise ConfigError("--connect/--listen/--config/--allow-exposure are for --fleet: a replay alone uses no network")
+    if fleet is None and (args.connect or args.listen or args.config):
+        raise ConfigError("--connect/--listen/--config are for --fleet: a replay alone uses no Zenoh network")
+    if fleet is None and args.allow_exposure and args.foxglove is None:
+        raise ConfigError("--allow-exposure is for --fleet or --foxglove: a replay alone uses no network")
     if fleet is not None and args.check:
         raise ConfigError("--check compares the log's results with the own map's: it does not go with --fleet, "
                           "whose loops to other robots' places the log cannot have")

@@ -8,6 +8,7 @@ schema, channel, metadata record, attachment and message it read into a new, fin
 
 from __future__ import annotations
 
+import errno
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from aefabmap_runtime.errors import LogError
+from aefabmap_runtime.adapters.durable_files import open_regular
 from aefabmap_runtime.adapters.mcap_log import complete_records
 
 
@@ -38,47 +40,72 @@ class RepairReport:
 
 def repair_log(source: str | Path, out: str | Path) -> RepairReport:
     """Copy every complete record of MCAP `source` into a new finished MCAP `out` (never
-    overwritten). LogError when `source` is not an MCAP file or `out` cannot be written."""
+    overwritten). LogError when `source` is not a regular MCAP file or `out` cannot be written
+    (a full disk included): `out` is then removed, `source` is never changed."""
     source, out = Path(source), Path(out)
     report = RepairReport(str(source), str(out))
-    try:
-        fh = open(source, "rb")
+    try:  # a FIFO or a device is refused before anything reads it: open() on a FIFO blocks
+        fh = os.fdopen(open_regular(source, follow_symlinks=True, error=LogError), "rb")
     except OSError as exc:
         raise LogError(f"{source}: cannot read: {exc.strerror or exc}") from exc
-    try:
-        fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-    except OSError as exc:
-        fh.close()
-        raise LogError(f"{out}: cannot create (it must not exist yet): {exc.strerror or exc}") from exc
-    with fh, os.fdopen(fd, "wb") as sink:
-        writer = Writer(sink, compression=CompressionType.ZSTD)
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        started = False
-        for record in complete_records(fh, report):
-            if not started:
-                writer.start(profile=record.profile if isinstance(record, Header) else "",
-                             library="aefabmap log repair")
-                started = True
-            if isinstance(record, Schema):
-                schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-            elif isinstance(record, Channel):
-                channel_ids[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata))
-                report.channels += 1
-            elif isinstance(record, Message) and record.channel_id in channel_ids:
-                writer.add_message(channel_ids[record.channel_id], record.log_time, record.data, record.publish_time,
-                                   record.sequence)
-                report.messages += 1
-            elif isinstance(record, Metadata):
-                writer.add_metadata(record.name, dict(record.metadata))
-                report.metadata += 1
-            elif isinstance(record, Attachment):
-                writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
-                                      record.data)
-        if started:
-            writer.finish()
+    with fh:
+        try:
+            fd = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except OSError as exc:
+            raise LogError(f"{out}: cannot create (it must not exist yet): {exc.strerror or exc}") from exc
+        try:
+            with os.fdopen(fd, "wb") as sink:
+                started = _copy(fh, sink, report)
+        except BaseException as exc:
+            _remove(out)  # a partial file is no repaired log
+            if isinstance(exc, OSError):
+                raise LogError(_write_error(out, source, exc)) from exc
+            raise
     if not started:
-        out.unlink(missing_ok=True)
+        _remove(out)
         raise LogError(f"{source}: not an MCAP file (no complete record): {report.reason}")
     return report
+
+
+def _copy(fh, sink, report: RepairReport) -> bool:
+    """Write the complete records of `fh` into a finished MCAP on `sink`; False when there was none."""
+    writer = Writer(sink, compression=CompressionType.ZSTD)
+    schema_ids: dict[int, int] = {}
+    channel_ids: dict[int, int] = {}
+    started = False
+    for record in complete_records(fh, report):
+        if not started:
+            writer.start(profile=record.profile if isinstance(record, Header) else "",
+                         library="aefabmap log repair")
+            started = True
+        if isinstance(record, Schema):
+            schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+        elif isinstance(record, Channel):
+            channel_ids[record.id] = writer.register_channel(
+                record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata))
+            report.channels += 1
+        elif isinstance(record, Message) and record.channel_id in channel_ids:
+            writer.add_message(channel_ids[record.channel_id], record.log_time, record.data, record.publish_time,
+                               record.sequence)
+            report.messages += 1
+        elif isinstance(record, Metadata):
+            writer.add_metadata(record.name, dict(record.metadata))
+            report.metadata += 1
+        elif isinstance(record, Attachment):
+            writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
+                                  record.data)
+    if started:
+        writer.finish()
+    return started
+
+
+def _write_error(out: Path, source: Path, exc: OSError) -> str:
+    why = "the disk is full" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else (exc.strerror or str(exc))
+    return f"{out}: cannot write the repaired log: {why}; the partial file was removed, {source} is unchanged"
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass

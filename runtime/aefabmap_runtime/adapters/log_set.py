@@ -269,7 +269,7 @@ def log_files(sources: str | os.PathLike | Sequence[str | os.PathLike]) -> list[
                 raise LogError(f"no files match {text!r}")
         else:
             if not path.is_file():
-                raise LogError(f"MCAP log {path} does not exist")
+                raise LogError(f"MCAP log {path} " + ("is not a regular file" if path.exists() else "does not exist"))
             names = [path]
         for p in names:
             found.setdefault(p, None)

@@ -17,9 +17,9 @@ A segment is a sequence of records ``u32 length | u32 crc32(payload) | payload``
 endian). The first record is the header (``H`` + JSON: format, version, bundle id, first frame,
 detector settings); the others are frames (``F`` + fixed fields + arrays). A record cut off by
 a full disk or a kill -9, or damaged, fails its length or checksum: reading stops there (the
-frames before it are kept). A record that passes its checksum but does not fit (another
-bundle, settings or feature kind, a word id out of range, out of order) is refused with
-StateError: that is not a torn write.
+frames before it are kept), as it does at an empty segment. A record that passes its checksum
+but does not fit (another bundle, settings or feature kind, a word id out of range, out of
+order) is refused with StateError: that is not a torn write.
 
 A segment is created under a temporary name (header written, fsync'ed) and renamed; a new one
 starts each time a snapshot is taken (its first frame is the snapshot's), and a durable
@@ -266,8 +266,8 @@ def _replay_segment(detector, directory, base: int, path: Path, expected: int, l
     """Replay one segment's frames from ``expected`` on; returns the next frame expected."""
     records = _records(path, label)
     header = next(records, None)
-    if header is None:
-        raise StateError(f"{label} does not start with a journal header")
+    if header is None:  # an empty file: its header was never written whole, as a cut-off one
+        raise _Cut("empty file, no journal header")
     _check_header(header, directory, detector, base, label)
     for i, payload in enumerate(records):
         seq, words, stamp_ns, feats = decode_frame(payload, detector, f"{label} record {i + 1}")

@@ -72,6 +72,7 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from aefabmap_runtime.errors import ConfigError, ImageDecodeError, InputError, LogError
+from aefabmap_runtime.adapters.durable_files import open_regular
 from aefabmap_runtime.adapters.foxglove_view import PLACE_IMAGE_TOPIC, VIEW_PROTOBUF
 from aefabmap_runtime.adapters.frames import (
     FrameError,
@@ -546,6 +547,17 @@ class ReadStatus:
         return asdict(self)
 
 
+def open_log_file(path: Path):
+    """The file at `path` opened for binary reading; LogError when it does not exist, cannot be
+    read or is not a regular file (a FIFO is refused without blocking on it)."""
+    try:
+        return os.fdopen(open_regular(path, follow_symlinks=True, error=LogError), "rb")
+    except FileNotFoundError:
+        raise LogError(f"MCAP log {path} does not exist") from None
+    except OSError as exc:
+        raise LogError(f"cannot read MCAP log {path}: {exc.strerror or exc}") from exc
+
+
 def complete_records(f, status) -> Iterator:
     """The records of the open MCAP file `f` in file order (chunks decompressed, CRCs checked)
     up to its last complete one; a cut-off or corrupt end sets `status.truncated` and
@@ -579,9 +591,7 @@ class McapLogReader:
 
     def __init__(self, path: str | Path, *, image_topic: str | None = None) -> None:
         self.path = Path(path)
-        if not self.path.is_file():
-            raise LogError(f"MCAP log {self.path} does not exist")
-        with open(self.path, "rb") as f:
+        with open_log_file(self.path) as f:
             magic = f.read(8)
         if magic != b"\x89MCAP0\r\n":
             raise LogError(f"{self.path} is not an MCAP file (bad magic)")
@@ -630,7 +640,7 @@ class McapLogReader:
         json_kinds: dict[int, type] = {}
         ros_decoders: dict[int, object] = {}
         chosen: int | None = None
-        with open(self.path, "rb") as f:
+        with open_log_file(self.path) as f:
             for record in complete_records(f, self.status):
                 if isinstance(record, Header):
                     self.status.profile = record.profile
@@ -799,7 +809,7 @@ def read_log_metadata(path: str | Path, *, max_records: int = 10_000) -> dict[st
     """
     McapLogReader(path)  # existence and magic checks (LogError)
     out: dict[str, dict] = {}
-    with open(path, "rb") as f:
+    with open_log_file(Path(path)) as f:
         records = StreamReader(f, emit_chunks=True).records
         for _ in range(max_records):
             try:

@@ -275,7 +275,8 @@ def run_node(
 
     on_stats: called with each stats message. ready_event: set once subscribed (tests and
     supervisors wait on it). snapshotter: keeps the map on disk (runtime/aefabmap_runtime/adapters/state_dir.py
-    Snapshotter): ``after_frame()`` between frames, ``final()`` on the normal stop path
+    Snapshotter): ``record_frame()`` before a frame's result is published, ``after_frame()``
+    after it, ``final()`` on the normal stop path
     (stop_event / max_frames; StateError when that last snapshot cannot be written). view: a
     foxglove_view.LiveView shown every result and stats message (its log is set to the run's).
     Raises
@@ -305,9 +306,13 @@ def run_node(
         output = ResultOutput(io.pub, log, stats, view)
         def decided(frame: ReceivedFrame, outcome: FrameOutcome) -> None:
             board.after_frame(loop, io.sub.drops, outcome.result, loop.detector)  # before the result goes out
+            if snapshotter is not None:
+                # The frame is in the journal before its result goes out: after a kill -9 the
+                # restarted node never reuses a sequence number that was published.
+                snapshotter.record_frame()
             output.send(frame, outcome)
             if snapshotter is not None:
-                snapshotter.after_frame()
+                snapshotter.after_frame()  # a snapshot that is due: after the result, not before it
 
         def counted(frame: ReceivedFrame) -> None:
             if frame.meta.problem:  # the frame is used, its attachment was not (receive time instead)

@@ -22,6 +22,7 @@ from aefabmap_runtime.adapters.node_state import NodeState
 from aefabmap_runtime.adapters.rmw_zenoh import RosOptions
 from aefabmap_runtime.adapters.rotating_log import LogRotationConfig
 from aefabmap_runtime.adapters.state_dir import SnapshotPolicy
+from aefabmap_runtime.adapters.zenoh_exposure import is_loopback_host
 from aefabmap_runtime.adapters.zenoh_transport import SessionConfig
 from aefabmap_runtime.core.kernels import compiled
 from aefabmap_runtime.core.profiles import get_profile
@@ -41,7 +42,8 @@ class NodeIO:
     endpoints: the Zenoh endpoints given (none: loopback). mcap: the log (file, directory or
     ``{n}`` pattern), log_rotation / mcap_profile / image_every: its rotation, layout and image rate.
     state: the state directory keeping the map (None: not kept), snapshots: its snapshot policy.
-    foxglove_port / foxglove_host: the live view (port None: none; 0: any free port).
+    foxglove_port / foxglove_host: the live view (port None: none; 0: any free port; a host beyond
+    loopback needs endpoints.allow_exposure, ConfigError otherwise: view_exposure).
     """
 
     mcap: str | Path
@@ -61,6 +63,7 @@ class NodeIO:
     def __post_init__(self) -> None:
         if (self.key is None) == (self.ros is None):
             raise ConfigError("a node reads exactly one of an image key and a ROS 2 topic")
+        view_exposure(self.foxglove_port, self.foxglove_host, self.endpoints.allow_exposure)
 
 
 @dataclass(frozen=True)
@@ -94,7 +97,7 @@ def run_configured_node(config: RunConfig, io: NodeIO, *, stop_event: threading.
             state = NodeState(io.state, detector, io.snapshots, log)
         options = node_options(config, io, session, detector)
         log.info("kernels: %s", compiled.describe())  # once the run's settings and state are accepted
-        view = start_live_view(io.foxglove_port, io.foxglove_host)
+        view = start_live_view(io.foxglove_port, io.foxglove_host, allow_exposure=io.endpoints.allow_exposure)
         with stop_on_signals(stop_event):
             summary = run_node(detector, options, stop_event=stop_event, on_stats=_stats_logger(state),
                                ready_event=ready_event, snapshotter=state.snapshotter if state else None, view=view)
@@ -119,14 +122,32 @@ def node_options(config: RunConfig, io: NodeIO, session: SessionConfig, detector
                        workers=config.workers)
 
 
-def start_live_view(port: int | None, host: str = "127.0.0.1"):
-    """The foxglove_view.LiveView serving on `port` (None: no view); ConfigError without foxglove-sdk."""
+def view_exposure(port: int | None, host: str, allow_exposure: bool) -> bool:
+    """True when the live view on `host` is reachable from other hosts (False: no view, or
+    loopback only). ConfigError when it is and `allow_exposure` (--allow-exposure) was not given:
+    the Foxglove protocol authenticates nobody, so whoever reaches the port sees the camera."""
+    if port is None or is_loopback_host(host):
+        return False
+    if not allow_exposure:
+        raise ConfigError(f"--foxglove-host {host or '(empty: every interface)'} would serve the live view (camera "
+                          "images, results) to other hosts without authentication: give --allow-exposure to accept "
+                          "that, or keep the default 127.0.0.1")
+    return True
+
+
+def start_live_view(port: int | None, host: str = "127.0.0.1", *, allow_exposure: bool = False):
+    """The foxglove_view.LiveView serving on `port` (None: no view); ConfigError without foxglove-sdk,
+    or for a host beyond loopback without `allow_exposure` (view_exposure; accepted: one warning)."""
+    exposed = view_exposure(port, host, allow_exposure)
     if port is None:
         return None
     from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer, LiveView
 
     server = FoxgloveServer(port=port, host=host)
     log.info("Foxglove live view on ws://%s:%d", server.host, server.port)
+    if exposed:
+        log.warning("network exposure accepted (--allow-exposure): the Foxglove live view on ws://%s:%d is served "
+                    "to other hosts without authentication", server.host, server.port)
     return LiveView(server)
 
 
@@ -138,8 +159,22 @@ def _apply_process_settings(config: RunConfig) -> None:
         cv2.setNumThreads(config.detector.threads)
 
 
+#: What the node warns once when its log enters a state where it keeps less (rotating_log.RotatingLog.state).
+LOG_STATE_WARNINGS = {
+    "images_stopped": "log: images are no longer logged: free space on the log's disk is below --log-min-free-mb "
+                      "IMAGES; results and stats still are",
+    "stopped": "log: nothing is logged any more: free space on the log's disk is below --log-min-free-mb RESULTS; "
+               "detection and results go on",
+    "failed": "log: the log file cannot be written (a full disk or an I/O error); detection and results go on "
+              "and a new file is tried",
+}
+
+
 def _stats_logger(state: NodeState | None):
-    """The node's periodic stats line, and a warning while the map state falls behind."""
+    """The node's periodic stats line, a warning while the map state falls behind, and one when
+    the log starts keeping less (its stats line alone is INFO: an operator filtering on warnings
+    would not see that the log stopped)."""
+    log_state = ["ok"]
 
     def on_stats(msg: StatsMessage) -> None:
         log.info(
@@ -148,6 +183,12 @@ def _stats_logger(state: NodeState | None):
             msg.frames_processed, msg.dropped, msg.bad_total, msg.loops, _fmt(msg.fps),
             _fmt(msg.latency_ms.p50), _fmt(msg.latency_ms.p95), msg.rss_mb, msg.log_state, msg.log_errors,
         )
+        if msg.log_state != log_state[0] and msg.log_state is not None:
+            if msg.log_state in LOG_STATE_WARNINGS:
+                log.warning("%s", LOG_STATE_WARNINGS[msg.log_state])
+            elif msg.log_state == "ok":
+                log.info("log: writing again")
+            log_state[0] = msg.log_state
         if state is not None and state.journal.behind:  # frames the map state could not keep so far
             log.warning("%s", state.journal.report().line())
 

@@ -18,7 +18,7 @@ from aefabmap_runtime.adapters import bundle_reader
 from aefabmap_runtime.adapters.log_set import log_files
 from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogConfig, read_log_metadata
 from aefabmap_runtime.adapters.node import stop_on_signals
-from aefabmap_runtime.adapters.node_builder import start_live_view
+from aefabmap_runtime.adapters.node_builder import start_live_view, view_exposure
 from aefabmap_runtime.adapters.node_session import Endpoints, node_session
 from aefabmap_runtime.adapters.node_state import open_state
 from aefabmap_runtime.adapters.replay import PlaybackConfig, ReplaySummary, replay
@@ -37,7 +37,8 @@ class ReplayIO:
     out: a new log of the replay (None: none), in the mcap_profile layout. check: compare with the
     logged results. topic: the image topic (None: the log's). state: the state directory the map is
     loaded from and saved to (None: none). foxglove_port / foxglove_host: the live view (port None:
-    none). playback: pace and viewer wait. fleet: join it over `endpoints` (None: no network).
+    none; a host beyond loopback needs endpoints.allow_exposure, as `run`'s). playback: pace and
+    viewer wait. fleet: join it over `endpoints` (None: no network).
     workers: threads that work on frames (frame_pipeline.py; the same results).
     """
 
@@ -54,6 +55,9 @@ class ReplayIO:
     fleet: FleetConfig | None = None
     endpoints: Endpoints = field(default_factory=Endpoints)
     workers: int = 1
+
+    def __post_init__(self) -> None:
+        view_exposure(self.foxglove_port, self.foxglove_host, self.endpoints.allow_exposure)
 
 
 class ConfiguredReplay:
@@ -100,7 +104,7 @@ class ConfiguredReplay:
     def replay(self) -> ReplaySummary:
         """Replay the log (live view started first), then save the map to the state directory."""
         io, playback = self.io, self.io.playback
-        self.view = start_live_view(io.foxglove_port, io.foxglove_host)
+        self.view = start_live_view(io.foxglove_port, io.foxglove_host, allow_exposure=io.endpoints.allow_exposure)
         if playback.wait_viewer_s is not None:
             log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
         summary = replay(self.detector, self.source, out_path=io.out,

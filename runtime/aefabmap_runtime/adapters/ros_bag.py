@@ -23,6 +23,8 @@ from aefabmap_runtime.adapters.mcap_log import (
     LOG_METADATA,
     LoggedImage,
     ReadStatus,
+    complete_records,
+    open_log_file,
     read_log_metadata,
 )
 from aefabmap_runtime.adapters.ros_cdr import (
@@ -77,6 +79,10 @@ class RosBagReader:
             raise LogError(f"ROS bag {self.path} does not exist")
         if self.path.is_dir() and not (self.path / "metadata.yaml").is_file():
             raise LogError(f"{self.path} is a directory without metadata.yaml, not a rosbag2 bag")
+        # The bag's reader opens its files plainly: a FIFO among them would block it for ever.
+        for p in self.path.iterdir() if self.path.is_dir() else (self.path,):
+            if not (p.is_file() or p.is_dir()):
+                raise LogError(f"ROS bag {p} is not a regular file")
         if not rosbags_available():
             raise LogError(f"{self.path}: {INSTALL_HINT}")
         self.image_topic = image_topic
@@ -97,7 +103,7 @@ class RosBagReader:
             reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
         except Exception as exc:  # rosbags raises several unrelated types for unreadable bags
-            raise LogError(f"cannot read ROS bag {self.path}: {type(exc).__name__}: {exc}"[:300]) from exc
+            raise LogError(self._unreadable(exc)) from exc
         try:
             chosen = self._choose(reader.connections)
             ros1 = not reader.is2
@@ -116,6 +122,18 @@ class RosBagReader:
             self.status.reason = f"{type(exc).__name__}: {exc}"[:200]
         finally:
             reader.close()
+
+    def _unreadable(self, exc: Exception) -> str:
+        """Why the bag does not open, in one line: an MCAP file whose records break off or are
+        corrupt is a damaged MCAP log, whatever the bag reader's own error says."""
+        if self.path.suffix == ".mcap" and self.path.is_file():
+            status = ReadStatus(str(self.path))
+            with open_log_file(self.path) as f:
+                for _ in complete_records(f, status):
+                    pass
+            if status.truncated:
+                return " ".join(f"{self.path} is a damaged MCAP log ({status.reason})".splitlines())
+        return " ".join(f"cannot read ROS bag {self.path}: {type(exc).__name__}: {exc}"[:300].splitlines())
 
     def _choose(self, connections) -> list:
         images = [c for c in connections if c.msgtype in _IMAGE_TYPES]

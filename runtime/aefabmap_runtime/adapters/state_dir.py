@@ -381,9 +381,14 @@ class Snapshotter:
     def _places_made(self) -> int:
         return int(self.detector.frames_inserted)
 
-    def after_frame(self) -> None:
+    def record_frame(self) -> None:
+        """Append the frame the detector just took to the journal (as durable as the journal
+        makes it), so that its result may go out; `after_frame` does it too when not done."""
         if self.journal is not None:
             self.journal.after_frame()
+
+    def after_frame(self) -> None:
+        self.record_frame()
         p = self.policy
         due = (p.seconds is not None and self.clock() - self._t >= p.seconds) or (
             p.places is not None and self._places_made() - self._inserted >= p.places) or self._catch_up_due()

@@ -6,7 +6,8 @@ endpoint another host can reach without authenticating, or joins multicast scout
 announces itself and accepts peers found on the local network). Not exposed: loopback and
 Unix-socket endpoints, and TLS/QUIC endpoints with mutual TLS (``transport/link/tls/enable_mtls``
 and a root CA: every peer must show a certificate that CA signed). The CLI refuses an exposed
-session unless ``--allow-exposure`` is given (zenoh_transport.build_zenoh_config).
+session unless ``--allow-exposure`` is given (zenoh_transport.build_zenoh_config); the same flag
+is needed for a Foxglove live view bound beyond loopback (node_builder.view_exposure).
 """
 
 from __future__ import annotations
@@ -26,12 +27,18 @@ def _get(conf: zenoh.Config, path: str):
     return json.loads(conf.get_json(path))
 
 
-def listen_endpoints(conf: zenoh.Config) -> list[str]:
-    """The endpoints the session will listen on (zenoh's per-mode form resolved for its mode)."""
-    eps = _get(conf, "listen/endpoints")
+def endpoints(conf: zenoh.Config, which: str = "listen") -> list[str]:
+    """The endpoints the session will listen on or connect to (`which`; zenoh's per-mode form
+    resolved for its mode)."""
+    eps = _get(conf, f"{which}/endpoints")
     if isinstance(eps, dict):
         eps = eps.get(_get(conf, "mode") or "peer") or []
     return [str(e) for e in eps or []]
+
+
+def listen_endpoints(conf: zenoh.Config) -> list[str]:
+    """The endpoints the session will listen on."""
+    return endpoints(conf, "listen")
 
 
 def endpoint_host(endpoint: str) -> str | None:
@@ -48,12 +55,18 @@ def endpoint_host(endpoint: str) -> str | None:
 def is_loopback(endpoint: str) -> bool:
     """True when only this host can reach the endpoint (loopback address, localhost, Unix socket)."""
     host = endpoint_host(endpoint)
-    if host is None or host == "localhost":
+    return host is None or is_loopback_host(host)
+
+
+def is_loopback_host(host: str) -> bool:
+    """True when a server bound to `host` is reachable from this host only (a loopback address or
+    localhost); the same rule as an endpoint's, for the live view's --foxglove-host."""
+    if host == "localhost":
         return True
     try:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
-        return False  # a host name other than localhost may resolve anywhere
+        return False  # a host name other than localhost may resolve anywhere; "" is every interface
 
 
 def mutual_tls(conf: zenoh.Config) -> bool:

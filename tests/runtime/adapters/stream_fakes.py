@@ -148,7 +148,7 @@ class JsonCollector:
 class NodeThread:
     """Runs run_node in a thread; .summary / .error after join."""
 
-    def __init__(self, detector, session_config, *, view=None, **options) -> None:
+    def __init__(self, detector, session_config, *, view=None, snapshotter=None, **options) -> None:
         from aefabmap_runtime.adapters.node import NodeOptions, run_node
 
         self.stop = threading.Event()
@@ -159,7 +159,8 @@ class NodeThread:
         def target() -> None:
             try:
                 self.summary = run_node(detector, NodeOptions(session=session_config, **options),
-                                        stop_event=self.stop, ready_event=self.ready, view=view)
+                                        stop_event=self.stop, ready_event=self.ready, view=view,
+                                        snapshotter=snapshotter)
             except BaseException as exc:  # reported to the test
                 self.error = exc
             finally:

@@ -213,3 +213,25 @@ def test_foxglove_sdk_takes_sdk_v1_and_refuses_a_websocket_v1_only_client():
         assert refused.value.status_code == 400
     finally:
         server.stop()
+
+
+def test_replay_serves_a_view_beyond_loopback_only_with_allow_exposure(tmp_path, fake_detector, caplog,
+                                                                       monkeypatch):
+    pytest.importorskip("foxglove")
+    from aefabmap_runtime.adapters import replay_builder
+
+    monkeypatch.setattr(replay_builder, "serve_until_stopped", lambda view, fleet, stop: None)
+    src = _log(tmp_path / "src.mcap", 3, gap_s=0.01)
+    cli = _ReplayCli([src, "--model", "fake", "--foxglove", "0", "--foxglove-host", "0.0.0.0", "--rate", "0"])
+    cli.run()
+    assert cli.code == ConfigError.exit_code
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and "--allow-exposure" in errors[0] and "\n" not in errors[0], errors
+
+    caplog.clear()
+    cli = _ReplayCli([src, "--model", "fake", "--foxglove", "0", "--foxglove-host", "0.0.0.0", "--rate", "0",
+                      "--allow-exposure"])
+    cli.run()
+    assert cli.code == 0
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "--allow-exposure" in warned[0] and "Foxglove" in warned[0], warned

@@ -268,3 +268,97 @@ def test_cli_replay_foxglove_keeps_inlier_points_and_logs_the_view(tmp_path, mon
 
     monkeypatch.setitem(__import__("sys").modules, "foxglove", None)  # foxglove-sdk absent
     assert cli_replay.main(args) == 2  # ConfigError: one line, "install aefabmap[foxglove]"
+
+
+# -- exposure: the view has no authentication, so it is served beyond loopback only on purpose -----
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "::", "", "192.168.1.20", "camera.lab"])
+def test_a_view_other_hosts_reach_needs_allow_exposure(tmp_path, host):
+    from aefabmap_runtime.adapters.node_builder import NodeIO
+    from aefabmap_runtime.adapters.node_session import Endpoints
+    from aefabmap_runtime.adapters.replay_builder import ReplayIO
+    from aefabmap_runtime.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--allow-exposure") as info:
+        NodeIO(mcap=tmp_path / "x.mcap", key="k", foxglove_port=0, foxglove_host=host)
+    assert "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match="--allow-exposure"):
+        ReplayIO(logs=("x.mcap",), model="m", foxglove_port=0, foxglove_host=host)
+    NodeIO(mcap=tmp_path / "x.mcap", key="k", foxglove_port=0, foxglove_host=host,
+           endpoints=Endpoints(allow_exposure=True))
+    ReplayIO(logs=("x.mcap",), model="m", foxglove_port=0, foxglove_host=host,
+             endpoints=Endpoints(allow_exposure=True))
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "127.0.0.2", "localhost", "::1"])
+def test_a_loopback_view_needs_nothing(tmp_path, host):
+    from aefabmap_runtime.adapters.node_builder import NodeIO
+
+    NodeIO(mcap=tmp_path / "x.mcap", key="k", foxglove_port=0, foxglove_host=host)
+    NodeIO(mcap=tmp_path / "x.mcap", key="k", foxglove_host="0.0.0.0")  # no view: nothing served
+
+
+def _run_cli(tmp_path, *extra: str):
+    """`aefabmap run` of the shipped bundle with a live view on any free port, as a process; and
+    the session config that reaches it."""
+    import subprocess
+
+    from aefabmap.cli.options import default_bundle
+
+    from .stream_fakes import CLI, KEY, session_pair
+
+    listen, connect = session_pair()
+    return subprocess.Popen(CLI + ["run", "--model", str(default_bundle()), "--key", KEY, "--listen", listen.listen[0],
+                                   "--mcap", str(tmp_path / "run.mcap"), "--foxglove", "0", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), connect
+
+
+def test_run_refuses_a_view_on_every_interface_without_allow_exposure(tmp_path):
+    """The attack: `run --foxglove PORT --foxglove-host 0.0.0.0` served the camera to the network,
+    with no flag and no warning."""
+    run, _ = _run_cli(tmp_path, "--foxglove-host", "0.0.0.0")
+    try:
+        out, err = run.communicate(timeout=60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(10)
+    assert run.returncode == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "--allow-exposure" in lines[0] and "0.0.0.0" in lines[0], err
+    assert not (tmp_path / "run.mcap").exists()
+
+
+def test_run_with_allow_exposure_serves_the_view_and_warns_once(tmp_path):
+    pytest.importorskip("foxglove")
+    import queue
+    import signal
+    import threading
+
+    from aefabmap_runtime.adapters.zenoh_transport import FramePublisher, open_session
+
+    from .stream_fakes import KEY
+
+    run, connect = _run_cli(tmp_path, "--foxglove-host", "0.0.0.0", "--allow-exposure")
+    lines: queue.Queue = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(x) for x in run.stderr], daemon=True)
+    reader.start()
+    try:
+        with open_session(connect) as s:  # the node is up (its stop handlers too) once it subscribed
+            probe = FramePublisher(s, KEY)
+            assert probe.wait_for_subscriber(90), "the node never subscribed"
+            probe.close()
+        run.send_signal(signal.SIGTERM)
+        run.wait(60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(10)
+    reader.join(10)
+    seen = []
+    while not lines.empty():
+        seen.append(lines.get())
+    assert run.returncode == 0, "".join(seen)
+    assert any("Foxglove live view on ws://0.0.0.0:" in x for x in seen), seen
+    warned = [x for x in seen if x.startswith("WARNING") and "Foxglove" in x]
+    assert len(warned) == 1 and "--allow-exposure" in warned[0] and "0.0.0.0" in warned[0], seen

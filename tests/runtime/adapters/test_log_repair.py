@@ -61,3 +61,59 @@ def test_repair_refuses_a_non_log_and_never_overwrites(tmp_path):
         repair_log(whole, tmp_path / "taken.mcap")
     assert (tmp_path / "taken.mcap").read_bytes() == b"keep me"
     assert main(["log", "repair", str(junk), "--out", str(tmp_path / "o.mcap")]) == LogError.exit_code
+
+
+def _cli(*args, timeout_s: float = 30):
+    """`aefabmap ARGS` as a child process (it must finish within timeout_s: a hang fails the test)."""
+    import subprocess
+
+    from .stream_fakes import CLI
+
+    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, timeout=timeout_s, check=False)
+
+
+@pytest.mark.parametrize("what", ["fifo", "directory", "device"])
+def test_repair_refuses_what_is_not_a_regular_file_without_hanging(tmp_path, what):
+    """The attack: `log repair` given a FIFO with no writer blocked in open() for ever, with no message."""
+    import os
+
+    source = tmp_path / "in.mcap"
+    if what == "fifo":
+        os.mkfifo(source)
+    elif what == "directory":
+        source.mkdir()
+    else:
+        source = "/dev/zero"
+    done = _cli("log", "repair", source, "--out", tmp_path / "out.mcap")
+    assert done.returncode == LogError.exit_code, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in done.stderr
+    assert f"{source} is not a regular file" in lines[0]
+    assert not (tmp_path / "out.mcap").exists()
+
+
+def test_repair_onto_a_full_disk_says_so_and_leaves_no_partial_file(tmp_path):
+    """A real small disk (tmpfs; skipped where it cannot be mounted) too small for the repaired log:
+    one line naming the output and the full disk, no partial output left, the input untouched."""
+    import numpy as np
+
+    from .stream_fakes import mounted_tmpfs
+
+    rng = np.random.default_rng(0)
+    noise = [rng.integers(0, 256, (240, 320), dtype=np.uint8) for _ in range(12)]  # incompressible
+    whole = tmp_path / "whole.mcap"
+    _write_log(whole, noise)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[: int(whole.stat().st_size * 0.8)])
+    before = cut.read_bytes()
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    with mounted_tmpfs(disk, size="128k"):
+        out = disk / "fixed.mcap"
+        done = _cli("log", "repair", cut, "--out", out)
+        assert done.returncode == LogError.exit_code, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr
+        assert str(out) in lines[0] and "disk is full" in lines[0]
+        assert not out.exists() and not list(disk.iterdir())
+    assert cut.read_bytes() == before

@@ -230,6 +230,13 @@ def _load(bundle, path, config=CONFIG):
         return det, replay_journal(det, d)
 
 
+def _load_map(bundle, path):
+    """The snapshot, then the journal (what a starting node loads)."""
+    det = load_detector(bundle, CONFIG)
+    with MapStateDir(path, bundle_id(det.manifest)) as d:
+        return det, state_dir.load_map(det, d)[1]
+
+
 def _refused(bundle, path, config=CONFIG) -> str:
     with pytest.raises(StateError) as info:
         _load(bundle, path, config)
@@ -324,6 +331,24 @@ def test_a_special_file_as_a_segment_is_refused_without_hanging(bundle, images, 
     assert "journal-000000000000" in msg
 
 
+def test_a_zero_length_segment_is_a_cut_like_a_damaged_header(bundle, images, reference, tmp_path):
+    """The attack: an empty segment (a crash of the filesystem, a truncation) refused the whole state,
+    so the node exited 3 and was not restarted; a damaged header only warned. Now both are a cut:
+    the snapshot and every frame before the segment load, nothing else is removed."""
+    _live(bundle, tmp_path / "s", images[:25])  # a snapshot at frame 18, journal-000000000018 holds 18..24
+    seg = tmp_path / "s" / "journal-000000000018"
+    seg.write_bytes(b"")
+    det, replay = _load_map(bundle, tmp_path / "s")
+    assert det.next_sequence == 18 and "journal-000000000018" in replay.cut and "empty" in replay.cut
+    assert seg.exists() and replay.removed == 0
+    assert [_public(det.process(img, i)) for i, img in enumerate(images[18:22], 18)] == reference[18:22]
+
+    _live(bundle, tmp_path / "t", images[:25])  # an empty segment the snapshot already covers
+    (tmp_path / "t" / "journal-000000000003").write_bytes(b"")
+    det, replay = _load_map(bundle, tmp_path / "t")
+    assert det.next_sequence == 25 and replay.cut is None
+
+
 def test_segments_after_a_gap_are_not_replayed_and_are_removed(bundle, images, reference, tmp_path):
     seg = _journaled(bundle, images, tmp_path / "s")
     orphan = tmp_path / "s" / "journal-000000000020"
@@ -387,3 +412,24 @@ def test_run_with_its_state_on_a_tmpfs_that_fills_says_what_it_kept(bundle, imag
         with MapStateDir(disk / "state", bundle_id(det.manifest)) as d:
             assert load_into(det, d)
         assert (det.next_sequence, det.n_places) == (state["frames_kept"], state["places_kept"])
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_node_whose_state_has_an_empty_segment_starts_and_continues_the_snapshot(bundle, images, tmp_path):
+    """`aefabmap run --state` as a process over a state whose current segment is empty: it starts
+    (it used to exit 3), warns once naming the segment, and goes on from the snapshot's frame."""
+    from aefabmap_runtime.tools.synthetic_route import write_sequence
+    from tests.runtime.adapters.stream_fakes import run_node_process
+
+    _live(bundle, tmp_path / "s", images[:25])  # a snapshot at frame 18, then journal-000000000018
+    (tmp_path / "s" / "journal-000000000018").write_bytes(b"")
+    write_sequence(tmp_path / "seq", images[18:24], np.zeros((6, 6), bool))
+    node = run_node_process(["--model", str(bundle), "--mcap", str(tmp_path / "a.mcap"), "--queue", "64",
+                             "--state", str(tmp_path / "s"), "--exclude", "3", "--max-places", "30"],
+                            tmp_path / "seq", 23)
+    assert node.returncode == 0, node.stderr
+    assert "Traceback" not in node.stderr
+    assert [d["sequence"] for d in node.results] == list(range(18, 24))
+    warned = [x for x in node.stderr.splitlines() if x.startswith("WARNING") and "journal-000000000018" in x]
+    assert len(warned) == 1 and "empty" in warned[0]

@@ -367,3 +367,125 @@ def test_replay_check_reproduces_a_run_with_non_default_settings(tmp_path):
     assert rep.returncode == 0, rep.stderr
     check = json.loads(rep.stdout.strip().splitlines()[-1])["check"]
     assert check["compared"] == 40 and check["matched"] == 40 and check["ok"]
+
+
+def test_a_result_goes_out_only_once_its_frame_is_in_the_map_journal(tmp_path, monkeypatch):
+    """The attack: a result was published before its frame reached the map journal, so a kill -9
+    between the two made the restarted node reuse a sequence number that had gone out. Watched at
+    the two boundaries: the journal's write to its file and the result publisher."""
+    import json
+    import logging
+    import struct
+
+    from aefabmap.cli.options import default_bundle
+    from aefabmap_runtime.adapters import map_journal
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.adapters.node_state import NodeState
+    from aefabmap_runtime.adapters.state_dir import SnapshotPolicy
+    from aefabmap_runtime.adapters.zenoh_transport import ResultPublisher
+    from aefabmap_runtime.core.detector import DetectorConfig
+
+    events: list[tuple[str, int]] = []
+    real_write, real_publish = map_journal._os_write, ResultPublisher.publish_result
+
+    def write(fd, data):
+        data = bytes(data)
+        if data[8:9] == b"F":  # a frame record: u32 length, u32 crc, b"F", i64 sequence
+            events.append(("journal", struct.unpack_from("<q", data, 9)[0]))
+        return real_write(fd, data)
+
+    def publish(self, data):
+        events.append(("publish", json.loads(data)["sequence"]))
+        return real_publish(self, data)
+
+    monkeypatch.setattr(map_journal, "_os_write", write)
+    monkeypatch.setattr(ResultPublisher, "publish_result", publish)
+    detector = load_detector(default_bundle(), DetectorConfig(exclude=2))
+    state = NodeState(tmp_path / "state", detector, SnapshotPolicy(seconds=None, places=1000),
+                      logging.getLogger("test.node"))
+    listen, connect = session_pair()
+    try:
+        with NodeThread(detector=detector, session_config=listen, key=KEY, mcap_path=tmp_path / "run.mcap",
+                        queue_size=16, snapshotter=state.snapshotter) as node:
+            with open_session(connect) as s:
+                results = JsonCollector(s, RESULTS)
+                publish_frames(connect, KEY, array_source(sample_images(6, size=(160, 120)), "jpeg"), rate_hz=50,
+                               wait_for_subscriber_s=10)
+                results.wait_for(lambda d: d["sequence"] == 5, timeout_s=30)
+                results.close()
+            node.finish()
+    finally:
+        state.close()
+    published = [seq for kind, seq in events if kind == "publish"]
+    assert published == list(range(6))
+    for seq in published:
+        assert events.index(("journal", seq)) < events.index(("publish", seq)), events
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_a_node_killed_right_after_a_result_never_reuses_a_published_sequence(tmp_path):
+    """`aefabmap run --state` as a process, killed (SIGKILL, from the result subscriber's callback)
+    as soon as a result arrives; the restarted node's first result takes the next sequence number.
+    Frames go one at a time, each after the previous result, so every result published was seen."""
+    import json
+    import subprocess
+
+    from aefabmap.cli.options import default_bundle
+
+    images = sample_images(6, size=(640, 480))  # raw frames: the log stores them as PNG, which takes a while
+    state = tmp_path / "state"
+
+    def start(log: str):
+        listen, connect = session_pair()
+        run = subprocess.Popen(CLI + ["run", "--model", str(default_bundle()), "--key", KEY, "--listen",
+                                      listen.listen[0], "--mcap", str(tmp_path / log), "--state", str(state),
+                                      "--snapshot-every", "1000p", "--queue", "8"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        return run, connect
+
+    def feed(run, connect, frames, *, kill_after: int | None = None) -> list[int]:
+        """Publish `frames` one at a time; the sequences of their results (the node is killed in
+        the callback of result number kill_after)."""
+        got: list[int] = []
+        arrived = threading.Event()
+
+        def on_result(sample) -> None:
+            got.append(json.loads(sample.payload.to_bytes())["sequence"])
+            if kill_after is not None and len(got) == kill_after:
+                run.kill()
+            arrived.set()
+
+        with open_session(connect) as s:
+            sub = s.declare_subscriber(RESULTS, on_result)
+            pub = FramePublisher(s, KEY, congestion="block")
+            assert pub.wait_for_subscriber(90), "the node never subscribed"
+            for img in frames:
+                arrived.clear()
+                pub.put(*encode_frame(img, "mono8"))
+                assert arrived.wait(60), f"no result after {got}"
+            pub.close()
+            sub.undeclare()
+        return got
+
+    run, connect = start("first.mcap")
+    try:
+        published = feed(run, connect, images[:4], kill_after=4)
+        assert run.wait(30) == -signal.SIGKILL
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(10)
+    assert published == [0, 1, 2, 3]
+
+    run, connect = start("second.mcap")
+    try:
+        restarted = feed(run, connect, images[4:])
+        run.send_signal(signal.SIGTERM)
+        _out, err = run.communicate(timeout=60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.wait(10)
+    assert run.returncode == 0, err
+    assert restarted == [4, 5], f"the restarted node reused a published sequence: {restarted}"

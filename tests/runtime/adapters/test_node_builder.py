@@ -132,3 +132,21 @@ def test_a_node_reads_exactly_one_of_a_key_and_a_ros_topic(tmp_path):
         NodeIO(mcap=tmp_path / "x.mcap")
     with pytest.raises(ConfigError, match="exactly one"):
         NodeIO(mcap=tmp_path / "x.mcap", key=KEY, ros=RosOptions(topic="/camera/image_raw"))
+
+
+def test_a_log_that_stops_for_lack_of_free_space_says_so_once_at_warning(tmp_path, caplog):
+    """The attack: a log that stopped for lack of free space said so only in the INFO stats line.
+    The disk's real free space (os.statvfs) is below thresholds no disk reaches."""
+    import logging
+
+    from aefabmap_runtime.adapters.rotating_log import LogRotationConfig
+
+    listen, connect = session_pair()
+    io = NodeIO(mcap=tmp_path / "x.mcap", key=KEY, endpoints=Endpoints(listen=listen.listen), stats_period_s=0.2,
+                log_rotation=LogRotationConfig(images_min_free_mb=1e12, results_min_free_mb=1e12))
+    with caplog.at_level(logging.INFO, logger="aefabmap.run"):
+        node = BuiltNode(CONFIG, io)
+        _feed(io, connect, sample_images(3, size=(160, 120)))
+        node.finish()
+    warned = [r.getMessage() for r in caplog.records if r.name == "aefabmap.run" and r.levelno == logging.WARNING]
+    assert len(warned) == 1 and "free space" in warned[0] and "nothing is logged" in warned[0], warned

@@ -506,3 +506,41 @@ def test_a_node_and_a_replay_with_two_workers_give_one_threads_results(tmp_path)
     for workers in (2, 1):
         replayed = replay(load_detector(default_bundle(), config), log_path, check=True, workers=workers)
         assert replayed.check.ok and replayed.check.compared == 24, replayed.check.describe()
+
+
+def _replay_process(log, timeout_s: float = 30):
+    """`aefabmap replay LOG --model <shipped bundle>` as a child process (a hang fails the test)."""
+    import subprocess
+
+    from aefabmap.cli.options import default_bundle
+
+    from .stream_fakes import CLI
+
+    return subprocess.run(CLI + ["replay", str(log), "--model", str(default_bundle())], capture_output=True,
+                          text=True, timeout=timeout_s, check=False)
+
+
+@pytest.mark.parametrize("name", ["fifo.mcap", "fifo.db3"])
+def test_replay_of_a_fifo_says_it_is_not_a_regular_file(tmp_path, name):
+    """The attack: a FIFO was reported as "does not exist" (an .mcap) or opened (a .db3)."""
+    import os
+
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    done = _replay_process(fifo)
+    assert done.returncode == LogError.exit_code, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"{fifo} is not a regular file" in lines[0], done.stderr
+
+
+@pytest.mark.parametrize("rest", [b"x", b"\x01\x04\x00\x00\x00\x00\x00\x00\x00abcd", b"\x01" + b"\xff" * 8])
+def test_a_broken_file_with_the_mcap_magic_is_a_damaged_mcap_log(tmp_path, rest):
+    """The attack: a file that starts with the MCAP magic and then breaks was reported as a ROS bag
+    that cannot be read, with the reader library's exception name."""
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(b"\x89MCAP0\r\n" + rest)
+    done = _replay_process(broken)
+    assert done.returncode == LogError.exit_code, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"{broken} is a damaged MCAP log" in lines[0], done.stderr
+    assert "ROS bag" not in lines[0] and "Traceback" not in done.stderr
