@@ -4,14 +4,16 @@ its own map empty) streams the rest; b's loops to a's places are scored against 
 
     python scripts/fleet_experiment.py --model BUNDLE --images DATA/lip6_outdoor \
         --gt DATA/lip6_outdoor/ground_truth.npy --split 600 --out fleet.json [--baseline] \
-        [--kill-a-after 200] [--late-joiner]
+        [--kill-a-after 200] [--late-joiner] [--tls]
 
 Frames go one at a time, the next once the node's result arrived (closed loop: no frame is
 dropped, and frames/s is what the node sustains). --baseline runs b once more without the fleet
 (frames/s, latency); --kill-a-after N kills robot a (SIGKILL) after b's N-th frame;
 --late-joiner starts a third robot c after b and reports what it holds. --a-offline: robot a
 runs without the fleet; its log is then offered by `aefabmap replay LOG --fleet` (a map built
-offline), which b's loops go to.
+offline), which b's loops go to. --tls: the router and the robots run the shipped fleet configs
+with mutual TLS and access control (deploy/zenoh-fleet-router.json5, zenoh-fleet-robot.json5),
+with certificates made for the run (scripts/fleet_tls.py; needs the openssl command).
 """
 
 from __future__ import annotations
@@ -47,16 +49,48 @@ from aefabmap_runtime.tools.node_process import (
 )
 from aefabmap_runtime.tools.pr_metrics import correct_predictions
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fleet_tls import make_certificates, robot_config, router_config  # noqa: E402
+
+
+class Router:
+    """The fleet's Zenoh router on loopback, plain or with the shipped TLS + access-control config;
+    `join(name, listen)`: the arguments that make a robot's node (listening on `listen`) join it."""
+
+    def __init__(self, args, work: Path) -> None:
+        self.args, self.port = args, free_tcp_port()
+        self.tls = work / "tls" if args.tls else None
+        if self.tls is not None:
+            self.tls.mkdir()
+            make_certificates(self.tls, ("fleet-router", "a", "b", "c"))
+            self.session = open_session(SessionConfig(config_file=str(router_config(self.tls, self.port))))
+        else:
+            self.session = open_session(SessionConfig(listen=(self.endpoint,), mode="router"))
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.port}"
+
+    def join(self, name: str, listen: str) -> list[str]:
+        if self.tls is None:
+            where = ["--connect", self.endpoint]
+        else:
+            where = ["--config", str(robot_config(self.tls, name, self.port, listen))]
+        return [*where, "--fleet", self.args.fleet, "--robot", name]
+
+    def close(self) -> None:
+        self.session.close()
+
 
 class Robot:
     """One `aefabmap run` child with its key, its results and its last stats."""
 
-    def __init__(self, name: str, args, router: str | None, work: Path) -> None:
+    def __init__(self, name: str, args, router: Router | None, work: Path) -> None:
         self.name, self.key = name, f"fleet_{name}/camera/image"
         self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
         extra = ["--exclude", str(args.exclude)]
         if router is not None:
-            extra += ["--connect", router, "--fleet", args.fleet, "--robot", name]
+            extra += router.join(name, self.endpoint)
         self.proc = start_run_node(args.model, self.key, self.endpoint, work / f"{name}.mcap",
                                    work / f"{name}.log", extra)
         self.session = connect_when_listening(self.endpoint, self.proc, 60)
@@ -117,10 +151,11 @@ class OfferedLog:
         self.proc, self.offered = proc, offered
 
 
-def offer_log(args, log: Path, router: str, stderr_path: Path) -> OfferedLog:
+def offer_log(args, log: Path, router: Router, stderr_path: Path) -> OfferedLog:
     """Replay `log` as robot a of the fleet and wait until it offers its map (the "offering" line)."""
+    listen = f"tcp/127.0.0.1:{free_tcp_port()}"
     cmd = [sys.executable, "-m", "aefabmap.cli.main", "replay", str(log), "--model", args.model,
-           "--connect", router, "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--fleet", args.fleet, "--robot", "a"]
+           "--listen", listen, *router.join("a", listen)]
     t0 = time.monotonic()
     with open(stderr_path, "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True)
@@ -167,23 +202,24 @@ def main(argv=None) -> int:
     ap.add_argument("--kill-a-after", type=int, default=None, metavar="N")
     ap.add_argument("--late-joiner", action="store_true")
     ap.add_argument("--a-offline", action="store_true", help="a's places come from `replay --fleet` of its log")
+    ap.add_argument("--tls", action="store_true", help="the shipped fleet configs: mutual TLS, access control")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     paths = list_images(args.images)
     gt = np.load(args.gt)
     work = Path(tempfile.mkdtemp(prefix="aefabmap-fleet-"))
-    router_ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    router = open_session(SessionConfig(listen=(router_ep,), mode="router"))
-    doc: dict = {"model": args.model, "images": str(args.images), "split": args.split, "work": str(work)}
-    a = Robot("a", args, None if args.a_offline else router_ep, work)
+    router = Router(args, work)
+    doc: dict = {"model": args.model, "images": str(args.images), "split": args.split, "work": str(work),
+                 "tls": args.tls}
+    a = Robot("a", args, None if args.a_offline else router, work)
     doc["a_seconds"] = round(a.stream(paths[: args.split]), 2)
     time.sleep(6)  # one stats period: a's counters after its last frame
     offline = None
     if args.a_offline:
         doc["a"] = {"stats": a.stats.to_dict() if a.stats else None, **a.stop()}
-        offline = offer_log(args, work / "a.mcap", router_ep, work / "a_replay.log")
+        offline = offer_log(args, work / "a.mcap", router, work / "a_replay.log")
         doc["a_offline"] = offline.offered
-    b = Robot("b", args, router_ep, work)
+    b = Robot("b", args, router, work)
 
     def maybe_kill(i: int) -> None:
         if args.kill_a_after is not None and i + 1 == args.kill_a_after and a.proc.poll() is None:
@@ -199,7 +235,7 @@ def main(argv=None) -> int:
     if offline is None:
         doc["a"] = {"stats": a.stats.to_dict() if a.stats else None}
     if args.late_joiner:
-        c = Robot("c", args, router_ep, work)
+        c = Robot("c", args, router, work)
         c.stream(paths[:1])
         time.sleep(6)
         doc["c"] = {"stats": c.stats.to_dict() if c.stats else None, **c.stop()}

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -20,27 +21,13 @@ from aefabmap_runtime.adapters.zenoh_transport import FramePublisher, SessionCon
 from aefabmap_runtime.tools.node_process import free_tcp_port
 from tests.runtime.adapters.stream_fakes import CLI, KEY, RESULTS, JsonCollector
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+from fleet_tls import make_certificates  # noqa: E402
+
 CONFIG = Path(__file__).resolve().parents[2] / "deploy" / "zenoh-tls-acl.json5"
 FORGED = -12345  # the forged result's sequence: no real frame has it
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
-
-
-def _openssl(*args: str, cwd: Path) -> None:
-    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=60)
-
-
-def make_certificates(d: Path, names: tuple[str, ...], ca: str = "ca") -> None:
-    """A CA (ca.pem / ca.key) and, per name, NAME.pem / NAME.key with CN=NAME, valid for localhost."""
-    _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-             "-keyout", f"{ca}.key", "-out", f"{ca}.pem", "-days", "2", "-subj", f"/CN={ca}-test-ca", cwd=d)
-    (d / "ext.cnf").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
-                               "keyUsage=digitalSignature\nextendedKeyUsage=serverAuth,clientAuth\n")
-    for name in names:
-        _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
-                 f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}", cwd=d)
-        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key",
-                 "-CAcreateserial", "-out", f"{name}.pem", "-days", "2", "-extfile", "ext.cnf", cwd=d)
 
 
 def client(d: Path, name: str, port: int, ca: str = "ca") -> zenoh.Session:

@@ -8,25 +8,40 @@ summaries (a robot that joins late asks once), and holds a liveliness token. Oth
 summaries arrive on Zenoh's threads into a bounded inbox; before each frame the node reads them
 into a FleetMap (runtime/aefabmap_runtime/core/fleet/fleet_map.py), which the detector holds as
 its second candidate source (`LoopClosureDetector.attach_remote`): when the own map verified
-nothing the core checks the best remote places, fetching their keypoints through `fetch` (one
-fetch at a time, with a timeout; cached), and builds the frame's result with the remote match
-in it. The node only does the I/O: it never processes frames nor edits a result. Every
-message from a peer is validated; a bad one is counted under a reason and dropped.
+nothing the core checks the best remote places, fetching their keypoints through `fetch` (all
+of a frame's places asked at once, within one deadline; cached), and builds the frame's result
+with the remote match in it. The node only does the I/O: it never processes frames nor edits a
+result. Every message from a peer is validated; a bad one is counted under a reason and dropped.
+
+Who speaks for a robot: the Zenoh session holding its liveliness token, whose key names that
+session (``.../<robot>/alive/<zid>``; the first live one counts). Keypoint, summaries and epoch
+replies are believed only from that session (`Reply.replier_id`). Published summaries carry no
+sender Zenoh can vouch for, so one of another map epoch is only a claim: the node asks the
+robot's own session for its epoch (``.../epoch``) and forgets the robot's places only when that
+session confirms a new one. Authentication itself is TLS with access control on the router: with
+deploy/zenoh-fleet-router.json5 a robot's certificate may only publish, answer and hold a token
+under its own robot id (docs/fleet.md). Without it, anyone on the router may speak for any robot.
 
 Catch-up: summaries published while two robots could not reach each other are lost to Zenoh.
 When a robot's liveliness token appears (again), the next frame asks that robot for its
 summaries after the latest frame it offered (``.../summaries?after=N``, answered without
 waiting); a robot that joins asks everyone for everything once (`join`).
 
-Threads: Zenoh's callbacks only append to the inbox, flip liveliness flags, read `_served`
-(a dict the frame thread replaces entries of; single dict operations are atomic in CPython) and
-bump counters under a lock; the detector and the FleetMap are touched by the frame thread alone
-(the listener calls come from it).
+Bounds: the inbox holds at most INBOX_BYTES of summaries between two frames, each no larger than
+the bundle's vocabulary allows; robots are admitted only while their token is alive (a full
+table makes room by dropping one whose token is gone); a frame waits for keypoints at most
+`fetch_timeout_ms` in all.
+
+Threads: Zenoh's callbacks only append to the inbox and the reply lists, flip liveliness flags,
+read `_served` (a dict the frame thread replaces entries of; single dict operations are atomic
+in CPython) and bump counters under a lock; the detector and the FleetMap are touched by the
+frame thread alone (the listener calls come from it).
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import statistics
 import threading
 import time
@@ -43,9 +58,12 @@ from aefabmap_runtime.core.fleet.fleet_wire import (
     FleetMessageError,
     TOKEN_PATTERN,
     PlaceSummary,
+    decode_epoch,
     decode_keypoints,
+    encode_epoch,
     encode_keypoints,
     fleet_key,
+    max_summary_bytes,
 )
 from aefabmap_runtime.core.map.keypoint_store import PlaceKeypoints
 from aefabmap_runtime.core.map.map_events import MapListener
@@ -53,12 +71,14 @@ from aefabmap_runtime.core.records.messages import FleetStats, RemoteRobotStats
 
 log = logging.getLogger("aefabmap.fleet")
 
-#: Summaries waiting for the frame thread; more are dropped and counted ("inbox_full").
+#: Summaries waiting for the frame thread; more are dropped and counted ("too_large_or_inbox_full").
 INBOX = 20_000
-#: Largest summary read (a place's words at 4 bytes each, for any vocabulary a bundle may have).
-MAX_SUMMARY_BYTES = 1 << 20
+#: Bytes of summaries waiting for the frame thread; likewise.
+INBOX_BYTES = 16 << 20
 #: Largest keypoint reply read.
 MAX_REPLY_BYTES = 1 << 22
+#: A Zenoh session id as a token key names it (hex).
+_ZID = re.compile(r"[0-9a-f]{1,32}")
 #: How long a robot that joins waits for the others' summaries (s).
 JOIN_TIMEOUT_S = 5.0
 
@@ -73,18 +93,28 @@ class FleetNode(MapListener):
         self.detector, self.config, self.session = detector, config, session
         self.identity = bytes.fromhex(bundle_id(detector.manifest))
         self.map = FleetMap(config, detector.new_scorer, detector.map.room)
-        self._inbox: deque[tuple[str, bytes]] = deque()
+        self._max_summary = max_summary_bytes(detector.map.vocabulary_size)
+        # (robot, summary, whether the robot's own session sent it: a reply, not a publication)
+        self._inbox: deque[tuple[str, bytes, bool]] = deque()
+        self._inbox_bytes = 0
         self._served: dict[int, tuple[bytes, PlaceKeypoints]] = {}  # own frame -> (summary, keypoints)
         self._frame_of_place: dict[int, int] = {}
         # sequence -> stamp (ns) of the frames taken since the node joined, until they enter the map
         self._stamps: dict[int, int] = {}
         self._alive: dict[str, bool] = {}
+        self._owner: dict[str, str] = {}  # robot -> the session id (hex) of its live token
+        self._epochs: deque[tuple[str, int]] = deque()  # (robot, epoch) its own session answered
+        self._epoch_asked: set[str] = set()  # robots whose epoch is being asked
         self._returned: deque[str] = deque()  # robots whose token appeared, to catch up with
         self._replied: dict[str, list[int]] = {}  # asker -> [keypoint replies, bytes] (Zenoh threads write)
         self.out = FleetStats(fleet=config.name, robot=config.robot)
         self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
         self._unreadable = 0  # samples that could not be read, likewise
-        self._drops_lock = threading.Lock()  # guards what Zenoh threads count: _drops, _unreadable, _replied
+        self._not_owner = 0  # replies from a session that does not hold the robot's token, likewise
+        self._claimed = 0  # tokens for a robot another live session holds, likewise
+        # guards what Zenoh threads count and fill: _drops, _unreadable, _not_owner, _claimed, _replied,
+        # _inbox_bytes, _epochs
+        self._drops_lock = threading.Lock()
         self._handles: list = []
         self._serve_stored()
         try:
@@ -104,8 +134,9 @@ class FleetNode(MapListener):
             s.declare_subscriber(fleet_key(c.name, "*", "place", "*"), self._on_summary),
             s.declare_queryable(fleet_key(c.name, c.robot, "keypoints", "*"), self._on_keypoint_query),
             s.declare_queryable(fleet_key(c.name, c.robot, "summaries"), self._on_summaries_query),
-            s.liveliness().declare_token(fleet_key(c.name, c.robot, "alive")),
-            s.liveliness().declare_subscriber(fleet_key(c.name, "*", "alive"), self._on_alive, history=True),
+            s.declare_queryable(fleet_key(c.name, c.robot, "epoch"), self._on_epoch_query),
+            s.liveliness().declare_token(fleet_key(c.name, c.robot, "alive", str(s.zid()))),
+            s.liveliness().declare_subscriber(fleet_key(c.name, "*", "alive", "*"), self._on_alive, history=True),
         ]
 
     def join(self, timeout_s: float = JOIN_TIMEOUT_S) -> int:
@@ -113,12 +144,17 @@ class FleetNode(MapListener):
         how many arrived (they are read into the map before the next frame)."""
         n = 0
         try:
+            # Who speaks for each robot, first: only its session's replies are read.
+            for reply in self.session.liveliness().get(fleet_key(self.config.name, "*", "alive", "*"),
+                                                       timeout=timeout_s):
+                if reply.ok is not None:
+                    self._on_alive(reply.ok)
             # Every reply counts: each robot answers with all its summaries under one key, which the
             # default consolidation would reduce to the last.
             for reply in self.session.get(fleet_key(self.config.name, "*", "summaries"), timeout=timeout_s,
                                           consolidation=zenoh.ConsolidationMode.NONE):
-                if reply.ok is not None:
-                    self._take(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                if reply.ok is not None and self._owned(reply, _robot_of(str(reply.ok.key_expr))):
+                    self._take(str(reply.ok.key_expr), reply.ok.payload, owned=True)
                     n += 1
         except zenoh.ZError as exc:
             raise TransportError(f"cannot ask fleet {self.config.name} for its places: {str(exc)[:200]}") from exc
@@ -127,25 +163,38 @@ class FleetNode(MapListener):
     def _on_summary(self, sample: zenoh.Sample) -> None:
         self._take_safely(sample)
 
-    def _take_safely(self, sample: zenoh.Sample) -> None:
+    def _take_safely(self, sample: zenoh.Sample, owned: bool = False) -> None:
         """`_take` from a Zenoh thread: never raises; a failure is counted as malformed (the
         frame thread moves the count into the map)."""
         try:
-            self._take(str(sample.key_expr), sample.payload.to_bytes())
+            self._take(str(sample.key_expr), sample.payload, owned)
         except Exception:  # noqa: BLE001 - a peer's message must never take the node down
             with self._drops_lock:
                 self._unreadable += 1
 
-    def _take(self, key: str, data: bytes) -> None:
-        parts = key.split("/")
-        robot = parts[3] if len(parts) > 3 else ""
+    def _take(self, key: str, payload: zenoh.ZBytes, owned: bool = False) -> None:
+        """Queue a summary for the frame thread, unless it is ours, larger than this bundle's
+        summaries can be, or the inbox is full (counted); its bytes are copied only when kept."""
+        robot = _robot_of(key)
         if robot == self.config.robot:
             return
-        if len(data) > MAX_SUMMARY_BYTES or len(self._inbox) >= INBOX:
-            with self._drops_lock:  # several Zenoh threads may drop at once
+        size = len(payload)
+        with self._drops_lock:  # several Zenoh threads may take at once
+            if size > self._max_summary or len(self._inbox) >= INBOX or self._inbox_bytes + size > INBOX_BYTES:
                 self._drops += 1
-            return
-        self._inbox.append((robot, data))
+                return
+            self._inbox_bytes += size
+            self._inbox.append((robot, payload.to_bytes(), owned))
+
+    def _owned(self, reply: zenoh.Reply, robot: str) -> bool:
+        """Whether `reply` comes from the session holding `robot`'s token (else counted)."""
+        owner = self._owner.get(robot)
+        replier = reply.replier_id
+        if owner is not None and replier is not None and str(replier.zid) == owner:
+            return True
+        with self._drops_lock:
+            self._not_owner += 1
+        return False
 
     def _on_keypoint_query(self, query: zenoh.Query) -> None:
         try:
@@ -180,11 +229,29 @@ class FleetNode(MapListener):
         except Exception as exc:  # noqa: BLE001
             log.debug("summaries query not answered: %s", str(exc)[:200])
 
+    def _on_epoch_query(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(str(query.key_expr), encode_epoch(self.identity, self.detector.map_epoch))
+        except Exception as exc:  # noqa: BLE001
+            log.debug("epoch query not answered: %s", str(exc)[:200])
+
     def _on_alive(self, sample: zenoh.Sample) -> None:
+        """A robot's token came or went. The first live token of a robot names the session that
+        speaks for it; another session's token for the same robot is counted and ignored."""
         try:
             parts = str(sample.key_expr).split("/")
-            robot = parts[3] if len(parts) == 5 else ""
-            if robot == self.config.robot or not TOKEN_PATTERN.fullmatch(robot):
+            robot, zid = (parts[3], parts[5]) if len(parts) == 6 and parts[4] == "alive" else ("", "")
+            if robot == self.config.robot or not TOKEN_PATTERN.fullmatch(robot) or not _ZID.fullmatch(zid):
+                return
+            owner = self._owner.get(robot)
+            if sample.kind != zenoh.SampleKind.PUT:
+                if owner == zid:  # the robot's own session left
+                    del self._owner[robot]
+                    self._alive[robot] = False
+                return
+            if owner is not None and owner != zid:
+                with self._drops_lock:
+                    self._claimed += 1
                 return
             if robot not in self._alive and len(self._alive) >= self.config.max_robots:
                 # As many robots as the map may hold: a robot that left makes room, else the newcomer
@@ -193,10 +260,10 @@ class FleetNode(MapListener):
                 if gone is None:
                     return
                 del self._alive[gone]
-            alive = sample.kind == zenoh.SampleKind.PUT
-            if alive and not self._alive.get(robot) and len(self._returned) < INBOX:
+            if not self._alive.get(robot) and len(self._returned) < INBOX:
                 self._returned.append(robot)
-            self._alive[robot] = alive
+            self._owner[robot] = zid
+            self._alive[robot] = True
         except Exception:  # noqa: BLE001
             pass
 
@@ -216,8 +283,8 @@ class FleetNode(MapListener):
             after = self.map.last_frame(robot)
             try:
                 self.session.get(f"{fleet_key(self.config.name, robot, 'summaries')}?after={after}",
-                                 self._on_catch_up_reply, consolidation=zenoh.ConsolidationMode.NONE,
-                                 timeout=JOIN_TIMEOUT_S)
+                                 lambda reply, robot=robot: self._on_catch_up_reply(reply, robot),
+                                 consolidation=zenoh.ConsolidationMode.NONE, timeout=JOIN_TIMEOUT_S)
             except zenoh.ZError as exc:
                 log.debug("catch-up with %s not asked: %s", robot, str(exc)[:200])
                 continue
@@ -226,51 +293,97 @@ class FleetNode(MapListener):
                      self.config.name, robot, after)
         return asked
 
-    def _on_catch_up_reply(self, reply: zenoh.Reply) -> None:
-        if reply.ok is not None:
-            self._take_safely(reply.ok)
+    def _on_catch_up_reply(self, reply: zenoh.Reply, robot: str) -> None:
+        if reply.ok is not None and _robot_of(str(reply.ok.key_expr)) == robot and self._owned(reply, robot):
+            self._take_safely(reply.ok, owned=True)
 
-    def fetch(self, robot: str, frame: int) -> PlaceKeypoints | None:
-        """The keypoints of another robot's place, or None (timeout, bad reply, robot gone); counted."""
-        remote = self.map.robots[robot]
-        remote.stats.fetches += 1
-        if self._alive.get(robot) is False:
-            remote.stats.fetch_failures += 1
-            return None
-        store = self.detector.map.store
-        t0 = time.monotonic()
+    def check_epochs(self) -> list[str]:
+        """Ask each robot that a summary of another map epoch was sent in the name of for its
+        epoch, from its own session (nothing waits; one question per robot at a time). Returns
+        the robots asked."""
+        asked = []
+        for robot in sorted(self.map.epoch_claims - self._epoch_asked):
+            if robot not in self._owner:
+                continue  # nobody speaks for it now: its token's return starts a catch-up
+            self._epoch_asked.add(robot)
+            try:
+                self.session.get(fleet_key(self.config.name, robot, "epoch"),
+                                 zenoh.handlers.Callback(lambda reply, robot=robot: self._on_epoch_reply(reply, robot),
+                                                         lambda robot=robot: self._epoch_asked.discard(robot)),
+                                 consolidation=zenoh.ConsolidationMode.NONE, timeout=JOIN_TIMEOUT_S)
+            except zenoh.ZError as exc:
+                self._epoch_asked.discard(robot)
+                log.debug("epoch of %s not asked: %s", robot, str(exc)[:200])
+                continue
+            asked.append(robot)
+        self.map.epoch_claims.clear()
+        return asked
+
+    def _on_epoch_reply(self, reply: zenoh.Reply, robot: str) -> None:
         try:
-            replies = self.session.get(  # ?robot=: the owner counts its replies per asker
-                f"{fleet_key(self.config.name, robot, 'keypoints', str(frame))}?robot={self.config.robot}",
-                timeout=self.config.fetch_timeout_ms / 1000)
-            for reply in replies:
-                if reply.ok is None:
-                    continue
-                data = reply.ok.payload.to_bytes()
-                remote.stats.bytes_in += len(data)
-                if len(data) > MAX_REPLY_BYTES:
-                    remote.refuse("too_large")
-                    continue
-                try:
-                    place = decode_keypoints(data, self.identity, frame, store.dtype, store.vocabulary_size,
-                                             store.no_word_code, self.map.epoch(robot))
-                except FleetMessageError as exc:
-                    remote.refuse(exc.reason)
-                    continue
-                remote.fetch_ms.append((time.monotonic() - t0) * 1e3)
-                return place
-        except zenoh.ZError as exc:
-            log.debug("fetch from %s failed: %s", robot, str(exc)[:200])
-        remote.stats.fetch_failures += 1
-        return None
+            if reply.ok is None or not self._owned(reply, robot):
+                return
+            payload = reply.ok.payload
+            epoch = decode_epoch(payload.to_bytes() if len(payload) <= 64 else b"", self.identity)
+            with self._drops_lock:
+                self._epochs.append((robot, epoch))
+        except Exception:  # noqa: BLE001 - a peer's reply must never take the node down
+            with self._drops_lock:
+                self._unreadable += 1
+
+    def fetch(self, pairs: list[tuple[str, int]]) -> dict[tuple[str, int], PlaceKeypoints | None]:
+        """The keypoints of other robots' places, all asked at once and waited for until one
+        deadline (`fetch_timeout_ms`); a place whose robot is gone, or that is not answered in
+        time by its robot's own session with a valid reply, maps to None. Counted per robot."""
+        replies = _Replies()
+        out: dict[tuple[str, int], PlaceKeypoints | None] = {}
+        t0, issued = time.monotonic(), 0
+        timeout_s = self.config.fetch_timeout_ms / 1000
+        for robot, frame in pairs:
+            out[(robot, frame)] = None
+            remote = self.map.robots[robot]
+            remote.stats.fetches += 1
+            if robot not in self._owner:
+                continue
+            try:  # ?robot=: the owner counts its replies per asker
+                self.session.get(
+                    f"{fleet_key(self.config.name, robot, 'keypoints', str(frame))}?robot={self.config.robot}",
+                    # Every reply: consolidation would keep one per key, maybe a stranger's over the owner's.
+                    replies.handler(self, robot, frame), consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+                issued += 1
+            except zenoh.ZError as exc:
+                log.debug("fetch from %s failed: %s", robot, str(exc)[:200])
+        replies.wait(issued, t0 + timeout_s)
+        store = self.detector.map.store
+        for (robot, frame), data, size, ms in replies.take():
+            remote = self.map.robots.get(robot)
+            if remote is None or out.get((robot, frame), 0) is not None:
+                continue  # not asked, or answered already
+            remote.stats.bytes_in += size
+            if data is None:
+                remote.refuse("too_large")
+                continue
+            try:
+                out[(robot, frame)] = decode_keypoints(data, self.identity, frame, store.dtype, store.vocabulary_size,
+                                                       store.no_word_code, self.map.epoch(robot))
+                remote.fetch_ms.append(ms)
+            except FleetMessageError as exc:
+                remote.refuse(exc.reason)
+        for (robot, _), place in out.items():
+            if place is None and robot in self.map.robots:
+                self.map.robots[robot].stats.fetch_failures += 1
+        return out
 
     # ------------------------------------------------------------------ frame thread (map events)
 
     def before_frame(self) -> None:
-        """Read the summaries that arrived into the FleetMap, then ask the robots that came back."""
+        """Read the summaries and epochs that arrived into the FleetMap, then ask the robots that
+        came back for their places, and those another epoch was claimed for, for their epoch."""
         self._drain()
         if self._returned:  # after the drain: ask for what came after the places just read
             self.catch_up()
+        if self.map.epoch_claims:
+            self.check_epochs()
 
     def frame_taken(self, sequence: int, words: np.ndarray, stamp_ns: int, features) -> None:
         self._stamps[sequence] = int(stamp_ns)  # the summary of the place it becomes carries it
@@ -310,11 +423,20 @@ class FleetNode(MapListener):
         with self._drops_lock:
             drops, self._drops = self._drops, 0
             unreadable, self._unreadable = self._unreadable, 0
-        for reason, n in (("too_large_or_inbox_full", drops), ("malformed", unreadable)):
+            not_owner, self._not_owner = self._not_owner, 0
+            claimed, self._claimed = self._claimed, 0
+            epochs, self._epochs = list(self._epochs), deque()
+        for reason, n in (("too_large_or_inbox_full", drops), ("malformed", unreadable),
+                          ("not_from_owner", not_owner), ("robot_claimed_twice", claimed)):
             if n:
                 self.map.refused_elsewhere[reason] = self.map.refused_elsewhere.get(reason, 0) + n
+        for robot, epoch in epochs:  # the robots' own sessions answered
+            self.map.confirm_epoch(robot, epoch)
+        alive = lambda robot: bool(self._alive.get(robot))  # noqa: E731
         while self._inbox:
-            robot, data = self._inbox.popleft()
+            robot, data, owned = self._inbox.popleft()
+            with self._drops_lock:
+                self._inbox_bytes -= len(data)
             try:
                 summary = PlaceSummary.decode(data, self.identity, self.detector.map.vocabulary_size)
             except FleetMessageError as exc:
@@ -323,7 +445,9 @@ class FleetNode(MapListener):
             if summary.robot != robot:
                 self.map.refuse(robot, "robot_mismatch")
                 continue
-            self.map.add(summary)
+            if owned:  # a reply of the robot's own session: its epoch is believed
+                self.map.confirm_epoch(robot, summary.epoch)
+            self.map.add(summary, alive)
             if summary.robot in self.map.robots:
                 self.map.robots[summary.robot].stats.bytes_in += len(data)
         while self.map.restarted:  # a robot restarted: the places it numbered before are gone; ask for all
@@ -390,6 +514,59 @@ def join_fleet(session: zenoh.Session, detector, config: FleetConfig) -> FleetNo
         raise
     log.info("fleet %s: robot %s joined, %d places offered by the others", config.name, config.robot, n)
     return node
+
+
+class _Replies:
+    """The keypoint replies of one frame's fetch, filled by Zenoh threads: only those from the
+    session holding the robot's token and no larger than MAX_REPLY_BYTES are copied, and the
+    frame thread waits for every query to end, or for its deadline."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._got: list[tuple[tuple[str, int], bytes | None, int, float]] = []  # (place, data, size, ms)
+        self._ended = 0
+        self._t0 = time.monotonic()
+
+    def handler(self, node: FleetNode, robot: str, frame: int) -> zenoh.handlers.Callback:
+        def on_reply(reply: zenoh.Reply) -> None:
+            try:
+                if reply.ok is None or not node._owned(reply, robot):
+                    return
+                payload = reply.ok.payload
+                size = len(payload)
+                data = payload.to_bytes() if size <= MAX_REPLY_BYTES else None  # too large: not copied
+                with self._cond:
+                    self._got.append(((robot, frame), data, size, (time.monotonic() - self._t0) * 1e3))
+                    self._cond.notify_all()
+            except Exception:  # noqa: BLE001 - a peer's reply must never take the node down
+                pass
+
+        return zenoh.handlers.Callback(on_reply, self._ended_one)
+
+    def _ended_one(self) -> None:
+        with self._cond:
+            self._ended += 1
+            self._cond.notify_all()
+
+    def wait(self, asked: int, deadline: float) -> None:
+        """Until every query ended or a reply came for each, or the deadline (monotonic s)."""
+        with self._cond:
+            while self._ended < asked and len({got[0] for got in self._got}) < asked:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return
+                self._cond.wait(left)
+
+    def take(self) -> list[tuple[tuple[str, int], bytes | None, int, float]]:
+        with self._cond:
+            got, self._got = self._got, []
+        return got
+
+
+def _robot_of(key: str) -> str:
+    """The robot id of a fleet key (``aefabmap/fleet/<fleet>/<robot>/...``), "" when it has none."""
+    parts = key.split("/")
+    return parts[3] if len(parts) > 3 else ""
 
 
 def _after_frame(text: str | None) -> int | None:

@@ -2,7 +2,8 @@
 
 With none given the node listens on loopback only (zenoh_transport.cli_session_config). A ROS 2
 run joins the rmw_zenoh router instead, which owns that port. A fleet node that only connects
-joins as a Zenoh client. A session accepted with --allow-exposure says at start how it is exposed.
+joins as a Zenoh client. A session accepted with --allow-exposure says at start how it is exposed;
+a fleet node whose session has no mutual TLS says that the fleet's peers are not authenticated.
 """
 
 from __future__ import annotations
@@ -12,7 +13,12 @@ import logging
 from dataclasses import dataclass
 
 from aefabmap_runtime.adapters.rmw_zenoh import ROS_PEER_LISTEN
-from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, cli_session_config, session_exposure
+from aefabmap_runtime.adapters.zenoh_transport import (
+    SessionConfig,
+    cli_session_config,
+    session_authenticated,
+    session_exposure,
+)
 from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
 
 #: The node's log, under the name its operators know from `run`.
@@ -41,6 +47,9 @@ def node_session(endpoints: Endpoints, *, ros: bool = False, fleet: FleetConfig 
         # A peer of rmw_zenoh's graph on this host (router reachable, listening on loopback only).
         session = dataclasses.replace(session, mode="peer", listen=(ROS_PEER_LISTEN,))
     warn_exposure(session, logger)
+    if fleet is not None and not session_authenticated(session):
+        logger.warning("fleet %s: its peers are not authenticated (no mutual TLS): anyone who reaches the router can "
+                       "offer places in any robot's name; see deploy/zenoh-fleet-router.json5", fleet.name)
     return fleet_session(session, fleet)
 
 

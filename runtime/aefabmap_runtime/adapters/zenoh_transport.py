@@ -37,7 +37,7 @@ from pathlib import Path
 import zenoh
 
 from aefabmap_runtime.errors import ConfigError, TransportError
-from aefabmap_runtime.adapters.zenoh_exposure import exposure
+from aefabmap_runtime.adapters.zenoh_exposure import TLS_PROTOCOLS, endpoints, exposure, is_loopback, mutual_tls
 
 #: Zenoh's customary port; the CLI's loopback default (see cli_session_config).
 DEFAULT_PORT = 7447
@@ -155,6 +155,16 @@ def session_exposure(sc: SessionConfig) -> list[str]:
     """Why the session of sc is reachable without authentication ([]: it is not); ConfigError as
     build_zenoh_config, except for the exposure itself."""
     return exposure(build_zenoh_config(dataclasses.replace(sc, allow_exposure=True)))
+
+
+def session_authenticated(sc: SessionConfig) -> bool:
+    """Whether the session of sc meets other hosts only over mutual TLS: it has a TLS/QUIC
+    endpoint, requires a certificate its CA signed, and every other endpoint is loopback.
+    ConfigError as build_zenoh_config, except for exposure."""
+    conf = build_zenoh_config(dataclasses.replace(sc, allow_exposure=True))
+    remote = [e for e in (*endpoints(conf, "connect"), *endpoints(conf, "listen"))
+              if not is_loopback(e) or e.partition("/")[0] in TLS_PROTOCOLS]
+    return mutual_tls(conf) and bool(remote) and all(e.partition("/")[0] in TLS_PROTOCOLS for e in remote)
 
 
 def _no_default_listen(conf: zenoh.Config, config_file: str) -> None:

@@ -12,7 +12,6 @@ import json
 import math
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol
 
@@ -24,7 +23,7 @@ from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
 from aefabmap_runtime.core.kernels.bits import nearest_two_kernel
 from aefabmap_runtime.core.rank.bow import BowIndex
 from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, Search, top_places
-from aefabmap_runtime.core.fleet.fleet_map import FleetMap, RemoteMatch
+from aefabmap_runtime.core.fleet.fleet_map import Fetch, FleetMap, RemoteMatch
 from aefabmap_runtime.core.rank.fabmap import FabMap2
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind
 from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features
@@ -50,10 +49,6 @@ from aefabmap_runtime.core.verify.verification import (
     verify_pair_bruteforce,
 )
 from aefabmap_runtime.core.verify.word_matches import same_word_kernel
-
-#: Gets the keypoints of another robot's place, by (robot, frame); None when they cannot be had.
-Fetch = Callable[[str, int], PlaceKeypoints | None]
-
 
 class TrainedModel(Protocol):
     """What the detector needs from a trained model (a bundle reader provides it).
@@ -315,7 +310,8 @@ class LoopClosureDetector:
     def attach_remote(self, places: FleetMap, fetch: Fetch) -> None:
         """Make other robots' places a second candidate source: a frame the own map verified
         nothing for (and with keypoints enough to verify with) is matched against `places`
-        (FleetMap.match; built with `new_scorer` and `map.room`), whose keypoints `fetch` gets;
+        (FleetMap.match; built with `new_scorer` and `map.room`), whose keypoints `fetch` gets
+        (several places at once, within one deadline);
         its result then carries that robot's verified place. ConfigError without verification."""
         if self.map.store is None:
             raise ConfigError("other robots' places need verification: they are verified before they count")

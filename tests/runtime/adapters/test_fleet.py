@@ -116,7 +116,7 @@ def test_a_late_joiner_gets_every_place_with_one_query_and_a_leaver_is_noticed(h
 def test_hostile_peers_are_counted_and_cannot_crash_or_overfill_a_node(hub, route):
     sb, b = _robot(hub, "b", max_places=4, fetch_timeout_ms=300)
     evil = _peer(hub)
-    token = evil.liveliness().declare_token(fleet_key("test", "x", "alive"))
+    token = evil.liveliness().declare_token(fleet_key("test", "x", "alive", str(evil.zid())))
     assert _until(lambda: b.robots_alive() == ["x"])
     ident = bytes.fromhex(bundle_id(b.detector.manifest))
     try:
@@ -480,15 +480,15 @@ def test_a_node_offers_exactly_the_places_its_map_holds(hub, route):
 def test_a_peer_declaring_many_robots_cannot_grow_the_node_without_bound(hub):
     sb, b = _robot(hub, "b", max_robots=4)
     evil = _peer(hub)
-    tokens = [evil.liveliness().declare_token(fleet_key("test", f"r{i}", "alive")) for i in range(30)]
-    tokens.append(evil.liveliness().declare_token(fleet_key("test", "x" * 40, "alive")))  # not a robot id
+    tokens = [evil.liveliness().declare_token(fleet_key("test", f"r{i}", "alive", str(evil.zid()))) for i in range(30)]
+    tokens.append(evil.liveliness().declare_token(fleet_key("test", "x" * 40, "alive", str(evil.zid()))))  # not a robot id
     try:
         assert _until(lambda: len(b.robots_alive()) == 4)
         assert len(b._alive) == 4 and len(b._returned) <= 4
         b.detector.process(np.zeros((480, 640), np.uint8), 0)  # catch-up queries to the robots it holds: no crash
         followed = b.robots_alive()
         tokens.pop(int(followed[0][1:])).undeclare()  # one of them leaves: a newcomer takes its room
-        newcomer = evil.liveliness().declare_token(fleet_key("test", "late", "alive"))
+        newcomer = evil.liveliness().declare_token(fleet_key("test", "late", "alive", str(evil.zid())))
         tokens.append(newcomer)
         assert _until(lambda: "late" in b.robots_alive()) and len(b._alive) == 4
     finally:

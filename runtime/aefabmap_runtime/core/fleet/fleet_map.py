@@ -8,11 +8,16 @@ source (LoopClosureDetector.attach_remote): when its own map verified nothing fo
 `FleetMap.match` ranks every remote robot's places, takes each robot's best `top_k`,
 gets their keypoints (a cache, else the caller's fetch, which may fail) and verifies them as the
 own places are verified, against a bar stricter by the log10 of the number of remote pairs
-checked (each is one more chance of a false alarm). The own map comes first: remote places live
-in what the own map leaves of `max_places` / `memory_mb` and of the fleet's own caps, the oldest
-arrival evicted first. A summary of a new map epoch (the robot restarted: its frame numbers
-mean other places now) makes the map forget that robot's places and cached keypoints first, and
-names the robot in `restarted` so that the node asks it for all its places again.
+checked (each is one more chance of a false alarm). The keypoints a frame needs are asked for
+in one batch (`Fetch`), so a frame waits for the slowest robot at most once. The own map comes
+first: remote places live in what the own map leaves of `max_places` / `memory_mb` and of the
+fleet's own caps; when they do not fit, the robot holding the most places loses its oldest, so
+one robot's flood never evicts another's places. A summary of another map epoch is not believed
+by itself (anyone may send one): it is refused and its robot named in `epoch_claims`, and only
+`confirm_epoch`, which the node calls with what that robot's own session answered, makes the
+map forget the robot's places; it then names the robot in `restarted` so that the node asks it
+for all its places again. A robot is admitted only while the node sees its liveliness token
+(`add(..., alive=)`); a full table makes room by dropping a robot whose token is gone.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict, deque
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -34,13 +39,18 @@ from aefabmap_runtime.core.verify.verification import GeometryResult
 #: Fetch latencies kept per robot for the stats' median (ms).
 _LATENCIES_KEPT = 200
 
+#: Gets the keypoints of several remote places at once, within one deadline: {(robot, frame):
+#: keypoints or None (not answered in time, refused, robot gone)}; may leave pairs out (None).
+Fetch = Callable[[list[tuple[str, int]]], dict[tuple[str, int], PlaceKeypoints | None]]
+
 
 @dataclass(frozen=True)
 class FleetConfig:
     """A node's part in a fleet.
 
     name: the fleet (a key-expression token); robot: this node's id in it (same rules).
-    fetch_timeout_ms: how long a keypoint fetch may wait for the robot that owns the place.
+    fetch_timeout_ms: how long a frame may wait for the keypoints of remote places (one deadline for
+        all the robots it asks).
     top_k: remote places checked per robot and frame (FAB-MAP's best first).
     track, track_memory: the temporal prior after a loop to another robot's place, as the own
         map's (CandidateConfig.track, track_memory): its next frames are tried first. Without the
@@ -72,15 +82,16 @@ class FleetConfig:
 
 
 class RemoteRobot:
-    """One robot's places: a scorer of their words, the place id <-> frame tables, the latest
-    frame it offered (-1: none; a catch-up asks for the ones after it), the map epoch they belong
-    to, its counters and its recent fetch latencies (ms)."""
+    """One robot's places: a scorer of their words, the place id <-> frame tables, their frames in
+    order of arrival (oldest first), the latest frame it offered (-1: none; a catch-up asks for the
+    ones after it), the map epoch they belong to, its counters and its recent fetch latencies (ms)."""
 
     def __init__(self, scorer: Scorer, epoch: int) -> None:
         self.scorer = scorer
         self.epoch = epoch
         self.frame_of: dict[int, int] = {}
         self.place_of: dict[int, int] = {}
+        self.arrivals: deque[int] = deque()
         self.last_frame = -1
         self.stats = RemoteRobotStats()
         self.fetch_ms: deque[float] = deque(maxlen=_LATENCIES_KEPT)
@@ -111,7 +122,6 @@ class FleetMap:
         self.config = config
         self._make_scorer, self._room = make_scorer, room
         self.robots: dict[str, RemoteRobot] = {}
-        self._arrivals: deque[tuple[str, int]] = deque()  # (robot, frame), oldest first
         self._cache: OrderedDict[tuple[str, int], PlaceKeypoints] = OrderedDict()
         self.evicted = 0
         #: Refusals of messages from robots the map does not hold (unreadable, other bundle, one
@@ -119,6 +129,8 @@ class FleetMap:
         self.refused_elsewhere: dict[str, int] = {}
         #: Robots whose map epoch changed since the caller last emptied this list.
         self.restarted: list[str] = []
+        #: Robots a summary of another epoch was sent in the name of, for the caller to ask (then empty it).
+        self.epoch_claims: set[str] = set()
         self._track: tuple[str, int, int] | None = None  # (robot, frame, query sequence) of the last loop
 
     def epoch(self, robot: str) -> int:
@@ -139,30 +151,58 @@ class FleetMap:
         """Scorer memory of the remote places plus the cached keypoints."""
         return sum(r.scorer.nbytes() for r in self.robots.values()) + sum(p.nbytes for p in self._cache.values())
 
-    def add(self, summary: PlaceSummary) -> bool:
-        """Keep a remote place; False (counted under a reason) when it is refused."""
+    def add(self, summary: PlaceSummary, alive: Callable[[str], bool] = lambda robot: True) -> bool:
+        """Keep a remote place; False (counted under a reason) when it is refused.
+
+        alive(robot): whether the node sees that robot's liveliness token now. A robot not held is
+        admitted only when alive; when max_robots are held, one whose token is gone is dropped
+        to make room. A summary of another epoch than the robot's held one changes nothing (see
+        the module doc: `epoch_claims`, `confirm_epoch`)."""
         if summary.robot == self.config.robot:
             return False  # our own summaries, back through a router: not a remote place
         robot = self.robots.get(summary.robot)
         if robot is None:
-            if len(self.robots) >= self.config.max_robots:
+            if not alive(summary.robot):
+                self.refuse(summary.robot, "not_alive")
+                return False
+            if len(self.robots) >= self.config.max_robots and not self._drop_gone_robot(alive):
                 self.refuse(summary.robot, "too_many_robots")
                 return False
             robot = self.robots[summary.robot] = RemoteRobot(self._make_scorer(), summary.epoch)
         elif summary.epoch != robot.epoch:
-            self._forget(summary.robot, summary.epoch)
+            robot.refuse("unconfirmed_epoch")
+            self.epoch_claims.add(summary.robot)
+            return False
         robot.stats.summaries += 1
-        robot.last_frame = max(robot.last_frame, summary.frame)
         if summary.frame in robot.place_of:
             return False  # held already: a catch-up's replies may overlap what arrived live
         if summary.words.size == 0:
             robot.refuse("no_words")
             return False
+        robot.last_frame = max(robot.last_frame, summary.frame)
         pid = robot.scorer.add(summary.words)
         robot.frame_of[pid], robot.place_of[summary.frame] = summary.frame, pid
-        self._arrivals.append((summary.robot, summary.frame))
+        robot.arrivals.append(summary.frame)
         self.fit()
         return summary.frame in robot.place_of
+
+    def confirm_epoch(self, name: str, epoch: int) -> bool:
+        """What robot `name`'s own session says its map epoch is: a different one than held makes
+        the map forget its places (True); the same one changes nothing."""
+        robot = self.robots.get(name)
+        if robot is None or robot.epoch == epoch:
+            return False
+        self._forget(name, epoch)
+        return True
+
+    def _drop_gone_robot(self, alive: Callable[[str], bool]) -> bool:
+        """Drop the first held robot whose token is gone, with its places (room for a live one)."""
+        gone = next((name for name in self.robots if not alive(name)), None)
+        if gone is None:
+            return False
+        self._forget(gone, self.robots[gone].epoch, restarted=False)
+        del self.robots[gone]
+        return True
 
     def refuse(self, robot: str | None, reason: str) -> None:
         """Count a message refused before it reached the map (undecodable, other bundle), under
@@ -176,34 +216,43 @@ class FleetMap:
         """Evict the oldest remote places until they fit the room the own map leaves."""
         places, nbytes = self._room()
         limit = self.config.max_places if places is None else min(self.config.max_places, max(places, 0))
-        while self._arrivals and (self.n_places > limit or (nbytes is not None and self.nbytes() > nbytes)):
-            self._evict_oldest()
+        while self.n_places > limit or (nbytes is not None and self.nbytes() > nbytes):
+            if not self._evict_oldest():
+                break
 
-    def _forget(self, name: str, epoch: int) -> None:
-        """Drop a restarted robot's places and cached keypoints; from now on its places are of `epoch`."""
+    def _forget(self, name: str, epoch: int, restarted: bool = True) -> None:
+        """Drop a robot's places and cached keypoints; from now on its places are of `epoch`.
+        restarted: it restarted with a new map (counted; the node asks it for all its places)."""
         robot = self.robots[name]
         for pid in robot.frame_of:
             robot.scorer.remove(pid)
         robot.frame_of.clear()
         robot.place_of.clear()
+        robot.arrivals.clear()
         for key in [k for k in self._cache if k[0] == name]:
             del self._cache[key]
-        self._arrivals = deque(a for a in self._arrivals if a[0] != name)
         robot.epoch, robot.last_frame = epoch, -1
-        robot.stats.map_restarts += 1
         if self._track is not None and self._track[0] == name:
             self._track = None
-        self.restarted.append(name)
+        if restarted:
+            robot.stats.map_restarts += 1
+            self.restarted.append(name)
 
-    def _evict_oldest(self) -> None:
-        name, frame = self._arrivals.popleft()
-        robot = self.robots.get(name)
-        pid = robot.place_of.pop(frame, None) if robot is not None else None
-        if pid is not None:
-            robot.scorer.remove(pid)
-            del robot.frame_of[pid]
-            self._cache.pop((name, frame), None)
-            self.evicted += 1
+    def _evict_oldest(self) -> bool:
+        """Evict the oldest place of the robot holding the most (False: none holds any); places
+        already gone from the scorer are skipped."""
+        while True:
+            name, robot = max(self.robots.items(), key=lambda item: len(item[1].place_of), default=(None, None))
+            if robot is None or not robot.arrivals:
+                return False
+            frame = robot.arrivals.popleft()
+            pid = robot.place_of.pop(frame, None)
+            if pid is not None:
+                robot.scorer.remove(pid)
+                del robot.frame_of[pid]
+                self._cache.pop((name, frame), None)
+                self.evicted += 1
+                return True
 
     def candidates(self, observed: np.ndarray) -> list[tuple[str, int]]:
         """(robot, frame) of each robot's top_k places for the observed words, best first per robot."""
@@ -216,19 +265,31 @@ class FleetMap:
             out += [(name, robot.frame_of[int(p)]) for p in best if np.isfinite(order[p]) and int(p) in robot.frame_of]
         return out
 
-    def keypoints(self, robot: str, frame: int, fetch: Callable[[str, int], PlaceKeypoints | None]) -> PlaceKeypoints | None:
-        """The place's keypoints from the cache, else from fetch (kept in the cache when it gives them)."""
-        key = (robot, frame)
-        if key in self._cache:
-            self._cache.move_to_end(key)
-            return self._cache[key]
-        place = fetch(robot, frame)
-        if place is not None and robot in self.robots and frame in self.robots[robot].place_of:
-            self._cache[key] = place
-            while len(self._cache) > self.config.cache_places:
-                self._cache.popitem(last=False)
+    def keypoints(self, pairs: Iterable[tuple[str, int]], fetch: Fetch) -> dict[tuple[str, int], PlaceKeypoints]:
+        """The keypoints of the (robot, frame) places held: from the cache, the others asked for
+        in one `fetch` (kept in the cache when given). Places without keypoints are left out."""
+        out: dict[tuple[str, int], PlaceKeypoints] = {}
+        wanted = []
+        for key in dict.fromkeys(pairs):
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                out[key] = self._cache[key]
+            else:
+                wanted.append(key)
+        got = fetch(wanted) if wanted else {}
+        for key in wanted:
+            place = got.get(key)
+            if place is None:
+                continue
+            out[key] = place
+            robot = self.robots.get(key[0])
+            if robot is not None and key[1] in robot.place_of:
+                self._cache[key] = place
+                while len(self._cache) > self.config.cache_places:
+                    self._cache.popitem(last=False)
+        if got:
             self.fit()
-        return place
+        return out
 
     def tracked(self, sequence: int) -> list[tuple[str, int]]:
         """The remote places the track expects for query `sequence` (nearest first), as the own
@@ -246,8 +307,7 @@ class FleetMap:
         return [(robot, f) for f in expected if f in held.place_of]
 
     def match(self, observed: np.ndarray, checker: Callable[[float], Callable[..., GeometryResult]],
-              fetch: Callable[[str, int], PlaceKeypoints | None], max_log10_nfa: float,
-              sequence: int = 0) -> RemoteMatch | None:
+              fetch: Fetch, max_log10_nfa: float, sequence: int = 0) -> RemoteMatch | None:
         """The most significant verified remote place for query `sequence`, or None.
 
         checker(bar) -> check(place, bruteforce, retry_only): the own detector's pair check
@@ -255,7 +315,8 @@ class FleetMap:
         places (`tracked`) come first, each matched by words and retried all-pairs, and the
         first that passes is taken; else each FAB-MAP candidate is matched by words and each
         robot's best also retried all-pairs, as the own map's reach does. The bar is
-        max_log10_nfa - log10(pair checks this frame may make).
+        max_log10_nfa - log10(pair checks this frame may make). Every place's keypoints are
+        asked for at once (`keypoints`).
         """
         tracked = self.tracked(sequence)
         wanted = [c for c in self.candidates(observed) if c not in tracked]
@@ -264,8 +325,9 @@ class FleetMap:
         checks = 2 * len(tracked) + len(wanted) + len({r for r, _ in wanted})
         bar = max_log10_nfa - math.log10(checks)
         check = checker(bar)
+        places = self.keypoints(tracked + wanted, fetch)
         for robot, frame in tracked:
-            place = self.keypoints(robot, frame, fetch)
+            place = places.get((robot, frame))
             if place is None or len(place) == 0:
                 continue
             g = check(place, False, False)
@@ -276,7 +338,7 @@ class FleetMap:
         best: RemoteMatch | None = None
         retried: set[str] = set()
         for robot, frame in wanted:
-            place = self.keypoints(robot, frame, fetch)
+            place = places.get((robot, frame))
             if place is None or len(place) == 0:
                 continue
             g = check(place, False, False)

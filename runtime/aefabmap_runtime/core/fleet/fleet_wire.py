@@ -6,15 +6,18 @@ a map draws when it starts empty and keeps in its state (LoopClosureDetector.map
 numbers count within one epoch (a robot restarted without its map numbers its frames from 0
 again), so a new epoch tells the others to forget the old places. A **keypoint reply** carries a
 place's verification keypoints in the keypoint store's record form
-(runtime/aefabmap_runtime/core/map/keypoint_store.py), with the epoch, sent only when another robot asks for them. Both are little-endian binary with a magic, a version and
-the bundle identity, and both are read as hostile input: every size, count and id is checked
-before anything is kept; a bad message raises FleetMessageError with a short reason that the
-node counts.
+(runtime/aefabmap_runtime/core/map/keypoint_store.py), with the epoch, sent only when another
+robot asks for them. An **epoch reply** tells the robot's current map epoch. All are
+little-endian binary with a magic, a version and the bundle identity, and all are read as
+hostile input: every size, count, id and position is checked before anything is kept; a bad
+message raises FleetMessageError with a short reason that the node counts.
 
 Key expressions (`fleet_key`): ``aefabmap/fleet/<fleet>/<robot>/place/<frame>`` (summaries),
 ``.../keypoints/<frame>[?robot=ID]`` (the keypoint queryable; the asker names itself),
 ``.../summaries[?after=N]`` (a robot's summaries, of frames after N: for a robot that joins late,
-or comes back) and ``.../alive`` (its liveliness token).
+or comes back), ``.../epoch`` (its map epoch) and ``.../alive/<session id>`` (its liveliness
+token, naming the Zenoh session that speaks for the robot: replies from any other session are
+not believed).
 """
 
 from __future__ import annotations
@@ -28,9 +31,10 @@ import numpy as np
 from aefabmap_runtime.errors import ConfigError, InputError
 from aefabmap_runtime.core.map.keypoint_store import PlaceKeypoints
 
-WIRE_VERSION = 2
+WIRE_VERSION = 3
 SUMMARY_MAGIC = b"AEFS"
 KEYPOINTS_MAGIC = b"AEFK"
+EPOCH_MAGIC = b"AEFE"
 #: Fleet names and robot ids: a short token that cannot be a key-expression wildcard or separator.
 TOKEN_PATTERN = re.compile(r"[A-Za-z0-9_-]{1,32}")
 #: Most keypoints a reply may carry (the store keeps at most VerificationConfig.keypoints).
@@ -42,6 +46,10 @@ MAX_IMAGE_SIDE = 16384
 _SUMMARY_HEAD = struct.Struct("<4sBB32sQqqIB")
 # magic, version, identity, epoch, frame, height, width, keypoint count, record size
 _KEYPOINTS_HEAD = struct.Struct("<4sB32sQqHHIH")
+# magic, version, identity, epoch
+_EPOCH = struct.Struct("<4sB32sQ")
+#: Positions are stored in 1/65535 of the image's longer side (keypoint_store.py).
+_XY_SCALE = 65535
 
 
 class FleetMessageError(InputError):
@@ -72,6 +80,11 @@ def check_token(text: object, what: str) -> str:
         raise ConfigError(f"{what} must be 1-32 letters, digits, '_' or '-' (no '/', '*', '$', '?', '#'), "
                           f"got {str(text)[:40]!r}")
     return text
+
+
+def max_summary_bytes(vocabulary_size: int) -> int:
+    """The largest summary a robot with a bundle of this vocabulary can send (every word, 4 bytes each)."""
+    return _SUMMARY_HEAD.size + 32 + 4 * int(vocabulary_size)
 
 
 def fleet_key(fleet: str, robot: str, *rest: str) -> str:
@@ -147,4 +160,22 @@ def decode_keypoints(data: bytes, identity: bytes, frame: int, dtype: np.dtype, 
     words = records["word"].astype(np.int64)
     if np.any((words != no_word) & ((words < 0) | (words >= vocabulary_size))):
         raise FleetMessageError("malformed", "keypoint reply holds word ids outside the vocabulary")
+    # Positions are fractions of the longer side: each must fall inside its own side of the image.
+    units = records["xy"].astype(np.int64) * max(height, width)
+    if n and (np.any(units[:, 0] >= width * _XY_SCALE) or np.any(units[:, 1] >= height * _XY_SCALE)):
+        raise FleetMessageError("out_of_image", f"keypoint reply with positions outside its {height}x{width} image")
     return PlaceKeypoints(records, (int(height), int(width)))
+
+
+def encode_epoch(identity: bytes, epoch: int) -> bytes:
+    """An epoch reply: the robot's current map epoch."""
+    return _EPOCH.pack(EPOCH_MAGIC, WIRE_VERSION, identity, epoch)
+
+
+def decode_epoch(data: bytes, identity: bytes) -> int:
+    """The map epoch of an epoch reply, checked against this node's bundle identity."""
+    if len(data) != _EPOCH.size:
+        raise FleetMessageError("malformed", f"epoch reply of {len(data)} bytes, not {_EPOCH.size}")
+    magic, version, ident, epoch = _EPOCH.unpack(data)
+    _check_head(magic, version, ident, EPOCH_MAGIC, identity, "epoch reply")
+    return int(epoch)

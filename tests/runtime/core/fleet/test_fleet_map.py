@@ -77,9 +77,9 @@ def test_a_view_of_another_robots_place_verifies_to_that_robots_frame(route):
     kps = {s.frame: k for s, k in offered}
     fetched = []
 
-    def fetch(robot, frame):
-        fetched.append((robot, frame))
-        return kps.get(frame)
+    def fetch(pairs):
+        fetched.append(list(pairs))
+        return {(robot, frame): kps.get(frame) for robot, frame in pairs}
 
     words, features = _query(b, route[2])  # robot b's first frame: its own map is empty
     observed = words[: b.bundle.features.max_features]
@@ -90,7 +90,7 @@ def test_a_view_of_another_robots_place_verifies_to_that_robots_frame(route):
                         fetch, v.max_log10_nfa)
     assert match is not None and match.robot == "a" and abs(match.frame - 2) <= 1
     assert match.geometry.nfa < v.max_log10_nfa - np.log10(match.checked)  # the stricter bar
-    assert fetched and fleet.robots["a"].stats.loops == 1
+    assert len(fetched) == 1 and fleet.robots["a"].stats.loops == 1  # every place asked for in one batch
     # Fetched keypoints are cached: the same frame again asks nobody.
     fetched.clear()
     fleet.match(observed, lambda bar: b.place_check(features, words, replace(v, max_log10_nfa=bar)), fetch,
@@ -105,7 +105,7 @@ def test_a_fetch_that_fails_verifies_nothing_and_raises_nothing(route):
         fleet.add(summary)
     words, features = _query(b, route[1])
     observed = words[: b.bundle.features.max_features]
-    assert fleet.match(observed, lambda bar: b.place_check(features, words), lambda robot, frame: None, -4.0) is None
+    assert fleet.match(observed, lambda bar: b.place_check(features, words), lambda pairs: {}, -4.0) is None
 
 
 def test_remote_places_live_in_what_the_own_map_leaves(route):
@@ -136,7 +136,8 @@ def test_refusals_are_counted_and_change_nothing(route):
     assert not fleet.add(PlaceSummary("c", ID, 1, 0, first.words))  # one robot too many
     assert not fleet.add(PlaceSummary("a", ID, 50, 0, np.zeros(0, np.int64)))
     assert fleet.robots["a"].stats.refused == {"no_words": 1}
-    assert fleet.robots["a"].stats.summaries == 3 and fleet.last_frame("a") == 50 and fleet.last_frame("x") == -1
+    assert fleet.robots["a"].stats.summaries == 3 and fleet.last_frame("a") == first.frame
+    assert fleet.last_frame("x") == -1
     assert fleet.refused_elsewhere == {"too_many_robots": 1}
     assert list(fleet.robots) == ["a"] and fleet.n_places == 1
 
@@ -168,15 +169,23 @@ def test_a_new_map_epoch_forgets_the_robots_places_and_cached_keypoints(route):
     for summary, _ in offered:
         fleet.add(replace(summary, epoch=1))
     kps = {s.frame: k for s, k in offered}
-    assert fleet.keypoints("a", offered[0][0].frame, lambda r, f: kps[f]) is not None  # cached now
+    first = ("a", offered[0][0].frame)
+    assert first in fleet.keypoints([first], lambda pairs: {p: kps[p[1]] for p in pairs})  # cached now
     n = fleet.n_places
     assert n == len(offered) and fleet.epoch("a") == 1 and fleet.restarted == []
-    # a restarted without its map: frame numbers start again and mean other places
+    # a summary of another epoch is only a claim: nothing is forgotten until a's own session confirms it
     again = replace(offered[0][0], epoch=2)
+    assert not fleet.add(again)
+    assert fleet.epoch_claims == {"a"} and fleet.n_places == n and fleet.restarted == []
+    assert fleet.robots["a"].stats.refused == {"unconfirmed_epoch": 1}
+    assert not fleet.confirm_epoch("a", 1)  # a says its epoch is the one held: nothing changes
+    assert fleet.n_places == n
+    # a restarted without its map: frame numbers start again and mean other places
+    assert fleet.confirm_epoch("a", 2)
+    assert fleet.restarted == ["a"] and fleet.epoch("a") == 2 and fleet.n_places == 0
     assert fleet.add(again)
-    assert fleet.restarted == ["a"] and fleet.epoch("a") == 2 and fleet.n_places == 1
     assert fleet.robots["a"].stats.map_restarts == 1 and fleet.last_frame("a") == again.frame
-    assert fleet.keypoints("a", again.frame, lambda r, f: None) is None  # the old keypoints are not served
+    assert fleet.keypoints([first], lambda pairs: {}) == {}  # the old keypoints are not served
     # eviction sees only the new epoch's places (the old arrivals are gone)
     for summary, _ in offered[1:]:
         fleet.add(replace(summary, epoch=2))
@@ -231,9 +240,43 @@ def test_after_a_loop_the_robots_next_frames_are_tried_first_and_paid_for(route)
 
     kps = {s.frame: k for s, k in offered}
     observed = np.unique(offered[0][0].words)
-    match = fleet.match(observed, checker, lambda robot, frame: kps.get(frame), -4.0, sequence=11)
+    match = fleet.match(observed, checker, lambda pairs: {p: kps.get(p[1]) for p in pairs}, -4.0, sequence=11)
     assert match is not None and (match.robot, match.frame) == ("a", f + 1)
     assert [r for _, r in calls] == [False, True]  # by words, then all-pairs
     n_tracked = len(fleet.tracked(11))
     assert match.checked >= 2 * n_tracked and bars == [-4.0 - np.log10(match.checked)]
     assert fleet.tracked(12)[0] == ("a", f + 2)  # the track follows the new loop
+
+
+def test_a_robot_is_admitted_only_while_alive_and_a_gone_one_makes_room(route):
+    a, b = _detector(), _detector()
+    offered = [s for s, _ in _places_of(a, route[:5])]
+    fleet = _map(b, max_robots=2)
+    live = {"a", "c", "d"}
+    alive = live.__contains__
+    assert not fleet.add(replace_robot(offered[0], "x"), alive)  # no token: a made-up robot id
+    assert fleet.refused_elsewhere == {"not_alive": 1} and "x" not in fleet.robots
+    assert fleet.add(offered[0], alive) and fleet.add(replace_robot(offered[1], "c"), alive)
+    assert not fleet.add(replace_robot(offered[2], "d"), alive)  # table full, everyone alive
+    assert fleet.refused_elsewhere["too_many_robots"] == 1
+    live.discard("c")  # c left: a live newcomer takes its room, and c's places go with it
+    assert fleet.add(replace_robot(offered[2], "d"), alive)
+    assert sorted(fleet.robots) == ["a", "d"] and fleet.n_places == 2 and fleet.restarted == []
+
+
+def test_one_robots_flood_evicts_its_own_places_not_anothers(route):
+    a, b = _detector(), _detector()
+    offered = [s for s, _ in _places_of(a, route[:6])]
+    fleet = _map(b, max_places=6)
+    for s in offered[:3]:
+        fleet.add(s)
+    for i in range(40):  # a peer floods under robot x
+        fleet.add(replace_robot(offered[i % len(offered)], "x", frame=1000 + i))
+    assert sorted(fleet.robots["a"].place_of) == [s.frame for s in offered[:3]]
+    assert len(fleet.robots["x"].place_of) == 3 and sorted(fleet.robots["x"].place_of) == [1037, 1038, 1039]
+
+
+def replace_robot(summary, robot, **kw):
+    from dataclasses import replace
+
+    return replace(summary, robot=robot, **kw)

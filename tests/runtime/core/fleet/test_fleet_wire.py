@@ -39,7 +39,8 @@ def _place(store: KeypointStore, n: int = 5):
     rng = np.random.default_rng(0)
     words = rng.integers(0, V, n)
     words[0] = -1  # a keypoint kept for geometry only
-    return store.pack(rng.uniform(0, 300, (n, 2)), words, rng.integers(0, 256, (n, 32), dtype=np.uint8), (240, 320))
+    xy = rng.uniform(0, 1, (n, 2)) * (319, 239)  # (x, y) inside the 240 x 320 image
+    return store.pack(xy, words, rng.integers(0, 256, (n, 32), dtype=np.uint8), (240, 320))
 
 
 def test_summary_round_trip_and_key():
@@ -107,6 +108,11 @@ def _bad_replies() -> dict[str, tuple[bytes, int, str]]:
     records = _place(store).records.copy()
     records["word"][2] = V + 5
     bad_word = encode_keypoints(ID, 7, type(_place(store))(records, (240, 320)))
+    beyond = {}
+    for name, shape, column in (("x at the long side's end", (192, 240), 0), ("y below the image", (240, 320), 1)):
+        records = _place(store).records.copy()
+        records["xy"][1, column] = 65535 if column == 0 else 65535 * 241 // 320  # x = 240 px of 240; y = 241 px of 240
+        beyond[name] = (encode_keypoints(ID, 7, type(_place(store))(records, shape)), 7, "out_of_image")
     head = struct.Struct("<4sB32sQqHHIH")
     fields = list(head.unpack_from(good))
 
@@ -126,6 +132,7 @@ def _bad_replies() -> dict[str, tuple[bytes, int, str]]:
         "too many keypoints": (with_field(7, MAX_REPLY_KEYPOINTS + 1), 7, "malformed"),
         "zero height": (with_field(5, 0), 7, "malformed"),
         "another map epoch": (with_field(3, 99), 7, "other_epoch"),
+        **beyond,
     }
 
 
