@@ -2,8 +2,8 @@
 
 Library use::
 
-    from aefabmap import DetectorConfig, load_detector
-    detector = load_detector("bundles/orb_kmeans_3000", DetectorConfig())
+    from aefabmap import DetectorConfig, default_bundle, load_detector
+    detector = load_detector("bundles/orb_kmeans_3000", DetectorConfig())  # or default_bundle()
     result = detector.process(gray_image)      # a FrameResult; result.verified, result.verified_frame
 
 The names below load lazily, so ``import aefabmap`` stays cheap for the CLI; none of them imports
@@ -13,6 +13,8 @@ zenoh, mcap, torch or onnx.
 from __future__ import annotations
 
 import importlib
+from importlib import resources
+from pathlib import Path
 
 from aefabmap_runtime.errors import (
     AefabmapError,
@@ -42,6 +44,12 @@ _LAZY = {
     "Localization": "aefabmap_runtime.core.rank.fabmap",
     "ChowLiuTree": "aefabmap_runtime.core.rank.tree",
 }
+
+
+def default_bundle() -> Path:
+    """The model bundle shipped in the package (ORB, 500 words, trained on synthetic worlds; see
+    aefabmap/data/README.md), wherever the package is installed: pass it to load_detector."""
+    return Path(str(resources.files(__name__) / "data" / "default_bundle"))
 
 
 def __getattr__(name: str):
@@ -78,6 +86,7 @@ __all__ = [
     "TransportError",
     "VerificationConfig",
     "__version__",
+    "default_bundle",
     "load_bundle",
     "load_detector",
 ]

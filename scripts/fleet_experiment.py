@@ -85,10 +85,10 @@ class Router:
 class Robot:
     """One `aefabmap run` child with its key, its results and its last stats."""
 
-    def __init__(self, name: str, args, router: Router | None, work: Path) -> None:
+    def __init__(self, name: str, args, router: Router | None, work: Path, extra_args: tuple[str, ...] = ()) -> None:
         self.name, self.key = name, f"fleet_{name}/camera/image"
         self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-        extra = ["--exclude", str(args.exclude)]
+        extra = ["--exclude", str(args.exclude), *extra_args]
         if router is not None:
             extra += router.join(name, self.endpoint)
         self.proc = start_run_node(args.model, self.key, self.endpoint, work / f"{name}.mcap",

@@ -145,3 +145,12 @@ def cli_args(*argv: str):
     from aefabmap.cli.main import build_parser
 
     return build_parser().parse_args([str(a) for a in argv])
+
+
+@pytest.fixture(scope="session")
+def runtime_install(tmp_path_factory):
+    """This checkout's wheel installed with the runtime dependencies only, in a fresh venv
+    (tests/runtime_install.py); built once per session, for the tests that run the real install."""
+    from tests.runtime_install import build_runtime_install
+
+    return build_runtime_install(tmp_path_factory.mktemp("runtime_install"))

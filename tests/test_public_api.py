@@ -59,9 +59,6 @@ def test_readme_library_example_runs(tmp_path):
     text = (REPO / "README.md").read_text()
     block = re.search(r"```python\n(.*?)```", text, re.S)
     assert block, "README has no python example"
-    # The example names the shipped bundle relative to the checkout; run it in a scratch folder.
-    (tmp_path / "aefabmap" / "data").mkdir(parents=True)
-    (tmp_path / "aefabmap" / "data" / "default_bundle").symlink_to(REPO / "aefabmap" / "data" / "default_bundle")
-    proc = _run(block.group(1), tmp_path)
+    proc = _run(block.group(1), tmp_path)  # a scratch folder: nothing of the checkout's layout at hand
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert re.search(r"frame \d+: revisits frame \d+", proc.stdout), proc.stdout[-2000:]

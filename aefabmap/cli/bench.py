@@ -7,7 +7,7 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
-from aefabmap.cli.options import add_verification_options, default_bundle
+from aefabmap.cli.options import add_verification_options, default_bundle, require_extra
 
 log = logging.getLogger("aefabmap.bench")
 
@@ -19,135 +19,208 @@ _KERNELS_HELP = ("the kernels (FAB-MAP scatter, verification's matching, the int
                  "native, numba, or numpy / OpenCV")
 
 
+_JSON_HELP = "also write the JSON printed to OUT"
+
+
 def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks (print figures, save JSON)")
     bsub = p.add_subparsers(dest="bench", required=True)
+    _register_inference(bsub)
+    _register_chowliu(bsub)
+    _register_pipeline(bsub)
+    _register_sequence(bsub)
+    _register_quantizer(bsub)
+    _register_stream(bsub)
+    _register_soak(bsub)
+
+
+def _add_kernels_option(g) -> None:
+    g.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
+
+
+def _add_all_cores_option(g) -> None:
+    g.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
+
+
+def _add_model_option(g) -> None:
+    g.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+
+
+def _add_output_group(p, help: str = _JSON_HELP):
+    """p's "output" group, holding --json OUT; returned for the command's other outputs."""
+    out = p.add_argument_group("output")
+    out.add_argument("--json", type=Path, metavar="OUT", help=help)
+    return out
+
+
+def _register_inference(bsub) -> None:
     inf = bsub.add_parser("inference", help="FAB-MAP localize() time and bytes per place on synthetic places")
-    inf.add_argument("--places", type=int, nargs="+", required=True, metavar="N")
-    inf.add_argument("--words", type=int, default=10_000, metavar="V")
-    inf.add_argument("--queries", type=int, default=200)
-    inf.add_argument("--words-per-place", type=int, default=300)
-    inf.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
-    inf.add_argument("--json", type=Path, metavar="OUT")
+    w = inf.add_argument_group("workload (synthetic places)")
+    w.add_argument("--places", type=int, nargs="+", required=True, metavar="N",
+                   help="places in the map; several: one map and one timing per value")
+    w.add_argument("--words", type=int, default=10_000, metavar="V", help="vocabulary size (default 10000)")
+    w.add_argument("--queries", type=int, default=200, metavar="N", help="timed localize() calls per map (default 200)")
+    w.add_argument("--words-per-place", type=int, default=300, metavar="K",
+                   help="words observed by each synthetic place and query (default 300)")
+    _add_kernels_option(inf.add_argument_group("measurement"))
+    _add_output_group(inf)
     inf.set_defaults(func=run_inference)
+
+
+def _register_chowliu(bsub) -> None:
     cl = bsub.add_parser("chowliu", help="Chow-Liu learning time and peak memory on synthetic observations")
-    cl.add_argument("--words", type=int, default=10_000, metavar="V")
-    cl.add_argument("--images", type=int, default=5_000, metavar="N")
-    cl.add_argument("--words-per-image", type=int, default=300)
-    cl.add_argument("--json", type=Path, metavar="OUT")
+    w = cl.add_argument_group("workload (synthetic observations)")
+    w.add_argument("--words", type=int, default=10_000, metavar="V", help="vocabulary size (default 10000)")
+    w.add_argument("--images", type=int, default=5_000, metavar="N",
+                   help="training observations (one per image) the tree is learnt from (default 5000)")
+    w.add_argument("--words-per-image", type=int, default=300, metavar="K",
+                   help="words observed by each synthetic image (default 300)")
+    _add_output_group(cl)
     cl.set_defaults(func=run_chowliu)
+
+
+def _register_pipeline(bsub) -> None:
     pl = bsub.add_parser("pipeline", help="per-stage ms per 640x480 ORB frame on one core with a pre-filled map")
-    pl.add_argument("--places", type=int, default=10_000, metavar="N", help="places in the map before timing (default 10000)")
-    pl.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
-    pl.add_argument("--frames", type=int, default=150, help="timed frames (default 150)")
-    pl.add_argument("--warmup", type=int, default=10, help="untimed frames first (default 10)")
-    pl.add_argument("--prefill", choices=("train", "synthetic"), default="train",
-                    help="word sets of the pre-filled places: the bundle's training observations (default) "
-                    "or synthetic observations of the same mean size")
-    pl.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
-    add_verification_options(pl, "--verify-keypoints", "--verify-bruteforce", bench=True)
-    pl.add_argument("--words-only-places", action="store_true",
-                    help="pre-filled places without keypoints (never verified, so verification is understated; "
-                         "the mode of figures measured before this option existed)")
-    pl.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
-    pl.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
-    pl.add_argument("--json", type=Path, metavar="OUT")
+    m = pl.add_argument_group("map and model")
+    _add_model_option(m)
+    m.add_argument("--places", type=int, default=10_000, metavar="N", help="places in the map before timing (default 10000)")
+    m.add_argument("--prefill", choices=("train", "synthetic"), default="train",
+                   help="word sets of the pre-filled places: the bundle's training observations (default) "
+                   "or synthetic observations of the same mean size")
+    m.add_argument("--words-only-places", action="store_true",
+                   help="pre-filled places without keypoints (never verified, so verification is understated; "
+                        "the mode of figures measured before this option existed)")
+    fr = pl.add_argument_group("frames")
+    fr.add_argument("--frames", type=int, default=150, metavar="N", help="timed frames (default 150)")
+    fr.add_argument("--warmup", type=int, default=10, metavar="N", help="untimed frames first (default 10)")
+    v = pl.add_argument_group("verification")
+    v.add_argument("--no-verification", action="store_true", help="switch geometric verification off")
+    add_verification_options(v, "--verify-keypoints", "--verify-bruteforce", bench=True)
+    me = pl.add_argument_group("measurement")
+    _add_kernels_option(me)
+    _add_all_cores_option(me)
+    _add_output_group(pl)
     pl.set_defaults(func=run_pipeline)
+
+
+def _register_sequence(bsub) -> None:
     sq = bsub.add_parser("sequence", help="per-stage ms per frame of the runtime's own path over a folder of real "
                          "images, on one core")
-    sq.add_argument("--images", type=Path, required=True, metavar="DIR", help="image folder (file-name order)")
-    sq.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
-    sq.add_argument("--exclude", type=int, default=50, metavar="N", help="exclusion window, frames (default 50)")
-    sq.add_argument("--limit", type=int, default=None, metavar="N", help="first N images only")
-    sq.add_argument("--kernels", "--scatter", dest="scatter", choices=_KERNEL_CHOICES, default="auto", help=_KERNELS_HELP)
-    sq.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
-    sq.add_argument("--calls", action="store_true", help="then a second pass under the profiler: CPU ms per frame "
+    i = sq.add_argument_group("input and detector")
+    i.add_argument("--images", type=Path, required=True, metavar="DIR", help="image folder (file-name order)")
+    _add_model_option(i)
+    i.add_argument("--exclude", type=int, default=50, metavar="N", help="exclusion window, frames (default 50)")
+    i.add_argument("--limit", type=int, default=None, metavar="N", help="first N images only")
+    add_verification_options(sq.add_argument_group("verification"), "--verify-keypoints", "--verify-bruteforce",
+                             "--no-verify-upright", bench=True)
+    me = sq.add_argument_group("measurement")
+    _add_kernels_option(me)
+    _add_all_cores_option(me)
+    me.add_argument("--calls", action="store_true", help="then a second pass under the profiler: CPU ms per frame "
                     "inside OpenCV, onnxruntime and aefabmap's compiled kernels (the rest: Python and numpy)")
-    add_verification_options(sq, "--verify-keypoints", "--verify-bruteforce", "--no-verify-upright", bench=True)
-    sq.add_argument("--workers", type=int, default=1, metavar="N",
+    me.add_argument("--workers", type=int, default=1, metavar="N",
                     help="then a run with N threads working on frames on N cores: CPU ms per frame, frames per "
                     "second and stages beside the one-thread run's (default 1: that run only)")
-    sq.add_argument("--json", type=Path, metavar="OUT")
+    _add_output_group(sq)
     sq.set_defaults(func=run_sequence)
+
+
+def _register_quantizer(bsub) -> None:
     qz = bsub.add_parser("quantizer", help="ms to quantise 500 real descriptors on one thread (flat, tree, AE fp32/int8)")
-    qz.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
-    qz.add_argument("--variant", default=None,
-                    choices=("kmeans-flat", "kmeans-flat-fp32", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8",
-                             "fp32", "int8"),
-                    help="quantiser to time: the bundle's own (default; k-means with an index: kmeans-indexed; "
-                    "AE: ae-fp32), kmeans-flat on an indexed bundle (exhaustive search; binary kinds: int8 product "
-                    "with exact re-rank), kmeans-flat-fp32 (the same search as one float32 product), ae-int8 / int8 "
-                    "on an AE bundle")
-    qz.add_argument("--data", type=Path, default=None, metavar="DIR",
-                    help="data root whose train/scene15 images give the descriptors (default: $AEFABMAP_DATA; "
-                    "without it, synthetic frames)")
-    qz.add_argument("--repeats", type=int, default=200, help="timed calls (default 200)")
-    qz.add_argument("--all-cores", action="store_true", help="do not restrict the benchmark to one core")
-    qz.add_argument("--json", type=Path, metavar="OUT")
+    i = qz.add_argument_group("quantiser and descriptors")
+    _add_model_option(i)
+    i.add_argument("--variant", default=None,
+                   choices=("kmeans-flat", "kmeans-flat-fp32", "kmeans-indexed", "kmeans-tree", "ae-fp32", "ae-int8",
+                            "fp32", "int8"),
+                   help="quantiser to time: the bundle's own (default; k-means with an index: kmeans-indexed; "
+                   "AE: ae-fp32), kmeans-flat on an indexed bundle (exhaustive search; binary kinds: int8 product "
+                   "with exact re-rank), kmeans-flat-fp32 (the same search as one float32 product), ae-int8 / int8 "
+                   "on an AE bundle")
+    i.add_argument("--data", type=Path, default=None, metavar="DIR",
+                   help="data root whose train/scene15 images give the descriptors (default: $AEFABMAP_DATA; "
+                   "without it, synthetic frames)")
+    me = qz.add_argument_group("measurement")
+    me.add_argument("--repeats", type=int, default=200, metavar="N", help="timed calls (default 200)")
+    _add_all_cores_option(me)
+    _add_output_group(qz)
     qz.set_defaults(func=run_quantizer)
+
+
+def _register_stream(bsub) -> None:
     st = bsub.add_parser("stream", help="two processes over loopback Zenoh: frames/s, latency, 200 Hz flood, RSS at the cap")
-    st.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
-    st.add_argument("--rate", type=float, default=30.0, metavar="HZ", help="rate of the latency phase (default 30)")
-    st.add_argument("--seconds", type=float, default=15.0, metavar="S", help="length of the latency phase (default 15)")
-    st.add_argument("--throughput-seconds", type=float, default=15.0, metavar="S",
+    src = st.add_argument_group("model and frames")
+    _add_model_option(src)
+    src.add_argument("--frames", type=int, default=160, metavar="N", help="distinct synthetic frames, cycled (default 160)")
+    ph = st.add_argument_group("phases (rates and lengths)")
+    ph.add_argument("--rate", type=float, default=30.0, metavar="HZ", help="rate of the latency phase (default 30)")
+    ph.add_argument("--seconds", type=float, default=15.0, metavar="S", help="length of the latency phase (default 15)")
+    ph.add_argument("--throughput-seconds", type=float, default=15.0, metavar="S",
                     help="length of the closed-loop throughput phase (default 15)")
-    st.add_argument("--window", type=int, default=2, help="frames in flight in the throughput phase (default 2)")
-    st.add_argument("--flood-rate", type=float, default=200.0, metavar="HZ", help="flood rate (default 200)")
-    st.add_argument("--flood-seconds", type=float, default=10.0, metavar="S", help="flood length (default 10)")
-    st.add_argument("--soak-seconds", type=float, default=60.0, metavar="S",
+    ph.add_argument("--window", type=int, default=2, metavar="N",
+                    help="frames in flight in the throughput phase (default 2)")
+    ph.add_argument("--flood-rate", type=float, default=200.0, metavar="HZ", help="flood rate (default 200)")
+    ph.add_argument("--flood-seconds", type=float, default=10.0, metavar="S", help="flood length (default 10)")
+    ph.add_argument("--soak-seconds", type=float, default=60.0, metavar="S",
                     help="length of the RSS run at the cap (default 60; 0 skips it)")
-    st.add_argument("--soak-rate", type=float, default=30.0, metavar="HZ", help="rate of the RSS run (default 30)")
-    st.add_argument("--max-places", type=int, default=100, metavar="N", help="the node's --max-places (default 100)")
-    st.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="the node's --memory-mb")
-    st.add_argument("--queue", type=int, default=2, help="the node's --queue (default 2)")
-    st.add_argument("--image-every", type=int, default=1, metavar="N", help="the node's --image-every (default 1)")
-    st.add_argument("--frames", type=int, default=160, help="distinct synthetic frames, cycled (default 160)")
-    st.add_argument("--node-threads", type=int, default=1, metavar="N",
-                    help="OMP_NUM_THREADS/OPENBLAS_NUM_THREADS of the node (default 1, as deploy/aefabmap.service; "
-                    "0: inherit this environment)")
-    st.add_argument("--workdir", type=Path, default=None, metavar="DIR",
-                    help="keep the node's MCAP log and stderr here (default: a temporary directory)")
-    st.add_argument("--json", type=Path, metavar="OUT")
+    ph.add_argument("--soak-rate", type=float, default=30.0, metavar="HZ", help="rate of the RSS run (default 30)")
+    node = st.add_argument_group("the node's options")
+    node.add_argument("--max-places", type=int, default=100, metavar="N", help="the node's --max-places (default 100)")
+    node.add_argument("--memory-mb", type=float, default=None, metavar="MB", help="the node's --memory-mb")
+    node.add_argument("--queue", type=int, default=2, metavar="N", help="the node's --queue (default 2)")
+    node.add_argument("--image-every", type=int, default=1, metavar="N", help="the node's --image-every (default 1)")
+    node.add_argument("--node-threads", type=int, default=1, metavar="N",
+                      help="OMP_NUM_THREADS/OPENBLAS_NUM_THREADS of the node (default 1, as deploy/aefabmap.service; "
+                      "0: inherit this environment)")
+    out = _add_output_group(st)
+    out.add_argument("--workdir", type=Path, default=None, metavar="DIR",
+                     help="keep the node's MCAP log and stderr here (default: a temporary directory)")
     st.set_defaults(func=run_stream)
+
+
+def _register_soak(bsub) -> None:
     so = bsub.add_parser("soak", help="RSS over a long run at the map cap: a real node fed N frames over Zenoh, "
                          "and M observations straight into the detector core")
-    so.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
-    so.add_argument("--frames", type=int, default=100_000, metavar="N",
+    both = so.add_argument_group("both phases")
+    _add_model_option(both)
+    both.add_argument("--max-places", type=int, default=2000, metavar="N", help="map cap of both phases (default 2000)")
+    both.add_argument("--flat-mb", type=float, default=5.0, metavar="MB",
+                      help="allowed RSS range after warm-up (default 5)")
+    both.add_argument("--max-minutes", type=float, default=None, metavar="MIN",
+                      help="stop each phase after MIN minutes if not done (reported; default: no limit)")
+    pp = so.add_argument_group("pipeline phase (a real node fed over Zenoh)")
+    pp.add_argument("--frames", type=int, default=100_000, metavar="N",
                     help="frames through the full pipeline (default 100000; 0 skips that phase)")
-    so.add_argument("--observations", type=int, default=1_000_000, metavar="M",
-                    help="observations straight into the detector core (default 1000000; 0 skips that phase)")
-    so.add_argument("--max-places", type=int, default=2000, metavar="N", help="map cap of both phases (default 2000)")
-    so.add_argument("--rate", type=float, default=30.0, metavar="HZ",
+    pp.add_argument("--rate", type=float, default=30.0, metavar="HZ",
                     help="publish rate of the pipeline phase (default 30; 0: closed loop, --window frames in flight)")
-    so.add_argument("--window", type=int, default=2, help="frames in flight in closed loop (default 2)")
-    so.add_argument("--size", type=_size, default=(640, 480), metavar="WxH", help="frame size (default 640x480)")
-    so.add_argument("--mcap-max-mb", type=float, default=20.0, metavar="MB", help="the node's --mcap-max-mb (default 20)")
-    so.add_argument("--log-budget-mb", type=float, default=100.0, metavar="MB",
+    pp.add_argument("--window", type=int, default=2, metavar="N", help="frames in flight in closed loop (default 2)")
+    pp.add_argument("--size", type=_size, default=(640, 480), metavar="WxH", help="frame size (default 640x480)")
+    pp.add_argument("--mcap-max-mb", type=float, default=20.0, metavar="MB", help="the node's --mcap-max-mb (default 20)")
+    pp.add_argument("--log-budget-mb", type=float, default=100.0, metavar="MB",
                     help="the node's --log-budget-mb (default 100)")
-    so.add_argument("--image-every", type=int, default=1, metavar="N", help="the node's --image-every (default 1)")
-    so.add_argument("--frame-checkpoints", type=int, nargs="+", default=None, metavar="N",
-                    help="frame counts where the node's RSS is sampled (default 1000 10000 50000 100000)")
-    so.add_argument("--observation-checkpoints", type=int, nargs="+", default=None, metavar="N",
-                    help="observation counts where RSS is sampled (default 1000 10000 100000 500000 1000000)")
-    so.add_argument("--warmup-frames", type=int, default=10_000, metavar="N",
-                    help="RSS from this frame count on must stay within --flat-mb (default 10000)")
-    so.add_argument("--warmup-observations", type=int, default=10_000, metavar="N",
-                    help="the same for the core phase (default 10000)")
-    so.add_argument("--flat-mb", type=float, default=5.0, metavar="MB", help="allowed RSS range after warm-up (default 5)")
-    so.add_argument("--sample-seconds", type=float, default=5.0, metavar="S",
-                    help="period of the pipeline phase's RSS samples besides the checkpoints (default 5)")
-    so.add_argument("--core-vocabulary", type=int, default=0, metavar="V",
-                    help="core phase on a random Chow-Liu tree over V words instead of the bundle's vocabulary "
-                    "(default 0: the bundle's)")
-    so.add_argument("--core-words", type=int, default=300, metavar="K",
-                    help="words per observation with --core-vocabulary (default 300)")
-    so.add_argument("--max-minutes", type=float, default=None, metavar="MIN",
-                    help="stop each phase after MIN minutes if not done (reported; default: no limit)")
-    so.add_argument("--node-threads", type=int, default=1, metavar="N",
+    pp.add_argument("--image-every", type=int, default=1, metavar="N", help="the node's --image-every (default 1)")
+    pp.add_argument("--node-threads", type=int, default=1, metavar="N",
                     help="OMP/OPENBLAS_NUM_THREADS of the node (default 1; 0: inherit this environment)")
-    so.add_argument("--workdir", type=Path, default=None, metavar="DIR",
-                    help="keep the node's MCAP logs and stderr here (default: a temporary directory)")
-    so.add_argument("--json", type=Path, metavar="OUT")
+    pp.add_argument("--frame-checkpoints", type=int, nargs="+", default=None, metavar="N",
+                    help="frame counts where the node's RSS is sampled (default 1000 10000 50000 100000)")
+    pp.add_argument("--warmup-frames", type=int, default=10_000, metavar="N",
+                    help="RSS from this frame count on must stay within --flat-mb (default 10000)")
+    pp.add_argument("--sample-seconds", type=float, default=5.0, metavar="S",
+                    help="period of the pipeline phase's RSS samples besides the checkpoints (default 5)")
+    core = so.add_argument_group("core phase (observations straight into the detector core)")
+    core.add_argument("--observations", type=int, default=1_000_000, metavar="M",
+                      help="observations straight into the detector core (default 1000000; 0 skips that phase)")
+    core.add_argument("--observation-checkpoints", type=int, nargs="+", default=None, metavar="N",
+                      help="observation counts where RSS is sampled (default 1000 10000 100000 500000 1000000)")
+    core.add_argument("--warmup-observations", type=int, default=10_000, metavar="N",
+                      help="the same as --warmup-frames for the core phase (default 10000)")
+    core.add_argument("--core-vocabulary", type=int, default=0, metavar="V",
+                      help="core phase on a random Chow-Liu tree over V words instead of the bundle's vocabulary "
+                      "(default 0: the bundle's)")
+    core.add_argument("--core-words", type=int, default=300, metavar="K",
+                      help="words per observation with --core-vocabulary (default 300)")
+    out = _add_output_group(so, "write the results as JSON to OUT (the figures are printed)")
+    out.add_argument("--workdir", type=Path, default=None, metavar="DIR",
+                     help="keep the node's MCAP logs and stderr here (default: a temporary directory)")
     so.set_defaults(func=run_soak)
 
 
@@ -185,6 +258,7 @@ def run_inference(args) -> int:
 
 
 def run_chowliu(args) -> int:
+    require_extra("bench chowliu", "train", ("scipy",))  # the trainer's Chow-Liu learning
     from aefabmap_trainer.benchmark import bench_chow_liu
 
     _emit(asdict(bench_chow_liu(args.images, args.words, args.words_per_image)), args.json)

@@ -30,13 +30,18 @@ DEMO_KEY = "aefabmap/demo/camera/image"
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="end-to-end demo on loopback: publish -> run -> loop closures -> MCAP -> replay check")
-    p.add_argument("--out", type=Path, default=Path("aefabmap-demo"), help="output directory (default ./aefabmap-demo)")
-    p.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
-    p.add_argument("--images", type=Path, default=None, metavar="DIR", help="stream these images instead of the synthetic sequence")
-    p.add_argument("--gt", type=Path, default=None, metavar="GT.npy", help="ground truth of --images, to score the loops")
-    p.add_argument("--frames", type=int, default=240, help="synthetic frames (two laps of one route)")
-    p.add_argument("--rate", type=float, default=8.0, help="publish rate in Hz (default 8)")
-    p.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the runtime at start and for results")
+    data = p.add_argument_group("model and frames")
+    data.add_argument("--model", type=Path, default=None, metavar="BUNDLE", help="model bundle (default: the shipped one)")
+    data.add_argument("--images", type=Path, default=None, metavar="DIR", help="stream these images instead of the synthetic sequence")
+    data.add_argument("--gt", type=Path, default=None, metavar="GT.npy", help="ground truth of --images, to score the loops")
+    data.add_argument("--frames", type=int, default=240, help="synthetic frames (default 240: two laps of one route)")
+    live = p.add_argument_group("streaming")
+    live.add_argument("--rate", type=float, default=8.0, help="publish rate in Hz (default 8)")
+    live.add_argument("--timeout", type=float, default=60.0,
+                      help="seconds to wait for the runtime at start and for results (default 60)")
+    out = p.add_argument_group("output")
+    out.add_argument("--out", type=Path, default=Path("aefabmap-demo"),
+                     help="output directory: frames, MCAP log (default ./aefabmap-demo)")
     p.set_defaults(func=run)
 
 

@@ -15,24 +15,55 @@ from aefabmap_runtime.core.verify.verification import VerificationConfig
 
 def register(sub) -> None:
     p = sub.add_parser("eval", help="evaluate a bundle on an image sequence (docs/evaluation.md protocol)")
-    p.add_argument("--model", required=True, type=Path, metavar="BUNDLE")
-    p.add_argument("--images", required=True, type=Path, metavar="DIR", help="frames, sorted by name = temporal order")
-    p.add_argument("--gt", required=True, type=Path, metavar="GT.npy", help="bool N x N ground truth")
-    p.add_argument("--tolerance", type=int, default=10, help="frames of tolerance for the tolerant metrics (default 10)")
+    src = p.add_argument_group("model, sequence and ground truth")
+    src.add_argument("--model", required=True, type=Path, metavar="BUNDLE", help="model bundle directory")
+    src.add_argument("--images", required=True, type=Path, metavar="DIR", help="frames, sorted by name = temporal order")
+    src.add_argument("--gt", required=True, type=Path, metavar="GT.npy", help="bool N x N ground truth")
+    src.add_argument("--tolerance", type=int, default=10, help="frames of tolerance for the tolerant metrics (default 10)")
+    add_workers_option(src)
     add_detector_options(p, scorers=SCORERS + ("both",))
-    add_workers_option(p)
-    p.add_argument("--json", type=Path, metavar="OUT.json")
-    p.add_argument("--frames", type=Path, metavar="OUT.jsonl",
-                   help="per-frame evidence, one JSON line per frame (candidates, checks, choice, correctness)")
-    p.add_argument("--failures", type=Path, metavar="DIR",
-                   help="match images (PNG) of every false positive and every miss whose true place was a candidate")
-    p.add_argument("--plot", type=Path, metavar="PR.png", help="PR curves (needs matplotlib)")
-    p.add_argument("--score-matrix", type=Path, metavar="M.png", help="score matrix as an image")
-    p.add_argument("--no-progress", action="store_true")
-    p.add_argument("--state", default=None, metavar="DIR",
-                   help="save the map built over the sequence to DIR (for `run --state`/`replay --state`); "
-                   "DIR must not hold a map yet: frames of a loaded map are not in the ground truth")
+    out = p.add_argument_group("output")
+    out.add_argument("--json", type=Path, metavar="OUT.json",
+                     help="write the metrics (and the split of revisits when verifying) as JSON to OUT.json")
+    out.add_argument("--frames", type=Path, metavar="OUT.jsonl",
+                     help="per-frame evidence, one JSON line per frame (candidates, checks, choice, correctness)")
+    out.add_argument("--failures", type=Path, metavar="DIR",
+                     help="match images (PNG) of every false positive and every miss whose true place was a candidate")
+    out.add_argument("--plot", type=Path, metavar="PR.png", help="PR curves (needs matplotlib)")
+    out.add_argument("--score-matrix", type=Path, metavar="M.png", help="score matrix as an image")
+    out.add_argument("--state", default=None, metavar="DIR",
+                     help="save the map built over the sequence to DIR (for `run --state`/`replay --state`); "
+                     "DIR must not hold a map yet: frames of a loaded map are not in the ground truth")
+    out.add_argument("--localize", action="store_true",
+                     help="with --state DIR holding a map built over the sequence's first frames: localize the "
+                     "frames after them against it, read-only, scored on the ground truth cut to the map's frames "
+                     "(docs/localization.md); DIR is not written")
+    out.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=run)
+
+
+def _localize(args, scorers) -> int:
+    """`eval --localize`: the frames after the map's, localized against it (tools/localize_eval.py)."""
+    from aefabmap_runtime.tools.localize_eval import localize_sequence
+    from aefabmap_runtime.tools.reporting import format_table
+    from aefabmap_runtime.tools.sequence_eval import public
+
+    if args.state is None:
+        raise ConfigError("--localize needs --state DIR: the map to localize against")
+    if len(scorers) > 1 or args.frames or args.failures or args.plot or args.score_matrix:
+        raise ConfigError("--localize reports the metrics (--json): not --scorer both, --frames, --failures, "
+                          "--plot or --score-matrix")
+    run_config = build_run_config(args)
+    config = dataclasses.replace(run_config.detector, scorer=scorers[0])
+    metrics, run = localize_sequence(args.model, args.images, args.gt, args.state, config, args.tolerance,
+                                     not args.no_progress, workers=run_config.workers)
+    print(f"localized frames {run.first}-{run.first + metrics['queries'] - 1} against the map's "
+          f"{run.map_places} places (frames 0-{run.first - 1})")
+    print(format_table({f"{scorers[0]} verified (output)": metrics["verified"],
+                        f"{scorers[0]} raw": metrics}))
+    if args.json:
+        args.json.write_text(json.dumps(public({**metrics, "map_places": run.map_places}), indent=2) + "\n")
+    return 0
 
 
 def run(args) -> int:
@@ -49,6 +80,8 @@ def run(args) -> int:
     if args.failures and args.no_verify:
         raise ConfigError("--failures shows verified matches and misses: it needs verification (drop --no-verify)")
     scorers = SCORERS if args.scorer == "both" else (args.scorer or DetectorConfig().scorer,)
+    if args.localize:
+        return _localize(args, scorers)
     save_state = None
     if args.state is not None:
         if len(scorers) > 1:

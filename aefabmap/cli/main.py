@@ -29,11 +29,19 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for name in SUBCOMMAND_MODULES:
         importlib.import_module(f"aefabmap.cli.{name}").register(sub)
+    _end_help_with_exit_codes(parser)
+    return parser
+
+
+def _end_help_with_exit_codes(parser: argparse.ArgumentParser) -> None:
+    """Append the shared exit codes to the epilog of `parser` and of every (nested) subcommand's parser."""
     from aefabmap.cli.options import EXIT_CODES
 
-    for command in sub.choices.values():  # every command's help ends with the exit codes
-        command.epilog = f"{command.epilog}\n\n{EXIT_CODES}" if command.epilog else EXIT_CODES
-    return parser
+    parser.epilog = f"{parser.epilog}\n\n{EXIT_CODES}" if parser.epilog else EXIT_CODES
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command in action.choices.values():
+                _end_help_with_exit_codes(command)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from importlib import resources
-from pathlib import Path
+import importlib.util
 
+from aefabmap import default_bundle  # re-exported: the commands' default --model
 from aefabmap_runtime.core.decide.candidates import CandidateConfig
 from aefabmap_runtime.core.detector import FABMAP_SCORES, SCORERS, DetectorConfig
 from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
@@ -29,9 +29,28 @@ EXIT_CODES = ("exit codes: 0 success; 1 failure (replay --check: results differ)
               "6 log (MCAP) error; 130 interrupted")
 
 
-def default_bundle() -> Path:
-    """The model bundle shipped in the package (ORB, 500 words, trained on synthetic worlds)."""
-    return Path(str(resources.files("aefabmap") / "data" / "default_bundle"))
+#: Import names of the `train` extra's packages (pyproject.toml) that the trainer imports: torch
+#: (autoencoder), scipy (Chow-Liu tree), onnx and onnxscript (the ONNX export, at the end of training).
+TRAIN_EXTRA_MODULES = ("torch", "scipy", "onnx", "onnxscript")
+
+
+def require_extra(command: str, extra: str, modules: tuple[str, ...]) -> None:
+    """Raise ConfigError naming `pip install 'aefabmap[extra]'` unless `modules` are installed.
+
+    Checked before any work starts (a missing onnx would otherwise surface only at the export,
+    after training); the modules are found, not imported (torch takes seconds to import).
+    """
+    missing = []
+    for name in modules:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            missing.append(name)
+    if missing:
+        raise ConfigError(f"aefabmap {command} needs {', '.join(missing)}, which this install lacks: "
+                          f"pip install 'aefabmap[{extra}]'")
 
 
 def add_zenoh_options(p: argparse.ArgumentParser, group=None, *, config: bool = True) -> None:
@@ -94,8 +113,10 @@ def add_foxglove_options(p: argparse.ArgumentParser) -> None:
     """--foxglove [PORT] and --foxglove-host: the live view (runtime/aefabmap_runtime/adapters/foxglove_view.py)."""
     p.add_argument("--foxglove", type=int, nargs="?", const=8765, default=None, metavar="PORT",
                    help="serve a live view over the Foxglove WebSocket protocol on PORT (default 8765; 0: any free "
-                   "port): camera image, inlier matches, matched place, result and stats plots (layout: "
-                   "deploy/foxglove_layout.json; needs aefabmap[foxglove])")
+                   "port) to viewers offering foxglove.sdk.v1 (current Foxglove, Lichtblick) or only "
+                   "foxglove.websocket.v1 (Lichtblick up to 1.21, older Foxglove Studio): camera image, inlier "
+                   "matches, matched place, result and stats plots (layout: deploy/foxglove_layout.json; needs "
+                   "aefabmap[foxglove])")
     p.add_argument("--foxglove-host", default="127.0.0.1", metavar="HOST",
                    help="address the Foxglove server binds (default 127.0.0.1: this machine only; the protocol "
                    "has no authentication, so a non-loopback HOST needs --allow-exposure)")
@@ -132,6 +153,10 @@ def add_state_options(p: argparse.ArgumentParser, *, snapshots: bool = False) ->
     p.add_argument("--state", default=None, metavar="DIR",
                    help="keep the map in DIR: loaded at start when present, saved at the end"
                    + (" and every --snapshot-every" if snapshots else ""))
+    p.add_argument("--localize", action="store_true",
+                   help="with --state DIR: localize against DIR's map, read-only: frames are ranked and verified "
+                   "against it as usual, but nothing is inserted, evicted or written (DIR stays byte for byte as it "
+                   "was); memory stays flat (docs/localization.md)")
     if snapshots:
         p.add_argument("--snapshot-every", default="60s", metavar="N{s,m,p}",
                        help="with --state: snapshot every N seconds (60s), minutes (5m) or new places (100p); "
@@ -259,4 +284,4 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
     fleet = fleet_config(args)
     return RunConfig(model=str(opts.get("model", "")), detector=detector, profile=opts.get("profile"),
                      queue=pick("queue", RunConfig().queue, prof.queue if prof else None), fleet=fleet,
-                     workers=pick("workers", RunConfig().workers))
+                     workers=pick("workers", RunConfig().workers), localize=bool(opts.get("localize")))

@@ -23,15 +23,17 @@ def register(subparsers) -> argparse.ArgumentParser:
         help="publish frames from images, a video or a camera",
         description="Publish frames as JPEG/PNG on a zenoh key at a fixed rate (JPEG/PNG files are sent as they are).",
     )
-    src = p.add_mutually_exclusive_group(required=True)
+    frames = p.add_argument_group("frames (one source)")
+    src = frames.add_mutually_exclusive_group(required=True)
     src.add_argument("--images", metavar="DIR", help="directory of .jpg/.png images (sorted by name)")
     src.add_argument("--video", metavar="FILE", help="video file")
     src.add_argument("--camera", type=int, metavar="N", help="camera index (OpenCV)")
-    p.add_argument("--key", required=True, metavar="KEY", help="zenoh image key, e.g. robot/camera/image")
-    p.add_argument("--rate", required=True, type=float, metavar="HZ", help="frames per second")
-    add_zenoh_options(p, config=False)
-    p.add_argument("--loop", action="store_true", help="start again at the end of the images/video")
-    p.add_argument("--count", type=int, default=None, metavar="N", help="stop after N frames")
+    frames.add_argument("--loop", action="store_true", help="start again at the end of the images/video")
+    frames.add_argument("--count", type=int, default=None, metavar="N", help="stop after N frames")
+    out = p.add_argument_group("publishing (Zenoh)")
+    out.add_argument("--key", required=True, metavar="KEY", help="zenoh image key, e.g. robot/camera/image")
+    out.add_argument("--rate", required=True, type=float, metavar="HZ", help="frames per second")
+    add_zenoh_options(p, out, config=False)
     p.set_defaults(func=main)
     return p
 

@@ -1,7 +1,9 @@
 """``aefabmap replay``: run a bundle over the images of an MCAP log (own log or ROS 2 bag).
 
-Exit code: 0, or 1 when ``--check`` finds results that differ from the logged ones;
-errors exit with the code of their aefabmap_runtime.errors class. With ``--foxglove`` the replay plays at
+Exit code: 0, or 1 when ``--check`` finds results that differ from the logged ones, or 130
+(interrupted) when Ctrl-C/SIGTERM stopped it before the end of the log (while it waited for a
+viewer, or during the replay; the summary is printed all the same); errors exit with the code of
+their aefabmap_runtime.errors class. With ``--foxglove`` the replay plays at
 the recorded pace (``--rate``), optionally after the first viewer (``--wait-viewer``), and the
 server stays up after it until Ctrl-C/SIGTERM (docs/streaming.md, "Replay in Foxglove"). With
 ``--fleet NAME --robot ID`` the replay joins a fleet as `run` does (docs/fleet.md): the map it
@@ -39,20 +41,23 @@ def register(subparsers) -> argparse.ArgumentParser:
         description="Run the detector over the logged images; optionally write a new log (--out) and "
         "compare with the logged results (--check; deterministic fields only, not timings).",
     )
-    p.add_argument("log", metavar="LOG", nargs="+",
-                   help="aefabmap MCAP log (several files, a directory of rotated files or a glob are read in run "
-                   "order as one run), or a ROS bag: rosbag2 directory (metadata.yaml), .db3 or .mcap file, "
-                   "ROS 1 .bag (needs aefabmap[ros], except ROS 2 .mcap)")
-    p.add_argument("--topic", default=None, metavar="TOPIC",
-                   help="image topic to replay (required when the bag has several image topics)")
-    p.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
-    p.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
-    p.add_argument("--check", action="store_true", help="compare with the results in the log")
-    add_mcap_profile_option(p)
-    add_state_options(p)
-    add_foxglove_options(p)
-    add_playback_options(p)
-    add_workers_option(p)
+    src = p.add_argument_group("input")
+    src.add_argument("log", metavar="LOG", nargs="+",
+                     help="aefabmap MCAP log (several files, a directory of rotated files or a glob are read in run "
+                     "order as one run), or a ROS bag: rosbag2 directory (metadata.yaml), .db3 or .mcap file, "
+                     "ROS 1 .bag (needs aefabmap[ros], except ROS 2 .mcap)")
+    src.add_argument("--topic", default=None, metavar="TOPIC",
+                     help="image topic to replay (required when the bag has several image topics)")
+    model = p.add_argument_group("model and processing")
+    model.add_argument("--model", required=True, metavar="BUNDLE", help="model bundle directory")
+    add_workers_option(model)
+    out = p.add_argument_group("output and check")
+    out.add_argument("--out", default=None, metavar="NEW.mcap", help="write the replayed run to this MCAP")
+    out.add_argument("--check", action="store_true", help="compare with the results in the log")
+    add_mcap_profile_option(out)
+    add_state_options(p.add_argument_group("map state (kept between runs)"))
+    add_foxglove_options(p.add_argument_group("live view (Foxglove)"))
+    add_playback_options(p.add_argument_group("playback"))
     add_zenoh_options(p, add_fleet_options(p))
     p.epilog = ("Network (--fleet only): with none of --connect/--listen/--config the replay listens on "
                 "tcp/127.0.0.1:7447 only, as `run` does; no multicast scouting.")
@@ -60,12 +65,14 @@ def register(subparsers) -> argparse.ArgumentParser:
     return p
 
 
+#: Exit code of a replay stopped before the end of its log (Ctrl-C/SIGTERM), as main's for Ctrl-C.
+EXIT_INTERRUPTED = 130
 #: Longest wait (s) for a viewer when --wait-viewer is given without a value.
 DEFAULT_WAIT_VIEWER_S = 120.0
 
 
-def add_playback_options(p: argparse.ArgumentParser) -> None:
-    """--rate and --wait-viewer (replay.PlaybackConfig)."""
+def add_playback_options(p) -> None:
+    """--rate and --wait-viewer (replay.PlaybackConfig), in p (a parser or argument group)."""
     p.add_argument("--rate", type=float, default=None, metavar="X",
                    help="play at X times the recorded pace (the logged capture stamps; a long pause in the log "
                    "waits a few seconds at most); 0: as fast as possible (default: 1 with --foxglove, else 0)")
@@ -106,7 +113,8 @@ def replay_io(args: argparse.Namespace):
     return ReplayIO(logs=tuple(args.log), model=args.model, out=args.out, check=args.check, topic=args.topic,
                     mcap_profile=args.mcap_profile, state=args.state, foxglove_port=args.foxglove,
                     foxglove_host=args.foxglove_host, playback=playback, fleet=fleet, endpoints=endpoints(args),
-                    workers=check_workers(args.workers if args.workers is not None else 1))
+                    workers=check_workers(args.workers if args.workers is not None else 1),
+                    localize=bool(args.localize))
 
 
 def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
@@ -139,7 +147,8 @@ def report_summary(args: argparse.Namespace, summary) -> int:
                                       else "no image messages")
         log.error("%s: nothing replayed on %s: %s", args.log, status.image_topic or "any topic", why)
         return LogError.exit_code
+    code = 0
     if summary.check is not None:
         (log.info if summary.check.ok else log.error)("%s", summary.check.describe())
-        return 0 if summary.check.ok else 1
-    return 0
+        code = 0 if summary.check.ok else 1
+    return EXIT_INTERRUPTED if summary.stopped else code

@@ -1,7 +1,9 @@
 """``aefabmap status``: find the running nodes (Zenoh liveliness) and print each one's health.
 
-Exit codes: 0 when at least one node answered, 1 when none was found (or none answered),
-5 on a transport error (runtime/aefabmap_runtime/adapters/health.py for the keys).
+Exit codes: 0 when at least one node answered and none reports a warning (a ROS 2 topic nobody
+publishes, results no ROS 2 subscriber can read), 1 when none was found, none answered or one warns
+(each warning is printed under its node's line), 5 on a transport error
+(runtime/aefabmap_runtime/adapters/health.py for the keys).
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import threading
 import time
 
 log = logging.getLogger("aefabmap.status")
@@ -19,6 +22,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         "status",
         help="list the running aefabmap nodes and their health",
         description="Find every running node by its liveliness token (aefabmap/runtime/<zid>) and query its status.",
+        epilog="Here exit code 1 means that no node was found, none answered or one reports a warning.",
     )
     p.add_argument("--connect", action="append", metavar="EP", default=[],
                    help="zenoh endpoint to connect to (repeatable; default tcp/127.0.0.1:7447)")
@@ -39,7 +43,8 @@ def _line(zid: str, st) -> str:
             f"drops {st.dropped}  bad {st.bad_total}  places {st.places if st.places is not None else '?'}  "
             f"map {map_mb} MB  rss {mb} MB  log {st.log_files} files {st.log_bytes / 2**20:.1f} MB "
             f"({st.log_state})  bundle {(st.bundle_id or '?')[:12]}  v{st.aefabmap_version}"
-            + (f"  ms: {stages}" if stages else ""))
+            + (f"  ms: {stages}" if stages else "")
+            + "".join(f"\n{zid}  warning: {w}" for w in st.warnings))
 
 
 def main(args: argparse.Namespace) -> int:
@@ -64,6 +69,12 @@ def main(args: argparse.Namespace) -> int:
         zids = []
         if wait_for_peer(session, args.timeout):
             zids = find_runtimes(session, max(0.2, deadline - time.monotonic()))
+            pause = threading.Event()
+            # A peer also links to the peers a router tells it of (a ROS 2 node behind rmw_zenoh's
+            # router): a query sent while those links come up can miss the node, so ask again.
+            while not zids and time.monotonic() + 0.1 < deadline:
+                pause.wait(0.1)
+                zids = find_runtimes(session, max(0.2, deadline - time.monotonic()))
         answers = query_status(session, zids, max(0.5, deadline - time.monotonic())) if zids else {}
     finally:
         session.close()
@@ -76,4 +87,5 @@ def main(args: argparse.Namespace) -> int:
     else:
         for zid, st in answers.items():
             print(_line(zid, st))
-    return 0 if any(not isinstance(st, str) for st in answers.values()) else 1
+    answered = [st for st in answers.values() if not isinstance(st, str)]
+    return 0 if answered and not any(st.warnings for st in answered) else 1

@@ -6,86 +6,98 @@ import argparse
 import json
 from pathlib import Path
 
+from aefabmap.cli.options import TRAIN_EXTRA_MODULES, require_extra
 from aefabmap_runtime.core.features.feature_kinds import kind_names
 from aefabmap_runtime.core.features.features import FeatureConfig
 
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="train a model bundle from image directories")
-    p.add_argument("--images", nargs="+", required=True, type=Path, metavar="DIR", help="training image directories (recursive)")
-    p.add_argument("--features", choices=kind_names(), default="orb")
-    p.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
-    p.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
-    p.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")
-    p.add_argument("--contrast-stretch", action=argparse.BooleanOptionalAction, default=True,
-                   help="stretch each image's grey levels (1st..99th percentile to 0..255) before detection, in "
-                   "training and at run time (FeatureConfig.contrast_stretch; default on)")
-    p.add_argument("--clahe", action="store_true",
-                   help="equalise contrast locally (CLAHE) before detection, in training and at run time (FeatureConfig)")
-    p.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",
-                   help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
-                   "O(branching x depth) distances (ORB: bit centres, popcount); ae: autoencoder")
-    p.add_argument("--branching", type=int, default=10, help="children per node of --quantizer kmeans-tree (default 10)")
-    p.add_argument("--index-buckets", type=int, default=0, metavar="S",
-                   help="--quantizer kmeans: add an inverted index of S buckets (same words as the flat search, "
-                   "fewer distances; 0: none, default)")
-    p.add_argument("--vocabulary-from", type=Path, default=None, metavar="BUNDLE",
-                   help="--quantizer kmeans: reuse this k-means bundle's centroids (same features and --words) "
-                   "instead of clustering again")
-    p.add_argument("--float-centers", action="store_true",
-                   help="kmeans-tree on a binary kind: mean (float) centres and L2 on unpacked bits instead of "
-                   "bit centres and popcount (slower; for comparison)")
-    p.add_argument("--words", type=int, default=2000, help="vocabulary size K")
-    p.add_argument("--max-descriptors", type=int, default=200_000,
-                   help="descriptors sampled for clustering (--quantizer ae: at least --ae-descriptors)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, required=True, metavar="BUNDLE")
-    p.add_argument("--ae-epochs", type=int, default=8, help="autoencoder epochs (--quantizer ae; default 8)")
-    p.add_argument("--ae-descriptors", type=int, default=250_000,
-                   help="descriptors the autoencoder trains on (default 250000)")
-    p.add_argument("--ae-arch", choices=("paper", "light"), default="light",
-                   help="autoencoder: a light MLP (default; fast to train and run) or the paper's 1-D conv stack "
-                   "(with --ae-objective recon)")
-    p.add_argument("--ae-latent", type=int, default=None, help="latent code size (default: paper D/2, light 32)")
-    p.add_argument("--ae-learning-rate", type=float, default=2e-3, help="autoencoder Adam learning rate (default 0.002)")
-    p.add_argument("--ae-patience", type=int, default=2, help="epochs without held-out improvement before stopping")
-    p.add_argument("--ae-budget-s", type=float, default=None, help="wall-clock budget for autoencoder training (s)")
-    p.add_argument("--ae-match-weight", type=float, default=0.0,
-                   help="weight of the matching term on latent codes (0: reconstruction only)")
-    p.add_argument("--ae-match-negatives", choices=("batch", "image"), default="batch",
-                   help="negatives of the matching term: any training pair, or pairs of the same image")
-    p.add_argument("--ae-warp-images", type=int, default=0,
-                   help="training images warped by random homographies to give matching pairs")
-    p.add_argument("--ae-frame-pairs", type=int, default=0,
-                   help="consecutive-frame pairs of the training drives matched to give matching pairs")
-    p.add_argument("--ae-objective", choices=("recon", "assign"), default="assign",
-                   help="assign (default): train encoder and words so that views of one scene point share a word "
-                   "(--ae-arch light); recon: reconstruction (+ --ae-match-weight) then k-means on the codes")
-    p.add_argument("--ae-views", type=int, default=6,
-                   help="--ae-objective assign: views per scene point (image + warped, darkened copies; default 6)")
-    p.add_argument("--ae-light-views", type=int, default=0,
-                   help="--ae-objective assign: how many of the copies are the unwarped image at a random night "
-                   "(pairs that differ in light alone; default 0)")
-    p.add_argument("--ae-track-images", type=int, default=1500,
-                   help="--ae-objective assign: training images that give multi-view tracks (default 1500)")
-    p.add_argument("--ae-balance-weight", type=float, default=1.0,
-                   help="--ae-objective assign: weight of the word-usage term (default 1)")
-    p.add_argument("--ae-temperature-end", type=float, default=0.3,
-                   help="--ae-objective assign: temperature of the soft word assignment after annealing, in "
-                   "codebook spacings (default 0.3)")
-    p.add_argument("--ae-init", choices=("random", "kmeans"), default="random",
-                   help="--ae-objective assign: start from a random encoder, or from the principal axes of the "
-                   "descriptors and k-means words on them (default random)")
-    p.add_argument("--ae-recon-weight", type=float, default=1.0,
-                   help="--ae-objective assign: weight of the reconstruction term (default 1)")
-    p.add_argument("--ae-threads", type=int, default=1,
-                   help="threads of the autoencoder stages (training, ONNX; default 1)")
-    p.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
-    p.add_argument("--no-progress", action="store_true")
+    io = p.add_argument_group("input and output")
+    io.add_argument("--images", nargs="+", required=True, type=Path, metavar="DIR", help="training image directories (recursive)")
+    io.add_argument("--out", type=Path, required=True, metavar="BUNDLE",
+                    help="the bundle directory to write (manifest, vocabulary, Chow-Liu tree)")
+    io.add_argument("--cache", type=Path, default=None, metavar="DIR", help="keep extracted training features here between runs")
+    io.add_argument("--seed", type=int, default=0,
+                    help="seed of every random choice (descriptor sample, k-means, warps, autoencoder; default 0)")
+    io.add_argument("--no-progress", action="store_true", help="no progress bars on stderr")
+    fe = p.add_argument_group("features (also used at run time: stored in the bundle)")
+    fe.add_argument("--features", choices=kind_names(), default="orb",
+                    help="keypoint detector and descriptor (default orb)")
+    fe.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
+    fe.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
+    fe.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")
+    fe.add_argument("--contrast-stretch", action=argparse.BooleanOptionalAction, default=True,
+                    help="stretch each image's grey levels (1st..99th percentile to 0..255) before detection, in "
+                    "training and at run time (FeatureConfig.contrast_stretch; default on)")
+    fe.add_argument("--clahe", action="store_true",
+                    help="equalise contrast locally (CLAHE) before detection, in training and at run time (FeatureConfig)")
+    vo = p.add_argument_group("vocabulary (quantiser)")
+    vo.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",
+                    help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
+                    "O(branching x depth) distances (ORB: bit centres, popcount); ae: autoencoder")
+    vo.add_argument("--words", type=int, default=2000, help="vocabulary size K (default 2000)")
+    vo.add_argument("--max-descriptors", type=int, default=200_000,
+                    help="descriptors sampled for clustering (default 200000; --quantizer ae: at least --ae-descriptors)")
+    vo.add_argument("--branching", type=int, default=10, help="children per node of --quantizer kmeans-tree (default 10)")
+    vo.add_argument("--index-buckets", type=int, default=0, metavar="S",
+                    help="--quantizer kmeans: add an inverted index of S buckets (same words as the flat search, "
+                    "fewer distances; 0: none, default)")
+    vo.add_argument("--vocabulary-from", type=Path, default=None, metavar="BUNDLE",
+                    help="--quantizer kmeans: reuse this k-means bundle's centroids (same features and --words) "
+                    "instead of clustering again")
+    vo.add_argument("--float-centers", action="store_true",
+                    help="kmeans-tree on a binary kind: mean (float) centres and L2 on unpacked bits instead of "
+                    "bit centres and popcount (slower; for comparison)")
+    ae = p.add_argument_group("autoencoder training (--quantizer ae)")
+    ae.add_argument("--ae-objective", choices=("recon", "assign"), default="assign",
+                    help="assign (default): train encoder and words so that views of one scene point share a word "
+                    "(--ae-arch light); recon: reconstruction (+ --ae-match-weight) then k-means on the codes")
+    ae.add_argument("--ae-arch", choices=("paper", "light"), default="light",
+                    help="autoencoder: a light MLP (default; fast to train and run) or the paper's 1-D conv stack "
+                    "(with --ae-objective recon)")
+    ae.add_argument("--ae-latent", type=int, default=None, help="latent code size (default: paper D/2, light 32)")
+    ae.add_argument("--ae-epochs", type=int, default=8, help="autoencoder epochs (default 8)")
+    ae.add_argument("--ae-descriptors", type=int, default=250_000,
+                    help="descriptors the autoencoder trains on (default 250000)")
+    ae.add_argument("--ae-learning-rate", type=float, default=2e-3, help="autoencoder Adam learning rate (default 0.002)")
+    ae.add_argument("--ae-patience", type=int, default=2,
+                    help="epochs without held-out improvement before stopping (default 2)")
+    ae.add_argument("--ae-budget-s", type=float, default=None, metavar="S",
+                    help="wall-clock budget for autoencoder training (s; default: none)")
+    ae.add_argument("--ae-threads", type=int, default=1,
+                    help="threads of the autoencoder stages (training, ONNX; default 1)")
+    ae.add_argument("--ae-warp-images", type=int, default=0,
+                    help="training images warped by random homographies to give matching pairs (default 0)")
+    ae.add_argument("--ae-frame-pairs", type=int, default=0,
+                    help="consecutive-frame pairs of the training drives matched to give matching pairs (default 0)")
+    rc = p.add_argument_group("autoencoder matching term (--ae-objective recon)")
+    rc.add_argument("--ae-match-weight", type=float, default=0.0,
+                    help="weight of the matching term on latent codes (0: reconstruction only, default)")
+    rc.add_argument("--ae-match-negatives", choices=("batch", "image"), default="batch",
+                    help="negatives of the matching term: any training pair (default), or pairs of the same image")
+    asg = p.add_argument_group("autoencoder word assignment (--ae-objective assign)")
+    asg.add_argument("--ae-views", type=int, default=6,
+                     help="views per scene point (image + warped, darkened copies; default 6)")
+    asg.add_argument("--ae-light-views", type=int, default=0,
+                     help="how many of the copies are the unwarped image at a random night (pairs that differ in "
+                     "light alone; default 0)")
+    asg.add_argument("--ae-track-images", type=int, default=1500,
+                     help="training images that give multi-view tracks (default 1500)")
+    asg.add_argument("--ae-balance-weight", type=float, default=1.0, help="weight of the word-usage term (default 1)")
+    asg.add_argument("--ae-recon-weight", type=float, default=1.0,
+                     help="weight of the reconstruction term (default 1)")
+    asg.add_argument("--ae-temperature-end", type=float, default=0.3,
+                     help="temperature of the soft word assignment after annealing, in codebook spacings "
+                     "(default 0.3)")
+    asg.add_argument("--ae-init", choices=("random", "kmeans"), default="random",
+                     help="start from a random encoder, or from the principal axes of the descriptors and k-means "
+                     "words on them (default random)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    require_extra("train", "train", TRAIN_EXTRA_MODULES)
     from aefabmap_trainer.train import TrainConfig, train_bundle
 
     features = FeatureConfig(

@@ -108,8 +108,12 @@ def _sigma(config: SlamConfig, inliers: int) -> tuple[float, float]:
     return config.sigma_rot * s, config.sigma_trans * s
 
 
-def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = None) -> SlamRun:
-    """Odometry, loop edges from the bundle's detector, pose graph; no files written."""
+def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = None, *,
+             show_progress: bool = False) -> SlamRun:
+    """Odometry, loop edges from the bundle's detector, pose graph; no files written.
+    show_progress: a tqdm bar on stderr for the pass over the frames and the one over the loop edges."""
+    from tqdm import tqdm
+
     from aefabmap_runtime.adapters.bundle_reader import load_detector
     from aefabmap_runtime.core.detector import DetectorConfig
     from aefabmap_runtime.core.run_config import RunConfig
@@ -125,7 +129,7 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     results, det_ms = [], []
 
     def frames():
-        for i in range(len(seq)):
+        for i in tqdm(range(len(seq)), desc="frames", unit="frame", disable=not show_progress, mininterval=1.0):
             gray, depth = seq.gray(i), seq.depth_m(i)
             t0 = time.perf_counter()
             results.append(detector.process(gray, round(seq.stamps[i] * 1e9)))
@@ -146,7 +150,7 @@ def run_slam(seq: RgbdSequence, bundle: str | Path, config: SlamConfig | None = 
     def features(i: int):
         return extractor(seq.gray(i), seq.depth_m(i))
 
-    for res in results:
+    for res in tqdm(results, desc="loop edges", unit="frame", disable=not show_progress, mininterval=1.0):
         q = res.sequence
         if res.verified:
             verified += 1

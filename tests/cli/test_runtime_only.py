@@ -61,3 +61,32 @@ def test_plot_without_matplotlib_is_a_clear_error(tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=100)
     assert proc.returncode == 2
     assert "matplotlib" in proc.stderr
+
+
+#: Every command that needs the `train` extra, with arguments that get it past parsing.
+TRAIN_EXTRA_COMMANDS = {
+    "train": ["train", "--images", "images", "--out", "bundle"],
+    "bench chowliu": ["bench", "chowliu", "--words", "50", "--images", "20", "--words-per-image", "5"],
+}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("command", sorted(TRAIN_EXTRA_COMMANDS))
+def test_commands_of_the_train_extra_name_it_on_a_runtime_install(runtime_install, tmp_path, command):
+    """On the real runtime-only install: one line naming aefabmap[train], exit 2 (configuration)."""
+    (tmp_path / "images").mkdir()
+    proc = runtime_install.run([str(runtime_install.aefabmap), *TRAIN_EXTRA_COMMANDS[command]], cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "aefabmap[train]" in lines[0], proc.stderr[-2000:]
+    assert not (tmp_path / "bundle").exists()
+
+
+def test_the_train_extra_check_passes_where_the_extra_is_installed(capsys):
+    """The counterpart, in this (full) environment: the check lets the command run."""
+    from aefabmap.cli.main import main
+
+    assert main(TRAIN_EXTRA_COMMANDS["bench chowliu"]) == 0
+    assert '"words": 50' in capsys.readouterr().out

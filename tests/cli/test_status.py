@@ -55,3 +55,38 @@ def test_status_without_a_node_says_so():
 def test_status_refuses_a_bad_endpoint():
     done = _status("--connect", "nonsense", "--timeout", "1")
     assert done.returncode == 2 and "endpoint" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_status_prints_a_ros_topic_nobody_publishes_and_exits_1(tmp_path):
+    """A node reading a ROS 2 topic that has no publisher, while a camera publishes another one
+    (rmw_zenoh's tokens): `status` prints the warning, naming the camera's topic, and exits 1."""
+    import zenoh
+
+    from aefabmap_runtime.adapters.rmw_zenoh import RosOptions
+    from aefabmap_runtime.adapters.zenoh_transport import build_zenoh_config
+    from tests.runtime.adapters.test_rmw_zenoh import Router
+    from tests.runtime.adapters.test_ros_topic_check import IMAGE, RmwCamera, node_status
+
+    router = Router()
+    try:
+        with zenoh.open(build_zenoh_config(router.ros_peer())) as ros:
+            camera = RmwCamera(ros, {"/camera/image_raw": IMAGE})
+            with NodeThread(FakeDetector(), router.ros_peer(), key="unused", mcap_path=tmp_path / "ros.mcap",
+                            ros=RosOptions(topic="/camera/image")) as node:
+                node_status(ros, lambda s: s.warnings)
+                human = _status("--connect", router.endpoint, "--timeout", "5")
+                machine = _status("--connect", router.endpoint, "--timeout", "5", "--json")
+                node.finish()
+            camera.close()
+    finally:
+        router.close()
+    assert human.returncode == 1, human.stderr
+    assert len(human.stdout.splitlines()) == 2, human.stdout
+    node_line, warning = human.stdout.splitlines()
+    zid = node_line.split()[0]
+    assert warning.startswith(f"{zid}  warning: ROS 2 topic /camera/image has no publisher")
+    assert "/camera/image_raw (sensor_msgs/msg/Image)" in warning
+    assert machine.returncode == 1
+    (doc,) = json.loads(machine.stdout)
+    assert doc["ros_topic_published"] is False
+    assert doc["ros_image_topics"] == ["/camera/image_raw (sensor_msgs/msg/Image)"]

@@ -2,8 +2,9 @@
 
 :class:`LiveView` turns each frame's result into Foxglove messages, serialised once (protobuf
 ``foxglove.*`` schemas from foxglove-schemas-protobuf, JSON for the result and stats) and sent
-to two optional sinks: a Foxglove WebSocket server (:class:`FoxgloveServer`, foxglove-sdk, the
-``aefabmap[foxglove]`` extra, imported only when a server is started) and the run's MCAP log
+to two optional sinks: a Foxglove WebSocket server (:class:`FoxgloveServer`, foxglove-sdk and,
+for viewers of the older subprotocol, foxglove-websocket: the ``aefabmap[foxglove]`` extra,
+imported only when a server is started) and the run's MCAP log
 (``write_view``), so a saved log opens with the same layout (deploy/foxglove_layout.json).
 
 Topics: ``/camera/image`` (foxglove.CompressedImage: JPEG/PNG as received, raw frames
@@ -21,7 +22,9 @@ size: docs/results.md, "Memory") plus ``pending`` recent frames' thumbnails wait
 
 from __future__ import annotations
 
+import base64
 import json
+import logging
 import threading
 import time
 from collections import OrderedDict
@@ -37,8 +40,11 @@ from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from aefabmap_runtime.errors import ConfigError, TransportError
+from aefabmap_runtime.adapters.foxglove_v1 import V1Channel
 from aefabmap_runtime.adapters.frames import classify_encoding
 from aefabmap_runtime.core.records.messages import FrameResult, StatsMessage
+
+log = logging.getLogger("aefabmap.foxglove")
 
 IMAGE_TOPIC = "/camera/image"
 PLACE_IMAGE_TOPIC = "/lcd/place_image"
@@ -165,12 +171,16 @@ def _subscription_listener(event: threading.Event):
 
 
 class FoxgloveServer:
-    """A Foxglove WebSocket server (foxglove-sdk) with the view's channels, in its own context.
+    """A Foxglove WebSocket server (foxglove-sdk) with the view's channels, in its own context,
+    behind one public port that also serves viewers of the older subprotocol.
 
     host: loopback by default (the protocol has no authentication). port: 0 picks a free one
     (``self.port`` tells). Raises ConfigError when foxglove-sdk is absent, TransportError when
-    the port cannot be bound. foxglove-sdk accepts only viewers that offer the WebSocket
-    subprotocol ``foxglove.sdk.v1`` (docs/streaming.md, "Live view").
+    the port cannot be bound. foxglove-sdk accepts only the WebSocket subprotocol
+    ``foxglove.sdk.v1``; it listens on a free loopback port behind ``host:port``
+    (runtime/aefabmap_runtime/adapters/foxglove_front.py), where a viewer offering only
+    ``foxglove.websocket.v1`` is served by foxglove-websocket instead (docs/streaming.md,
+    "Which viewers connect").
     """
 
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "aefabmap") -> None:
@@ -180,26 +190,41 @@ class FoxgloveServer:
             import foxglove
         except ImportError as exc:
             raise ConfigError(INSTALL_HINT) from exc
+        from aefabmap_runtime.adapters.foxglove_front import FoxgloveFront
+
         self._context = foxglove.Context()
         self.channels = {}
+        v1_channels = []
         for topic, cls in ((IMAGE_TOPIC, CompressedImage), *VIEW_PROTOBUF.items()):
-            schema = foxglove.Schema(name=cls.DESCRIPTOR.full_name, encoding="protobuf",
-                                     data=build_file_descriptor_set(cls).SerializeToString())
+            descriptors = build_file_descriptor_set(cls).SerializeToString()
+            schema = foxglove.Schema(name=cls.DESCRIPTOR.full_name, encoding="protobuf", data=descriptors)
             self.channels[topic] = foxglove.Channel(topic, schema=schema, message_encoding="protobuf",
                                                     context=self._context)
+            v1_channels.append(V1Channel(topic, "protobuf", cls.DESCRIPTOR.full_name,
+                                         base64.b64encode(descriptors).decode("ascii")))
         for topic, kind in ((RESULT_TOPIC, FrameResult), (STATS_TOPIC, StatsMessage)):
-            schema = foxglove.Schema(name=kind.TITLE, encoding="jsonschema", data=json.dumps(kind.json_schema()).encode())
+            text = json.dumps(kind.json_schema())
+            schema = foxglove.Schema(name=kind.TITLE, encoding="jsonschema", data=text.encode())
             self.channels[topic] = foxglove.Channel(topic, schema=schema, message_encoding="json", context=self._context)
+            v1_channels.append(V1Channel(topic, "json", kind.TITLE, text, "jsonschema"))
         self._viewer = threading.Event()
-        try:
-            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
+        try:  # the SDK on loopback only: viewers reach it through the public port
+            self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=self._context,
                                                  server_listener=_subscription_listener(self._viewer))
         except Exception as exc:  # the SDK raises its own error types (bind failures)
+            raise TransportError(f"cannot start the Foxglove server on 127.0.0.1: {exc}"[:300]) from exc
+        try:
+            self.front = FoxgloveFront(host, port, self._server.port, v1_channels, name, on_subscribe=self._viewer.set)
+        except (OSError, TimeoutError) as exc:
+            self._server.stop()
             raise TransportError(f"cannot start the Foxglove server on {host}:{port}: {exc}"[:300]) from exc
-        self.port, self.host = self._server.port, host
+        if self.front.v1_missing is not None:
+            log.warning("Foxglove viewers that speak only foxglove.websocket.v1 (Lichtblick up to 1.21) cannot "
+                        "connect: %s; install aefabmap[foxglove]", self.front.v1_missing)
+        self.port, self.host = self.front.port, host
 
     def subscribed(self, topic: str) -> bool:
-        return self.channels[topic].has_sinks()
+        return self.channels[topic].has_sinks() or self.front.subscribed(topic)
 
     def wait_viewer(self, timeout_s: float, stop: threading.Event | None = None,
                     settle_s: float = VIEWER_SETTLE_S) -> bool:
@@ -218,9 +243,11 @@ class FoxgloveServer:
 
     def log(self, topic: str, data: bytes, log_time_ns: int) -> None:
         self.channels[topic].log(data, log_time=log_time_ns)
+        self.front.log(topic, data, log_time_ns)
 
     def stop(self) -> None:
-        self._server.stop()
+        self._server.stop()  # first: its viewers get its close frames through the front
+        self.front.stop()
 
 
 class LiveView:

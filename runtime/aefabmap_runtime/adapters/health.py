@@ -113,6 +113,8 @@ class StatusBoard:
         self.warnings: Callable[[], list[str]] | None = None
         #: Returns the fleet's counters (FleetNode.fleet_stats); set by a node in a fleet.
         self.fleet_stats: Callable[[], FleetStats] | None = None
+        #: Whether a ROS 2 run's image topic is published (ros_topic_check.ImageTopicCheck); set by the node.
+        self.topic_check = None
 
     def after_frame(self, loop, drops, result=None, detector=None) -> None:
         """Copy the frame loop's counters (and the result's timings, the map's size)."""
@@ -152,8 +154,21 @@ class StatusBoard:
             places=places, map_mb=map_mb, rss_mb=None if rss is None else round(rss, 1),
             stage_ms={k: round(statistics.median(v), 3) for k, v in stages.items()}, recent_frames=len(timings),
             log_files=files, log_bytes=size, log_errors=getattr(self.log, "errors", 0),
-            log_state=getattr(self.log, "state", None), warnings=self._current_warnings(), fleet=fleet, **counters,
+            log_state=getattr(self.log, "state", None), warnings=self._current_warnings(), fleet=fleet,
+            **self._ros_topic(), **counters,
         )
+
+    def _ros_topic(self) -> dict:
+        """The status's ros_topic_published / ros_image_topics (nothing outside a ROS 2 run)."""
+        check = self.topic_check
+        if check is None:
+            return {}
+        try:
+            published = check.published()
+            return {"ros_topic_published": published,
+                    "ros_image_topics": check.image_topics() if published is False else []}
+        except Exception:  # noqa: BLE001 - a status is answered even when the graph cannot be read
+            return {}
 
     def _current_warnings(self) -> list[str]:
         try:

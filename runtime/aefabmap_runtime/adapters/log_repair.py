@@ -3,7 +3,9 @@
 A log cut off by a full disk or a kill -9 has no summary and no footer: readers that seek to
 the summary (the `mcap` CLI, `mcap.reader.make_reader` on a file) find no messages. This
 module streams it up to its last complete record, as McapLogReader does, and writes every
-schema, channel, metadata record, attachment and message it read into a new, finished file.
+schema, channel, metadata record, attachment and message it read into a new, finished file. A
+``ros2``-profile file that lost its ``rosbag2`` metadata record (written at a file's end) gets one
+counting what was kept (runtime/aefabmap_runtime/adapters/rosbag2_mcap.py), as rosbag2 would have written it.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from mcap.writer import CompressionType, Writer
 from aefabmap_runtime.errors import LogError
 from aefabmap_runtime.adapters.durable_files import open_regular
 from aefabmap_runtime.adapters.mcap_log import complete_records
+from aefabmap_runtime.adapters.rosbag2_mcap import ROSBAG2_METADATA, Rosbag2Summary
 
 
 @dataclass
@@ -55,7 +58,7 @@ def repair_log(source: str | Path, out: str | Path) -> RepairReport:
             raise LogError(f"{out}: cannot create (it must not exist yet): {exc.strerror or exc}") from exc
         try:
             with os.fdopen(fd, "wb") as sink:
-                started = _copy(fh, sink, report)
+                started = _copy(fh, sink, report, out.name)
         except BaseException as exc:
             _remove(out)  # a partial file is no repaired log
             if isinstance(exc, OSError):
@@ -67,34 +70,47 @@ def repair_log(source: str | Path, out: str | Path) -> RepairReport:
     return report
 
 
-def _copy(fh, sink, report: RepairReport) -> bool:
-    """Write the complete records of `fh` into a finished MCAP on `sink`; False when there was none."""
+def _copy(fh, sink, report: RepairReport, out_name: str) -> bool:
+    """Write the complete records of `fh` into a finished MCAP on `sink` (file name `out_name`);
+    False when there was none."""
     writer = Writer(sink, compression=CompressionType.ZSTD)
-    schema_ids: dict[int, int] = {}
+    schemas: dict[int, tuple[int, str]] = {}  # source schema id -> (our id, type name)
     channel_ids: dict[int, int] = {}
+    bag: Rosbag2Summary | None = None  # a ros2 file's topics and counts, for its rosbag2 record
     started = False
     for record in complete_records(fh, report):
         if not started:
-            writer.start(profile=record.profile if isinstance(record, Header) else "",
-                         library="aefabmap log repair")
+            profile = record.profile if isinstance(record, Header) else ""
+            writer.start(profile=profile, library="aefabmap log repair")
+            bag = Rosbag2Summary() if profile == "ros2" else None
             started = True
         if isinstance(record, Schema):
-            schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+            schemas[record.id] = (writer.register_schema(record.name, record.encoding, record.data), record.name)
         elif isinstance(record, Channel):
+            schema_id, type_name = schemas.get(record.schema_id, (0, ""))
             channel_ids[record.id] = writer.register_channel(
-                record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), dict(record.metadata))
+                record.topic, record.message_encoding, schema_id, dict(record.metadata))
+            if bag is not None and record.message_encoding == "cdr" and type_name:
+                bag.add_channel(channel_ids[record.id], record.topic, type_name, dict(record.metadata))
             report.channels += 1
         elif isinstance(record, Message) and record.channel_id in channel_ids:
             writer.add_message(channel_ids[record.channel_id], record.log_time, record.data, record.publish_time,
                                record.sequence)
+            if bag is not None:
+                bag.count(channel_ids[record.channel_id], record.log_time)
             report.messages += 1
         elif isinstance(record, Metadata):
             writer.add_metadata(record.name, dict(record.metadata))
             report.metadata += 1
+            if record.name == ROSBAG2_METADATA:
+                bag = None  # the file was finished: its own record is kept
         elif isinstance(record, Attachment):
             writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
                                   record.data)
     if started:
+        if bag is not None:
+            writer.add_metadata(ROSBAG2_METADATA, bag.record(out_name))
+            report.metadata += 1
         writer.finish()
     return started
 

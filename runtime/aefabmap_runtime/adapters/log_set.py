@@ -7,7 +7,8 @@ runtime/aefabmap_runtime/adapters/rotating_log.py, and a restarted service write
 target                           files, in order
 ================================ ==============================================================
 ``DIR/`` (or an existing dir)    ``DIR/lcd-YYYYmmdd-HHMMSS-0001.mcap``, ``...-0002.mcap``, ...
-                                 (UTC time the file was opened, then its number in the set)
+                                 (UTC time the file was opened, then its number in the set;
+                                 a missing ``DIR/`` is created with its parents)
 ``run-{n}.mcap`` (one ``{n}``)   ``run-0001.mcap``, ``run-0002.mcap``, ...
 ``run.mcap`` (plain path)        ``run.mcap`` (the first file, as before rotation existed),
                                  then ``run-0001.mcap``, ``run-0002.mcap``, ...
@@ -169,6 +170,17 @@ class LogSet:
             if size is not None:
                 out.append(LogFile(path, number, size))
         return sorted(out, key=lambda f: (f.number, f.path.name))
+
+    def make_directory(self) -> None:
+        """Create a directory target's directory, with its parents, when it does not exist (the
+        README's ``--mcap logs/`` on a fresh machine); LogError when it cannot be. The directory of
+        a file or pattern target is not created: a typo there is refused by check_writable."""
+        if self.kind != "dir" or self.directory.is_dir():
+            return
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise LogError(f"cannot create the MCAP log directory {self.directory}: {exc.strerror or exc}") from exc
 
     def check_writable(self) -> None:
         """LogError when the set's directory is missing or not writable (checked before a run
@@ -363,6 +375,8 @@ class LogSetReader:
         t.image_topic = t.image_topic or s.image_topic
         t.format_version = t.format_version or s.format_version
         t.ignored_image_topics += [x for x in s.ignored_image_topics if x not in t.ignored_image_topics]
+        for topic, n in s.unknown_topics.items():
+            t.unknown_topics[topic] = t.unknown_topics.get(topic, 0) + n
         if s.truncated:
             t.truncated = True
             t.reason = f"{Path(s.path).name}: {s.reason}"

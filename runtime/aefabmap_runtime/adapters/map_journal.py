@@ -238,12 +238,12 @@ class JournalReplay:
         return self.next - self.first
 
 
-def replay_journal(detector, directory) -> JournalReplay:
+def replay_journal(detector, directory, remove_unreachable: bool = True) -> JournalReplay:
     """Replay the journal of ``directory`` (map_state.MapStateDir, open) into ``detector``,
     which holds the current snapshot's map (or an empty one): the frames from
     ``detector.next_sequence`` on, segment after segment, up to the first frame not written.
     Raises StateError for a journal that does not belong (see the module doc); once the map
-    has loaded, removes the segments it could not reach."""
+    has loaded, removes the segments it could not reach (unless not `remove_unreachable`)."""
     first = expected = detector.next_sequence
     cut = None
     for base, path in segments(directory.path):
@@ -255,7 +255,7 @@ def replay_journal(detector, directory) -> JournalReplay:
         except _Cut as exc:
             expected, cut = detector.next_sequence, f"{path.name}: {exc}"
     removed = 0
-    for base, path in segments(directory.path):
+    for base, path in segments(directory.path) if remove_unreachable else ():
         if base > expected:
             _unlink_quietly(path)
             removed += 1

@@ -32,23 +32,30 @@ such a file (no summary) sequentially up to its last complete record and reports
 ``truncated`` and ``messages_read``.
 
 Profile ``ros2`` (McapLogConfig.profile, ``--mcap-profile ros2``): the same run as a file that
-``ros2 bag play``, rosbags and Foxglove read. MCAP profile ``ros2``, schemas ``ros2msg``
-(runtime/aefabmap_runtime/adapters/ros_cdr.py definitions), messages ``cdr``:
+``ros2 bag play``/``info``, rosbags and Foxglove read, written as rosbag2 writes MCAP
+(runtime/aefabmap_runtime/adapters/rosbag2_mcap.py): MCAP profile ``ros2``, schemas ``ros2msg``
+(runtime/aefabmap_runtime/adapters/ros_cdr.py definitions), messages ``cdr`` serialised by
+mcap-ros2-support, each channel with its ``offered_qos_profiles`` and ``topic_type_hash``, and at
+the file's end the ``rosbag2`` metadata record (topics, message counts, start and duration):
 
-========================= ================================= ===============================
-topic                     type                              content
-========================= ================================= ===============================
-/camera/image/compressed  ``sensor_msgs/msg/CompressedImage`` every n-th processed frame, header stamp =
-                                                            capture stamp, frame_id; format "jpeg"/"png"
-                                                            (raw frames as lossless gray PNG)
-/lcd/result               ``std_msgs/msg/String``           the result's JSON (with its ``sequence``)
-/lcd/stats                ``std_msgs/msg/String``           the stats' JSON
-========================= ================================= ===============================
+========================= ======================================== ===============================
+topic                     type                                     content
+========================= ======================================== ===============================
+/camera/image/compressed  ``sensor_msgs/msg/CompressedImage``      every n-th processed frame, header
+                                                                   stamp = capture stamp, frame_id;
+                                                                   format "jpeg"/"png" (raw frames as
+                                                                   lossless gray PNG)
+/lcd/result               ``std_msgs/msg/String``                  the result's JSON (with ``sequence``)
+/lcd/stats                ``std_msgs/msg/String``                  the stats' JSON
+/diagnostics              ``diagnostic_msgs/msg/DiagnosticArray``  one per stats message: what a ROS 2
+                                                                   run published on /diagnostics, else
+                                                                   the same status made from the stats
+========================= ======================================== ===============================
 
 The result and stats channels carry channel metadata ``aefabmap.message`` (the JSON schema
-title) so the reader tells them apart from any other String topic; the metadata records are
-the same as in the default profile (ROS tools ignore them). The live view's protobuf topics are
-not written in this profile (ROS readers refuse protobuf schemas).
+title) so the reader tells them apart from any other String topic; the ``aefabmap.*`` metadata
+records are the same as in the default profile (ROS tools ignore them). The live view's protobuf
+topics are not written in this profile (ROS readers refuse protobuf schemas).
 
 The reader also takes ROS 2 bags (``sensor_msgs/msg/CompressedImage`` and
 ``sensor_msgs/msg/Image``, CDR via mcap-ros2-support) and reads both profiles of our logs.
@@ -59,6 +66,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import socket
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -82,15 +90,14 @@ from aefabmap_runtime.adapters.frames import (
     encode_frame,
     pack_raw_rows,
 )
+from aefabmap_runtime.adapters.ros_diagnostics import DIAGNOSTICS_TOPIC, node_diagnostic
+from aefabmap_runtime.adapters.rosbag2_mcap import Rosbag2Channels, compressed_image, diagnostic_array, text
 from aefabmap_runtime.adapters.ros_cdr import (
-    COMPRESSED_IMAGE_MSGDEF,
     COMPRESSED_IMAGE_TYPE,
-    STRING_MSGDEF,
+    DIAGNOSTIC_ARRAY_TYPE,
     STRING_TYPE,
     decode_compressed_cdr,
     decode_string_cdr,
-    encode_compressed_image_cdr,
-    encode_string_cdr,
 )
 from aefabmap_runtime.core.features.features import EXTRACTION_VERSION
 from aefabmap_runtime.core.records.messages import (
@@ -119,6 +126,14 @@ PROFILES = ("aefabmap", "ros2")
 ROS2_IMAGE_TOPIC = "/camera/image/compressed"
 #: Channel metadata key naming the JSON message a ros2-profile String channel carries.
 MESSAGE_KIND_KEY = "aefabmap.message"
+#: DiagnosticStatus name of the diagnostics a ros2-profile log makes from the stats of a run that
+#: published none (no ROS 2 publisher: plain Zenoh, replay).
+STATS_DIAGNOSTIC_NAME = "aefabmap"
+#: Topics aefabmap writes that the reader does not read (the live view's, /diagnostics): a log's
+#: other unread topics are listed in ReadStatus.unknown_topics.
+OWN_UNREAD_TOPICS = frozenset((*VIEW_PROTOBUF, DIAGNOSTICS_TOPIC))
+#: Unknown topics named in ReadStatus.describe (all of them are in to_dict).
+MAX_DESCRIBED_TOPICS = 10
 
 
 @dataclass(frozen=True)
@@ -238,6 +253,8 @@ class McapLogWriter:
         self.messages_written = 0
         self._closed = False
         self._ros2 = self.config.profile == "ros2"
+        self._ros: Rosbag2Channels | None = None
+        self._previous_stats: dict | None = None  # for the level of diagnostics made from stats
         try:
             self._file = _UnbufferedFile(self.path, exclusive=exclusive)
         except OSError as exc:
@@ -277,6 +294,8 @@ class McapLogWriter:
             raise LogError(f"cannot write MCAP log {self.path}: {exc.strerror or exc}") from exc
         self._last_flush = time.monotonic()
         self._seq = {self._image_channel: 0, self._result_channel: 0, self._stats_channel: 0}
+        if self._ros is not None:
+            self._seq[self._diagnostics_channel] = 0
         self._view_channels: dict[str, int] = {}  # registered at first use (live view on)
 
     # ------------------------------------------------------------------ setup
@@ -290,32 +309,29 @@ class McapLogWriter:
         )
 
     def _register_ros2_channels(self) -> None:
-        """Image, result and stats channels of the ros2 profile (CDR, ros2msg schemas)."""
-        image_schema = self._writer.register_schema(
-            name=COMPRESSED_IMAGE_TYPE, encoding="ros2msg", data=COMPRESSED_IMAGE_MSGDEF.encode()
-        )
-        self._image_channel = self._writer.register_channel(
-            topic=self.config.image_topic, message_encoding="cdr", schema_id=image_schema
-        )
-        string_schema = self._writer.register_schema(name=STRING_TYPE, encoding="ros2msg",
-                                                     data=STRING_MSGDEF.encode())
+        """Image, result, stats and /diagnostics channels of the ros2 profile, as rosbag2 registers
+        them (runtime/aefabmap_runtime/adapters/rosbag2_mcap.py)."""
+        self._ros = Rosbag2Channels(self._writer)
+        self._hardware_id = socket.gethostname()  # DiagnosticStatus.hardware_id, as the ROS 2 publisher's
+        self._image_channel = self._ros.add(self.config.image_topic, COMPRESSED_IMAGE_TYPE)
         self._result_channel, self._stats_channel = (
-            self._writer.register_channel(topic=topic, message_encoding="cdr", schema_id=string_schema,
-                                          metadata={MESSAGE_KIND_KEY: kind.TITLE})
+            self._ros.add(topic, STRING_TYPE, metadata={MESSAGE_KIND_KEY: kind.TITLE})
             for topic, kind in ((self.config.result_topic, FrameResult), (self.config.stats_topic, StatsMessage))
         )
+        self._diagnostics_channel = self._ros.add(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY_TYPE)
 
     def _image_message(self, payload: bytes, fmt: str, stamp_ns: int) -> bytes:
         """One serialised image message of the profile; stamp_ns: capture time (ns)."""
-        if self._ros2:
-            return encode_compressed_image_cdr(stamp_ns, fmt, bytes(payload), self.config.frame_id)
+        if self._ros is not None:
+            return self._ros.encode(self._image_channel,
+                                    compressed_image(stamp_ns, fmt, payload, self.config.frame_id))
         msg = CompressedImage(frame_id=self.config.frame_id, data=bytes(payload), format=fmt)
         msg.timestamp.FromNanoseconds(stamp_ns)
         return msg.SerializeToString()
 
-    def _text_message(self, data: bytes) -> bytes:
+    def _text_message(self, channel: int, data: bytes) -> bytes:
         """JSON bytes as the profile's text message (a CDR std_msgs/String in ros2)."""
-        return encode_string_cdr(data.decode("utf-8")) if self._ros2 else data
+        return self._ros.encode(channel, text(data.decode("utf-8"))) if self._ros is not None else data
 
     def _register_protobuf_channel(self, topic: str, cls) -> int:
         fds = build_file_descriptor_set(cls)
@@ -386,7 +402,7 @@ class McapLogWriter:
             data = data if data is not None else _json_bytes(result)
         self._add(
             self._result_channel,
-            self._text_message(data),
+            self._text_message(self._result_channel, data),
             log_time_ns,
             stamp if isinstance(stamp, int) else None,
             seq if isinstance(seq, int) else None,
@@ -408,11 +424,35 @@ class McapLogWriter:
         return True
 
     def write_stats(self, stats: StatsMessage | dict, *, data: bytes | None = None,
-                    log_time_ns: int | None = None) -> None:
-        """Log one stats message on the stats topic (data: its JSON bytes, if already made)."""
+                    log_time_ns: int | None = None, diagnostics: bytes | None = None) -> None:
+        """Log one stats message on the stats topic (data: its JSON bytes, if already made).
+
+        In the ros2 profile also a diagnostic_msgs/DiagnosticArray on /diagnostics: ``diagnostics``,
+        the CDR the run published for these stats (rmw_zenoh.RosResultPublisher.publish_stats), else
+        one made from the stats as the ROS 2 publisher makes it (status STATS_DIAGNOSTIC_NAME)."""
         if data is None:
             data = stats.to_json_bytes() if isinstance(stats, StatsMessage) else _json_bytes(stats)
-        self._add(self._stats_channel, self._text_message(data), log_time_ns, None, None)
+        if log_time_ns is None:
+            log_time_ns = time.time_ns()  # the stats and their diagnostics: one log time
+        self._add(self._stats_channel, self._text_message(self._stats_channel, data), log_time_ns, None, None)
+        if self._ros is not None:
+            if diagnostics is None:
+                diagnostics = self._stats_diagnostics(data, log_time_ns)
+            self._add(self._diagnostics_channel, bytes(diagnostics), log_time_ns, None, None)
+
+    def _stats_diagnostics(self, data: bytes, log_time_ns: int) -> bytes:
+        """A DiagnosticArray of the stats' JSON ``data`` as the ROS 2 publisher makes it, without
+        the node status's values (places, map size, stage times); stamp: the stats' stamp_ns."""
+        try:
+            doc = json.loads(data)
+            stamp = doc.get("stamp_ns")
+            status = node_diagnostic(doc, None, self._previous_stats, name=STATS_DIAGNOSTIC_NAME,
+                                     hardware_id=self._hardware_id)
+        except (TypeError, ValueError, AttributeError) as exc:  # not a stats object: no diagnostics to make
+            raise LogError(f"cannot make diagnostics of stats: {type(exc).__name__}: {exc}"[:200]) from exc
+        self._previous_stats = doc
+        stamp = stamp if isinstance(stamp, int) and not isinstance(stamp, bool) and stamp > 0 else log_time_ns
+        return self._ros.encode(self._diagnostics_channel, diagnostic_array(stamp, [status]))
 
     def _add(self, channel: int, data: bytes, log_time_ns, publish_time_ns, sequence) -> None:
         if self._closed:
@@ -435,6 +475,8 @@ class McapLogWriter:
 
         self._guard(add)
         self.messages_written += 1
+        if self._ros is not None:
+            self._ros.summary.count(channel, log_time)
 
     def flush(self) -> None:
         """Write out the chunk in progress now."""
@@ -469,6 +511,8 @@ class McapLogWriter:
             return
         self._closed = True
         try:
+            if self._ros is not None:
+                self._ros.finish_record(self.path.name)
             self._writer.finish()
         except OSError as exc:
             raise LogError(f"cannot finish MCAP log {self.path}: {exc.strerror or exc}") from exc
@@ -518,7 +562,9 @@ class LoggedImage:
 
 @dataclass
 class ReadStatus:
-    """How far a log was read: messages_read (all topics), truncated (no clean end), reason."""
+    """How far a log was read: messages_read (all topics), truncated (no clean end), reason.
+    unknown_topics: topic -> messages of the channels the reader does not know (neither images,
+    results, stats nor aefabmap's own unread topics, OWN_UNREAD_TOPICS): listed, not read."""
 
     path: str
     messages_read: int = 0
@@ -533,6 +579,7 @@ class ReadStatus:
     format_version: str | None = None
     files: list[str] = field(default_factory=list)
     profile: str | None = None  # the MCAP header's profile ("ros2"; "" for the default layout)
+    unknown_topics: dict[str, int] = field(default_factory=dict)
 
     def describe(self) -> str:
         text = f"{self.path}: read {self.messages_read} messages ({self.images_read} images"
@@ -541,6 +588,13 @@ class ReadStatus:
             text += f"; file truncated, read up to the last complete record ({self.reason})"
         if self.invalid_messages:
             text += f"; {self.invalid_messages} messages failed validation (last: {self.last_invalid})"
+        if self.unknown_topics:
+            # A hostile log may declare any number of channels: the line names the first few.
+            listed = sorted(self.unknown_topics.items())[:MAX_DESCRIBED_TOPICS]
+            text += "; not read, topics it does not know: " + ", ".join(
+                f"{topic[:100]} ({n} messages)" for topic, n in listed)
+            if len(self.unknown_topics) > len(listed):
+                text += f" and {len(self.unknown_topics) - len(listed)} more"
         return text
 
     def to_dict(self) -> dict:
@@ -659,6 +713,8 @@ class McapLogReader:
                         json_kinds[record.id] = _JSON_MESSAGES[schema.name]
                     elif _is_ros2_text_channel(record, schema):
                         json_kinds[record.id] = _JSON_MESSAGES[record.metadata[MESSAGE_KIND_KEY]]
+                    elif record.topic not in OWN_UNREAD_TOPICS:
+                        self.status.unknown_topics.setdefault(record.topic, 0)
                 elif isinstance(record, Metadata):
                     self._take_metadata(record)
                 elif isinstance(record, Message):
@@ -675,6 +731,8 @@ class McapLogReader:
                             yield image
                     elif record.channel_id in json_kinds:
                         self._take_json(record, json_kinds[record.channel_id], cdr=channel.message_encoding == "cdr")
+                    elif channel.topic in self.status.unknown_topics:
+                        self.status.unknown_topics[channel.topic] += 1
 
     def _choose(self, channel: Channel, chosen: int | None, channels: dict[int, Channel]) -> int | None:
         topic = channel.topic

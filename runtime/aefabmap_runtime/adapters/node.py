@@ -45,6 +45,8 @@ from aefabmap_runtime.adapters.rmw_zenoh import (
     RosOptions,
     RosResultPublisher,
 )
+from aefabmap_runtime.adapters.ros2dds_bridge import BridgeFrameSubscriber, BridgeResultPublisher, home_of
+from aefabmap_runtime.adapters.ros_topic_check import ImageTopicCheck
 from aefabmap_runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
 from aefabmap_runtime.adapters.zenoh_transport import (
     FrameSubscriber,
@@ -79,8 +81,9 @@ class NodeOptions:
     n-th image (0 = none; 1 keeps the log replayable exactly). log_config: the MCAP writer's
     other settings. run_config: extra JSON-able settings stored in the log metadata.
     max_frames: stop after this many processed frames (None: run until stopped).
-    ros: subscribe to this ROS 2 image topic over rmw_zenoh instead of ``key`` (which is then
-    only recorded), and also publish results as ROS 2 messages (runtime/aefabmap_runtime/adapters/rmw_zenoh.py).
+    ros: subscribe to this ROS 2 image topic over rmw_zenoh (runtime/aefabmap_runtime/adapters/rmw_zenoh.py),
+    or through zenoh-bridge-ros2dds when ``ros.bridge`` is set (ros2dds_bridge.py), instead of
+    ``key`` (which is then only recorded), and also publish results as ROS 2 messages.
     log_rotation: file size limit, disk budget and free-space thresholds of the log set
     (runtime/aefabmap_runtime/adapters/rotating_log.py; mcap_path may then be a directory or a ``{n}`` pattern).
     fleet: join this fleet (runtime/aefabmap_runtime/adapters/fleet.py): offer the own places, verify other robots'.
@@ -194,8 +197,8 @@ class StatsEmitter:
         msg = self.stats.snapshot(self.loop, now - self.t0, fps)
         msg.log_errors, msg.log_state = getattr(self.log, "errors", 0), getattr(self.log, "state", None)
         data = msg.to_json_bytes()
-        self.pub.publish_stats(data)
-        self.log.write_stats(msg, data=data)
+        diagnostics = self.pub.publish_stats(data)  # a ROS 2 run's /diagnostics CDR (None without ROS)
+        self.log.write_stats(msg, data=data, diagnostics=diagnostics)
         if self.view is not None:
             self.view.on_stats(data, msg.stamp_ns)
         if self.on_stats is not None:
@@ -229,19 +232,30 @@ class ResultOutput:
 
 
 class _Transport:
-    """The node's Zenoh side: a session, the frame subscriber and the result publisher."""
+    """The node's Zenoh side: a session, the frame subscriber and the result publisher; for a
+    ROS 2 run, the check that its image topic is published (ros_topic_check.py)."""
 
     def __init__(self, options: NodeOptions) -> None:
         self.session = open_session(options.session)
-        self.sub: FrameSubscriber | RosFrameSubscriber | None = None
-        self.pub: ResultPublisher | RosResultPublisher | None = None
+        self.sub: FrameSubscriber | RosFrameSubscriber | BridgeFrameSubscriber | None = None
+        self.pub: ResultPublisher | RosResultPublisher | BridgeResultPublisher | None = None
+        self.topic_check: ImageTopicCheck | None = None
         try:
-            if options.ros is not None:  # the one place where ROS 2 (rmw_zenoh) replaces plain keys
-                self.sub = RosFrameSubscriber(self.session, options.ros.domain, options.ros.topic,
-                                              queue_size=options.queue_size)
+            ros = options.ros
+            if ros is not None and ros.bridge is not None:  # ROS 2 over DDS, through zenoh-bridge-ros2dds
+                self.sub = BridgeFrameSubscriber(self.session, ros.image_key, queue_size=options.queue_size)
+                self.pub = BridgeResultPublisher(self.session, options.results_key, ros)
+                self.topic_check = ImageTopicCheck(
+                    ros.fq_topic, self.pub.graph.publishers, lambda: self.sub.received, home=home_of(ros.bridge),
+                    hint=" (or the bridge's namespace, --ros-bridge NS)")
+            elif ros is not None:  # the one place where ROS 2 (rmw_zenoh) replaces plain keys
+                self.sub = RosFrameSubscriber(self.session, ros.domain, ros.topic, queue_size=options.queue_size)
                 sub = self.sub
-                self.pub = RosResultPublisher(self.session, options.results_key, options.ros,
-                                              wire_distro=lambda: (sub.distro, sub.ros_type))
+                self.pub = RosResultPublisher(self.session, options.results_key, ros,
+                                              wire_distro=lambda: (sub.distro, sub.ros_type),
+                                              subscription_depth=options.queue_size)
+                self.topic_check = ImageTopicCheck(ros.fq_topic, self.pub.watch.publishers, lambda: sub.received,
+                                                   home=f"domain {ros.domain}", hint=" (or --ros-domain)")
             else:
                 self.sub = FrameSubscriber(self.session, options.key, queue_size=options.queue_size,
                                            ignore_keys=(options.results_key, options.stats_key))
@@ -295,9 +309,10 @@ def run_node(
             _fleet(io.session, detector, options.fleet) as fleet:
         if fleet is not None:  # the fleet node follows the detector; the stats and status carry its counters
             stats.fleet = board.fleet_stats = fleet.fleet_stats
-        if isinstance(io.pub, RosResultPublisher):  # /diagnostics carries the status; status, the ROS warnings
+        if io.topic_check is not None:  # /diagnostics carries the status; status, the ROS warnings
             io.pub.status_source = lambda: board.status(health.zid)
-            board.warnings = io.pub.warnings
+            board.warnings = lambda: io.pub.warnings() + io.topic_check.warnings()
+            board.topic_check = io.topic_check
         if ready_event is not None:
             ready_event.set()
         if view is not None:
@@ -323,6 +338,8 @@ def run_node(
         with FramePipeline(loop, options.workers, before=counted) as pipe:
             while not stop_event.is_set() and (options.max_frames is None or loop.processed < options.max_frames):
                 frame = None
+                if io.topic_check is not None:
+                    io.topic_check.poll()
                 if options.max_frames is None or loop.processed + pipe.pending < options.max_frames:
                     wait_s = emitter.tick()
                     frame = io.sub.receive(wait_s if not pipe.pending else 0.0, stop_event)

@@ -18,7 +18,7 @@ from aefabmap_runtime.adapters.map_journal import StateReport
 from aefabmap_runtime.adapters.mcap_log import McapLogConfig
 from aefabmap_runtime.adapters.node import NodeOptions, run_node, stop_on_signals
 from aefabmap_runtime.adapters.node_session import Endpoints, node_session
-from aefabmap_runtime.adapters.node_state import NodeState
+from aefabmap_runtime.adapters.node_state import NodeState, open_frozen_map
 from aefabmap_runtime.adapters.rmw_zenoh import RosOptions
 from aefabmap_runtime.adapters.rotating_log import LogRotationConfig
 from aefabmap_runtime.adapters.state_dir import SnapshotPolicy
@@ -91,9 +91,13 @@ def run_configured_node(config: RunConfig, io: NodeIO, *, stop_event: threading.
         get_profile(config.profile).check_bundle(bundle_reader.read_manifest(Path(config.model)))
     _apply_process_settings(config)
     detector = bundle_reader.load_detector(config.model, config.detector)
-    state = view = None
+    state = view = frozen = None
     try:
-        if io.state is not None:
+        if config.localize:  # the map is only read: no journal, no snapshots (node_state.open_frozen_map)
+            if io.state is None:
+                raise ConfigError("--localize needs --state DIR: the map to localize against")
+            frozen = open_frozen_map(io.state, detector, log)
+        elif io.state is not None:
             state = NodeState(io.state, detector, io.snapshots, log)
         options = node_options(config, io, session, detector)
         log.info("kernels: %s", compiled.describe())  # once the run's settings and state are accepted
@@ -107,6 +111,8 @@ def run_configured_node(config: RunConfig, io: NodeIO, *, stop_event: threading.
             view.close()
         if state is not None:
             state.close()
+        if frozen is not None:
+            frozen.close()
 
 
 def node_options(config: RunConfig, io: NodeIO, session: SessionConfig, detector) -> NodeOptions:

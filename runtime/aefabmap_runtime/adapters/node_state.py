@@ -10,15 +10,16 @@ from pathlib import Path
 from aefabmap_runtime.adapters.map_journal import MapJournal, StateReport
 from aefabmap_runtime.adapters.state_dir import MapStateDir, SnapshotPolicy, Snapshotter, bundle_id, load_map
 from aefabmap_runtime.core.run_config import recorded_settings_differences
-from aefabmap_runtime.errors import ConfigError
+from aefabmap_runtime.errors import ConfigError, StateError
 
 
-def open_state(path: str | Path, detector, logger: logging.Logger) -> MapStateDir:
+def open_state(path: str | Path, detector, logger: logging.Logger, read_only: bool = False) -> MapStateDir:
     """Open (lock) the state directory DIR for ``detector``'s bundle and load its map if present:
     the current snapshot, then the frames of its journal. A snapshot built with other detector
     settings loads (it continues with this run's), with a warning naming them; a journal must
-    match them (runtime/aefabmap_runtime/adapters/map_journal.py)."""
-    directory = MapStateDir(path, bundle_id(detector.manifest)).open()
+    match them (runtime/aefabmap_runtime/adapters/map_journal.py). read_only: DIR is only read
+    (MapStateDir read_only)."""
+    directory = MapStateDir(path, bundle_id(detector.manifest), read_only=read_only).open()
     try:
         state, journal = load_map(detector, directory)
         _log_journal(journal, path, logger)
@@ -33,6 +34,22 @@ def open_state(path: str | Path, detector, logger: logging.Logger) -> MapStateDi
     except BaseException:
         directory.close()
         raise
+    return directory
+
+
+def open_frozen_map(path: str | Path, detector, logger: logging.Logger) -> MapStateDir:
+    """Localization (--localize): load the map of the state directory DIR read-only into
+    ``detector`` and make its map read-only (core/map/place_map.py): frames are ranked and verified
+    against it, nothing is inserted, evicted or written back, and DIR is never written. Returns
+    the open directory (close it after the run). StateError when DIR holds no map."""
+    directory = open_state(path, detector, logger, read_only=True)
+    if detector.n_places == 0:
+        directory.close()
+        raise StateError(f"--localize needs a map: state directory {path} holds no places (build one with "
+                         "`run --state DIR` first)")
+    detector.map.read_only = True
+    logger.info("localizing against the map in %s: %d places, read-only (nothing is inserted or written)",
+                path, detector.n_places)
     return directory
 
 

@@ -31,9 +31,10 @@ from aefabmap_runtime.adapters.mcap_log import (
     McapLogWriter,
     ReadStatus,
 )
+from aefabmap_runtime.adapters.replay_stats import ReplayStats
 from aefabmap_runtime.adapters.ros_bag import open_replay_source
 from aefabmap_runtime.core.features.features import EXTRACTION_VERSION
-from aefabmap_runtime.core.records.messages import FrameResult
+from aefabmap_runtime.core.records.messages import FleetStats, FrameResult
 
 #: Result fields that vary from run to run (wall-clock timings, transport data); --check
 #: compares every other field of the result dicts (FrameResult.to_dict() of the core).
@@ -175,11 +176,15 @@ class PlaybackConfig:
     fast); 0: as fast as possible. max_gap_s: longest wait (s) for one gap, so a long pause in the
     log (or a run boundary) never stalls the replay. wait_viewer_s: with a live view, wait at most
     this long (s) for the first viewer before the first frame; None: do not wait.
+    stats_period_s: with a live view, replay time (s of the logged capture stamps) between two
+    stats messages on its /lcd/stats (runtime/aefabmap_runtime/adapters/replay_stats.py; `run`'s
+    period).
     """
 
     rate: float = 0.0
     max_gap_s: float = 3.0
     wait_viewer_s: float | None = None
+    stats_period_s: float = 5.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.rate, (int, float)) and math.isfinite(self.rate) and self.rate >= 0):
@@ -189,6 +194,9 @@ class PlaybackConfig:
         wait = self.wait_viewer_s
         if wait is not None and not (isinstance(wait, (int, float)) and math.isfinite(wait) and wait > 0):
             raise ConfigError(f"viewer wait must be a finite number of seconds > 0, got {wait!r}")
+        period = self.stats_period_s
+        if not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
+            raise ConfigError(f"stats period must be a finite number of seconds > 0, got {period!r}")
 
 
 class Pacer:
@@ -342,6 +350,7 @@ def replay(
     playback: PlaybackConfig | None = None,
     stop: threading.Event | None = None,
     workers: int = 1,
+    fleet_stats: Callable[[], FleetStats] | None = None,
 ) -> ReplaySummary:
     """Run ``detector`` (see frame_loop.FrameProcessor) over the images of ``mcap_path``: an aefabmap
     log, or a ROS bag (directory, .db3, .mcap, ROS 1 .bag; runtime/aefabmap_runtime/adapters/ros_bag.py).
@@ -354,7 +363,9 @@ def replay(
     and fields added to the message format after the log's version).
     image_topic: which image topic to read (default: the log's image topic, else the first found).
     on_result: called with each replayed result's dict.
-    view: a foxglove_view.LiveView shown every replayed frame (its log is set to ``out_path``'s).
+    view: a foxglove_view.LiveView shown every replayed frame (its log is set to ``out_path``'s),
+    with `run`'s stats messages every ``playback.stats_period_s`` of replay time and at the end
+    (runtime/aefabmap_runtime/adapters/replay_stats.py); fleet_stats: the fleet counters they carry.
     playback: pace and viewer wait (default: as fast as possible, no wait). stop: set it to end
     the replay between frames (or the viewer wait); the summary then says ``stopped``.
     workers: threads that work on frames (runtime/aefabmap_runtime/adapters/frame_pipeline.py;
@@ -390,8 +401,12 @@ def replay(
         ))
     if view is not None and writer is not None:
         view.attach_log(writer)
+    stats = None if view is None else ReplayStats(
+        loop, playback.stats_period_s, lambda _msg, data, stamp_ns: view.on_stats(data, stamp_ns), fleet_stats)
 
     def decided(image, out) -> None:
+        if stats is not None:
+            stats.decided(image.stamp_ns, out.result is not None)
         if out.result is None:
             return  # counted by the frame loop
         result = out.result
@@ -414,11 +429,15 @@ def replay(
                 if not pacer.wait(image.stamp_ns):
                     stopped = True
                     break
+                if stats is not None:
+                    stats.started()
                 pipe.put_payload(image, image.payload, image.encoding, image.stamp_ns)
                 while pipe.full:
                     decided(*pipe.take())
             while pipe.pending and not stopped:
                 decided(*pipe.take())
+        if stats is not None:
+            stats.final()
         duration = time.monotonic() - t0
         if writer is not None:
             writer.write_stats(loop.stats_message(uptime_s=duration, fps=round(loop.processed / duration, 2)

@@ -14,13 +14,14 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
+from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.adapters import bundle_reader
 from aefabmap_runtime.adapters.log_set import log_files
 from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogConfig, read_log_metadata
 from aefabmap_runtime.adapters.node import stop_on_signals
 from aefabmap_runtime.adapters.node_builder import start_live_view, view_exposure
 from aefabmap_runtime.adapters.node_session import Endpoints, node_session
-from aefabmap_runtime.adapters.node_state import open_state
+from aefabmap_runtime.adapters.node_state import open_frozen_map, open_state
 from aefabmap_runtime.adapters.replay import PlaybackConfig, ReplaySummary, replay
 from aefabmap_runtime.adapters.ros_bag import is_ros_bag
 from aefabmap_runtime.core.fleet.fleet_map import FleetConfig
@@ -40,6 +41,7 @@ class ReplayIO:
     none; a host beyond loopback needs endpoints.allow_exposure, as `run`'s). playback: pace and
     viewer wait. fleet: join it over `endpoints` (None: no network).
     workers: threads that work on frames (frame_pipeline.py; the same results).
+    localize: the state's map is only read (node_state.open_frozen_map): nothing inserted or saved.
     """
 
     logs: tuple[str, ...]
@@ -55,9 +57,15 @@ class ReplayIO:
     fleet: FleetConfig | None = None
     endpoints: Endpoints = field(default_factory=Endpoints)
     workers: int = 1
+    localize: bool = False
 
     def __post_init__(self) -> None:
         view_exposure(self.foxglove_port, self.foxglove_host, self.endpoints.allow_exposure)
+        if self.localize and self.state is None:
+            raise ConfigError("--localize needs --state DIR: the map to localize against")
+        if self.localize and self.check:
+            raise ConfigError("--check compares with the logged run, which built its map: it does not go with "
+                              "--localize")
 
 
 class ConfiguredReplay:
@@ -94,7 +102,8 @@ class ConfiguredReplay:
             detector_config.verification, keep_inlier_points=io.foxglove_port is not None))
         self.detector = bundle_reader.load_detector(io.model, detector_config)
         if io.state is not None:
-            self.state_dir = open_state(io.state, self.detector, log)
+            opened = open_frozen_map if io.localize else open_state
+            self.state_dir = opened(io.state, self.detector, log)
             self._stack.callback(self._close_state)
         # A fleet node serves the places of a loaded state too: join once the map is there.
         self.fleet = _join_fleet(io, self.detector, self._stack) if io.fleet is not None else None
@@ -109,8 +118,9 @@ class ConfiguredReplay:
             log.info("waiting up to %g s for a Foxglove viewer to subscribe", playback.wait_viewer_s)
         summary = replay(self.detector, self.source, out_path=io.out,
                          check=io.check, image_topic=io.topic, view=self.view, playback=playback, stop=self.stop,
-                         log_config=McapLogConfig(profile=io.mcap_profile), workers=io.workers)
-        if self.state_dir is not None:
+                         log_config=McapLogConfig(profile=io.mcap_profile), workers=io.workers,
+                         fleet_stats=self.fleet.fleet_stats if self.fleet is not None else None)
+        if self.state_dir is not None and not io.localize:
             info = self.state_dir.save(self.detector.state())
             log.info("map state saved to %s: %d places, %d bytes", info.path, info.n_places, info.nbytes)
             self._close_state()

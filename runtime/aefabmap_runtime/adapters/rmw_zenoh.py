@@ -16,7 +16,9 @@ what this module relies on:
 - health: the stats also as diagnostic_msgs/DiagnosticArray on ``/diagnostics``;
 - graph: liveliness tokens ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<kind>/<enclave>/<ns>/
   <node>[/<topic>/<type>/<hash>/<qos>]`` with kind ``NN`` (node), ``MP`` (publisher), ``MS``
-  (subscription); names have ``/`` replaced by ``%``; ``::,:,:,:,,`` is the default QoS.
+  (subscription); names have ``/`` replaced by ``%``; the QoS chunk leaves out what equals
+  rmw_zenoh's default (``::,:,:,:,,``: reliable, volatile, keep last 42); the image subscription
+  says the sensor-data profile cameras publish with (``2::,<queue>:,:,:,,``: best effort).
 
 The subscriber hands the node :class:`~zenoh_transport.ReceivedFrame` objects, like the
 plain-Zenoh FrameSubscriber, so the node's loop does not care which one it runs: the CDR is
@@ -41,8 +43,13 @@ import zenoh
 
 from aefabmap_runtime.errors import ConfigError, TransportError
 from aefabmap_runtime.adapters.frames import FrameError
-from aefabmap_runtime.adapters.ros_cdr import (
+from aefabmap_runtime.adapters.ros_cdr import (  # noqa: F401 - the RIHS01 names are this module's API too
+    COMPRESSED_IMAGE_RIHS01,
     COMPRESSED_IMAGE_TYPE,
+    DIAGNOSTIC_ARRAY_RIHS01,
+    IMAGE_RIHS01,
+    RIHS01_OF,
+    STRING_RIHS01,
     DECODERS,
     DIAGNOSTIC_ARRAY_TYPE,
     IMAGE_TYPE,
@@ -50,6 +57,15 @@ from aefabmap_runtime.adapters.ros_cdr import (
     DiagnosticStatus,
     encode_diagnostic_array_cdr,
     encode_string_cdr,
+)
+from aefabmap_runtime.adapters.ros_diagnostics import (  # noqa: F401 - re-exported for the ROS adapters
+    DIAG_ERROR,
+    DIAG_OK,
+    DIAG_WARN,
+    DIAGNOSTICS_TOPIC,
+    diagnostic_level,
+    diagnostic_values,
+    node_diagnostic,
 )
 from aefabmap_runtime.adapters.zenoh_transport import (
     DropCounter,
@@ -63,17 +79,14 @@ from aefabmap_runtime.core.kernels.varint import read_varint
 ADMIN_SPACE = "@ros2_lv"
 #: Hash chunk of Humble, which has no type hashes.
 HUMBLE_TYPE_HASH = "TypeHashNotSupported"
-#: RIHS01 hash of std_msgs/msg/String (Iron and later; checked against rosbags in the tests).
-STRING_RIHS01 = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
-#: RIHS01 hash of sensor_msgs/msg/Image (for this node's subscription token on Iron and later).
-IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
-#: RIHS01 hash of sensor_msgs/msg/CompressedImage (checked against rosbags in the tests).
-COMPRESSED_IMAGE_RIHS01 = "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a"
-#: RIHS01 hash of diagnostic_msgs/msg/DiagnosticArray (checked against rosbags in the tests).
-DIAGNOSTIC_ARRAY_RIHS01 = "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e"
-RIHS01_OF = {IMAGE_TYPE: IMAGE_RIHS01, COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_RIHS01, STRING_TYPE: STRING_RIHS01,
-             DIAGNOSTIC_ARRAY_TYPE: DIAGNOSTIC_ARRAY_RIHS01}
-#: QoS chunk of a liveliness token whose QoS is rmw's default (reliable, volatile, keep last 10).
+#: rmw's QoS policy values (rmw/types.h), as rmw_zenoh writes them in a liveliness token.
+RELIABLE, BEST_EFFORT = 1, 2
+TRANSIENT_LOCAL, VOLATILE = 1, 2
+KEEP_LAST, KEEP_ALL = 1, 2
+#: rmw_zenoh's default QoS (its qos.cpp): a token leaves a field empty when it has this value.
+RMW_ZENOH_DEFAULT_QOS = (RELIABLE, VOLATILE, KEEP_LAST, 42)
+#: QoS chunk of a liveliness token whose QoS is rmw_zenoh's default (reliable, volatile, keep last 42;
+#: deadline, lifespan and liveliness lease infinite, liveliness automatic).
 DEFAULT_QOS_CHUNK = "::,:,:,:,,"
 GID_BYTES = 16
 #: Where a ROS 2 run's session listens by default: as rmw_zenoh's nodes do (its default session
@@ -90,11 +103,9 @@ DISTROS = ("auto", "humble", "jazzy")
 #: Result and stats topics, relative: resolved in the node's namespace (``/lcd/result`` in ``/``).
 RESULT_TOPIC = "lcd/result"
 STATS_TOPIC = "lcd/stats"
-#: Where ROS tools (rqt_robot_monitor, the diagnostic aggregator) read health: absolute, so it
-#: stays ``/diagnostics`` in any namespace.
-DIAGNOSTICS_TOPIC = "/diagnostics"
-#: diagnostic_msgs/DiagnosticStatus levels.
-DIAG_OK, DIAG_WARN, DIAG_ERROR = 0, 1, 2
+#: Publishers (and subscriptions) of the graph kept at most: a peer declaring tokens without end
+#: cannot grow the node's memory without bound.
+MAX_GRAPH_TOKENS = 10_000
 log = logging.getLogger("aefabmap.ros")
 _INT64_MAX = 2**63 - 1
 
@@ -162,15 +173,32 @@ def _mangle_name(name: str) -> str:
     return name.replace("/", "%") or "%"
 
 
+def qos_chunk(reliability: int = RELIABLE, durability: int = VOLATILE, history: int = KEEP_LAST,
+              depth: int = 42) -> str:
+    """The QoS chunk of a liveliness token as rmw_zenoh writes it (liveliness_utils.cpp,
+    qos_to_keyexpr): ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:
+    <liveliness>,<lease s>,<ns>``, each field empty when it holds rmw_zenoh's default (deadline,
+    lifespan and lease are always the default here)."""
+    fields = (reliability, durability, history, depth)
+    r, d, h, n = ("" if value == default else str(value) for value, default in zip(fields, RMW_ZENOH_DEFAULT_QOS))
+    return f"{r}:{d}:{h},{n}:,:,:,,"
+
+
+def sensor_data_qos(depth: int) -> str:
+    """QoS chunk of a subscription with ROS 2's sensor-data profile (best effort, volatile, keep
+    last ``depth``): what camera drivers publish with, so tools that compare QoS see a match."""
+    return qos_chunk(BEST_EFFORT, VOLATILE, KEEP_LAST, depth)
+
+
 def liveliness_token(domain: int, zid: str, node_id: int, entity_id: int, kind: str, node: str,
                      topic: str | None = None, ros_type: str | None = None, type_hash: str | None = None,
-                     namespace: str = "/", enclave: str = "/") -> str:
+                     namespace: str = "/", enclave: str = "/", qos: str = DEFAULT_QOS_CHUNK) -> str:
     """The liveliness key expression rmw_zenoh declares for a node (NN) or a topic endpoint (MP/MS)."""
     parts = [ADMIN_SPACE, str(check_domain(domain)), zid, str(node_id), str(entity_id), kind,
              _mangle_name(enclave), _mangle_name(namespace), _mangle_name(node)]
     if topic is not None:
         parts += [_mangle_name("/" + check_topic(topic)), mangle_type(ros_type or ""), type_hash or HUMBLE_TYPE_HASH,
-                  DEFAULT_QOS_CHUNK]
+                  qos]
     return "/".join(parts)
 
 
@@ -370,7 +398,11 @@ class RosOptions:
     """The ROS 2 side of a run: image topic, domain id, node name, and the distribution whose
     type hash the result topics carry (``humble``: TypeHashNotSupported; ``jazzy``: RIHS01,
     also Iron, Kilted and Rolling; ``auto``, the default: the camera's, from its first image
-    sample, the ROS result topics being declared then)."""
+    sample, the ROS result topics being declared then).
+
+    bridge: None to speak rmw_zenoh; else the namespace zenoh-bridge-ros2dds was given (``/``:
+    none) to read the topic through that bridge's keys instead (ros2dds_bridge.py: no domain,
+    node or type hash there)."""
 
     topic: str
     domain: int = 0
@@ -379,6 +411,7 @@ class RosOptions:
     namespace: str = "/"
     result_topic: str = RESULT_TOPIC
     stats_topic: str = STATS_TOPIC
+    bridge: str | None = None
 
     def __post_init__(self) -> None:
         check_topic(self.topic)
@@ -394,15 +427,29 @@ class RosOptions:
         check_topic(self.stats_topic)
         if self.distro not in DISTROS:
             raise ConfigError(f"ROS distribution must be one of {DISTROS}, got {self.distro!r}")
+        if self.bridge is not None:
+            if self.bridge.strip("/"):
+                check_topic(self.bridge)
+            elif self.bridge != "/":
+                raise ConfigError(f"bridge namespace must be / or a name such as /bot1, got {self.bridge!r}")
+            if self.distro != "auto":
+                raise ConfigError("a ROS distribution means nothing through zenoh-bridge-ros2dds: its keys carry "
+                                  "no type hash")
 
     @property
     def image_key(self) -> str:
+        """The key the images arrive on: rmw_zenoh's (any type, any hash), or the bridge's."""
+        if self.bridge is not None:
+            from aefabmap_runtime.adapters.ros2dds_bridge import bridge_key  # that module builds on this one
+
+            return bridge_key(self.bridge, self.topic)
         return image_key(self.domain, self.topic)
 
     @property
     def default_results_key(self) -> str:
-        """Plain-Zenoh JSON results key: the ``lcd`` sibling of the topic (``camera/lcd``)."""
-        return result_key_for(check_topic(self.topic))
+        """Plain-Zenoh JSON results key: the ``lcd`` sibling of the topic (``camera/lcd``; through a
+        bridge with a namespace, of its key: ``bot1/camera/lcd``)."""
+        return result_key_for(self.image_key if self.bridge is not None else check_topic(self.topic))
 
     def resolve(self, name: str) -> str:
         """A topic name as ROS resolves it in this node's namespace: absolute names stay, relative
@@ -417,10 +464,19 @@ class RosOptions:
         """The namespace as a fully qualified name (``/`` or ``/robot1``)."""
         return "/" + self.namespace.strip("/")
 
+    @property
+    def fq_topic(self) -> str:
+        """The image topic as a fully qualified name (``/camera/image_raw``)."""
+        return "/" + check_topic(self.topic)
+
     def to_dict(self) -> dict:
-        return {"topic": self.topic, "domain": self.domain, "node": self.node, "distro": self.distro,
+        """The log metadata's ``ros`` (through a bridge: no domain, no distribution; its namespace)."""
+        bridged = self.bridge is not None
+        return {"topic": self.topic, "domain": None if bridged else self.domain, "node": self.node,
+                "distro": None if bridged else self.distro,
                 "namespace": self.fq_namespace, "result_topic": self.resolve(self.result_topic),
-                "stats_topic": self.resolve(self.stats_topic)}
+                "stats_topic": self.resolve(self.stats_topic),
+                **({"bridge": self.bridge} if self.bridge is not None else {})}
 
 
 class RosGraph:
@@ -440,16 +496,17 @@ class RosGraph:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare ROS liveliness tokens: {exc}") from exc
 
-    def declare_subscription(self, distro: str, ros_type: str | None = None) -> None:
+    def declare_subscription(self, distro: str, ros_type: str | None = None, depth: int = 2) -> None:
         """The image subscription token, of the camera's message type when known (else
         sensor_msgs/msg/Image; the subscription takes CompressedImage too), so the graph lists
-        one type on the camera topic."""
+        one type on the camera topic. Its QoS is the sensor-data profile cameras publish with
+        (best effort, volatile), keep last ``depth`` (the frame queue)."""
         o = self.options
         ros_type = ros_type or IMAGE_TYPE
         type_hash = HUMBLE_TYPE_HASH if distro == "humble" else RIHS01_OF[ros_type]
         self._tokens.append(self._declare(
             liveliness_token(o.domain, self.zid, 0, 1, "MS", o.node, o.topic, ros_type, type_hash,
-                             namespace=o.fq_namespace)))
+                             namespace=o.fq_namespace, qos=sensor_data_qos(depth))))
 
     def close(self) -> None:
         for token in self._tokens:
@@ -470,14 +527,17 @@ class RosResultPublisher:
     subscription token are declared then, and only the plain keys carry what is published before.
     status_source: set by the node, returns its StatusMessage (places, map size and per-stage
     times for the diagnostics). ``warnings()``: why results may reach no ROS subscriber now
-    (each also logged once).
+    (each also logged once). subscription_depth: the frame queue, advertised as the image
+    subscription's history depth. ``watch``: the domain's graph (GraphWatch).
     """
 
     def __init__(self, session: zenoh.Session, result_key: str, options: RosOptions,
-                 wire_distro: Callable[[], tuple[str | None, str | None]] | None = None) -> None:
+                 wire_distro: Callable[[], tuple[str | None, str | None]] | None = None,
+                 subscription_depth: int = 2) -> None:
         from aefabmap_runtime.adapters.zenoh_transport import ResultPublisher
 
         self.session, self.options, self.wire_distro = session, options, wire_distro
+        self.subscription_depth = subscription_depth
         self.distro: str | None = None
         self.ros_results = self.ros_stats = self.ros_diagnostics = None
         self.status_source: Callable[[], object] | None = None
@@ -506,7 +566,7 @@ class RosResultPublisher:
                        gid_bytes, o.fq_namespace, ros_type)
 
         try:
-            self.graph.declare_subscription(distro, camera_type)
+            self.graph.declare_subscription(distro, camera_type, self.subscription_depth)
             self.ros_results = publisher(o.result_topic, 2, STRING_TYPE, RosStringPublisher)
             self.ros_stats = publisher(o.stats_topic, 3, STRING_TYPE, RosStringPublisher)
             self.ros_diagnostics = publisher(DIAGNOSTICS_TOPIC, 4, DIAGNOSTIC_ARRAY_TYPE)
@@ -529,12 +589,17 @@ class RosResultPublisher:
             self.ros_results.put(_text(result))
         self._log_warnings()
 
-    def publish_stats(self, stats: dict | bytes) -> None:
+    def publish_stats(self, stats: dict | bytes) -> bytes | None:
+        """Publish the stats; returns the DiagnosticArray CDR sent on /diagnostics (None before the
+        ROS topics are declared), which the run's ros2-profile log records as it went out."""
         self.plain.publish_stats(stats)
+        diagnostics = None
         if self._ready():
             self.ros_stats.put(_text(stats))
-            self.ros_diagnostics.put_cdr(self._diagnostics(stats))
+            diagnostics = self._diagnostics(stats)
+            self.ros_diagnostics.put_cdr(diagnostics)
         self._log_warnings()
+        return diagnostics
 
     def _diagnostics(self, stats: dict | bytes) -> bytes:
         """The stats (and the node's status, when given) as a DiagnosticArray in CDR."""
@@ -581,16 +646,37 @@ def _fq_node(options: RosOptions) -> str:
     return options.fq_namespace.rstrip("/") + "/" + options.node
 
 
+@dataclass(frozen=True)
+class TopicPublisher:
+    """A publisher seen in a ROS 2 graph: its topic (``/camera/image_raw``), message type
+    (``sensor_msgs/msg/Image``) and where (``domain 0``; through a bridge, ``bridge <zid>``)."""
+
+    topic: str
+    ros_type: str
+    where: str
+
+
+def demangle_type(mangled: str) -> str:
+    """``sensor_msgs::msg::dds_::Image_`` -> ``sensor_msgs/msg/Image`` (the mangled text when it is not one)."""
+    parts = mangled.split("::")
+    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
+        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+    return mangled
+
+
 class GraphWatch:
-    """The ROS 2 subscriptions of a domain, from their liveliness tokens (kept while they live),
-    so a publisher can tell whether the subscribers of its topic use another type hash."""
+    """The ROS 2 graph as rmw_zenoh's liveliness tokens tell it (kept while they live): the
+    subscriptions of the run's domain, so a publisher can tell whether the subscribers of its topic
+    use another type hash, and the publishers of every domain, so the node can tell which image
+    topics exist when its own has no publisher."""
 
     def __init__(self, session: zenoh.Session, domain: int) -> None:
+        self.domain = check_domain(domain)
         self._lock = threading.Lock()
         self._subs: dict[str, tuple[str, str, str]] = {}  # token -> (topic, mangled type, hash)
+        self._pubs: dict[str, TopicPublisher] = {}  # token -> its publisher
         try:
-            self._sub = session.liveliness().declare_subscriber(f"{ADMIN_SPACE}/{check_domain(domain)}/**",
-                                                                self._on_token, history=True)
+            self._sub = session.liveliness().declare_subscriber(f"{ADMIN_SPACE}/**", self._on_token, history=True)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot watch the ROS 2 graph: {exc}") from exc
 
@@ -598,13 +684,23 @@ class GraphWatch:
         # A Zenoh thread: a malformed token is ignored, never raised.
         token = str(sample.key_expr)
         parts = token.split("/")
-        if len(parts) < 13 or parts[5] != "MS":
+        if len(parts) < 13 or parts[5] not in ("MS", "MP") or not (parts[1].isascii() and parts[1].isdigit()):
             return
+        topic, domain = "/" + parts[9].replace("%", "/").strip("/"), int(parts[1])
         with self._lock:
             if sample.kind == zenoh.SampleKind.DELETE:
                 self._subs.pop(token, None)
-            else:
-                self._subs[token] = ("/" + parts[9].replace("%", "/").strip("/"), parts[10], parts[11])
+                self._pubs.pop(token, None)
+            elif parts[5] == "MP":
+                if token in self._pubs or len(self._pubs) < MAX_GRAPH_TOKENS:
+                    self._pubs[token] = TopicPublisher(topic, demangle_type(parts[10]), f"domain {domain}")
+            elif domain == self.domain and (token in self._subs or len(self._subs) < MAX_GRAPH_TOKENS):
+                self._subs[token] = (topic, parts[10], parts[11])
+
+    def publishers(self) -> list[TopicPublisher]:
+        """The publishers alive now, in every domain (their ``where`` names it)."""
+        with self._lock:
+            return list(self._pubs.values())
 
     def mismatches(self, topic: str, ros_type: str, type_hash: str) -> list[str]:
         """One line per other type hash the subscriptions of ``topic`` (type ros_type) use."""
@@ -620,46 +716,6 @@ class GraphWatch:
             self._sub.undeclare()
         except zenoh.ZError:
             pass
-
-
-def diagnostic_level(stats: dict, previous: dict | None) -> tuple[int, str]:
-    """(level, message) of a stats message: ERROR when the log failed; WARN when frames were
-    dropped or refused since the previous stats, or the log is not ok; else OK."""
-    state = stats.get("log_state")
-    if state == "failed":
-        return DIAG_ERROR, "the log failed (no file open; retried)"
-    reasons = []
-    for key, what in (("dropped", "frames dropped"), ("bad_total", "frames refused")):
-        new = int(stats.get(key) or 0) - int((previous or {}).get(key) or 0)
-        if new > 0:
-            reasons.append(f"{new} {what}")
-    if state not in (None, "ok"):
-        reasons.append(f"log {state}")
-    return (DIAG_WARN, "; ".join(reasons)) if reasons else (DIAG_OK, "ok")
-
-
-def diagnostic_values(stats: dict, status=None) -> tuple[tuple[str, str], ...]:
-    """The key/value pairs of the node's DiagnosticStatus: counters, bad frames by reason,
-    latency, memory and log state from the stats; places, map MB and per-stage ms (medians
-    over recent frames) from the status when given."""
-    latency = stats.get("latency_ms") or {}
-    pairs = [(k, stats.get(k)) for k in ("frames_received", "frames_processed", "dropped", "publisher_restarts",
-                                         "bad_total", "loops", "fps", "rss_mb", "uptime_s")]
-    pairs += [(f"bad {reason}", n) for reason, n in sorted((stats.get("bad") or {}).items()) if n]
-    pairs += [("latency p50 ms", latency.get("p50")), ("latency p95 ms", latency.get("p95"))]
-    if status is not None:
-        pairs += [("places", status.places), ("map_mb", status.map_mb)]
-        pairs += [(f"stage {name} ms", ms) for name, ms in sorted(status.stage_ms.items())]
-    pairs += [("log_state", stats.get("log_state")), ("log_errors", stats.get("log_errors"))]
-    return tuple((k, "" if v is None else str(v)) for k, v in pairs)
-
-
-def node_diagnostic(stats: dict, status, previous: dict | None, *, name: str, hardware_id: str, node: str = "",
-                    distro: str = "") -> DiagnosticStatus:
-    """The node's DiagnosticStatus for one stats message (see diagnostic_level, diagnostic_values)."""
-    level, message = diagnostic_level(stats, previous)
-    values = diagnostic_values(stats, status) + (("node", node), ("ros_distro", distro))
-    return DiagnosticStatus(level, name, message, hardware_id, values)
 
 
 def _text(doc: dict | bytes) -> str:

@@ -19,6 +19,9 @@ the header. A string is a uint32 length including the terminating NUL, then the 
     DiagnosticArray: header, uint32 count, then per status: uint8 level, string name,
            string message, string hardware_id, uint32 count, then per value: string key,
            string value
+
+The message definitions at the end (MSGDEFS) are the schemas of the MCAP log's ros2 profile,
+whose messages mcap-ros2-support serialises (runtime/aefabmap_runtime/adapters/rosbag2_mcap.py).
 """
 
 from __future__ import annotations
@@ -36,6 +39,17 @@ IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE_TYPE = "sensor_msgs/msg/CompressedImage"
 STRING_TYPE = "std_msgs/msg/String"
 DIAGNOSTIC_ARRAY_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+#: RIHS01 hash of std_msgs/msg/String (Iron and later; checked against rosbags in the tests).
+STRING_RIHS01 = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+#: RIHS01 hash of sensor_msgs/msg/Image (for this node's subscription token on Iron and later).
+IMAGE_RIHS01 = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
+#: RIHS01 hash of sensor_msgs/msg/CompressedImage (checked against rosbags in the tests).
+COMPRESSED_IMAGE_RIHS01 = "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a"
+#: RIHS01 hash of diagnostic_msgs/msg/DiagnosticArray (checked against rosbags in the tests).
+DIAGNOSTIC_ARRAY_RIHS01 = "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e"
+RIHS01_OF = {IMAGE_TYPE: IMAGE_RIHS01, COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_RIHS01, STRING_TYPE: STRING_RIHS01,
+             DIAGNOSTIC_ARRAY_TYPE: DIAGNOSTIC_ARRAY_RIHS01}
+
 
 _LITTLE = {b"\x00\x01": True, b"\x00\x00": False, b"\x00\x07": True, b"\x00\x06": False}
 #: Longest text field accepted (frame_id, encoding, format), bytes: real ones are tens of bytes.
@@ -232,28 +246,26 @@ def encode_diagnostic_array_cdr(stamp_ns: int, statuses: list[DiagnosticStatus] 
     return bytes(w.buf)
 
 
-# ============================================================================ log messages (MCAP ros2 profile)
+# ============================================================================ message definitions (MCAP ros2 profile)
 
 _MSGDEF_SEPARATOR = "=" * 80 + "\n"
-#: ROS 2 message definitions (schema encoding ``ros2msg``) as rosbag2 and rosbags write them: the
-#: type's fields, then each nested type after a separator line and ``MSG: <type>``.
-COMPRESSED_IMAGE_MSGDEF = (
-    "std_msgs/Header header\nstring format\nuint8[] data\n"
-    + _MSGDEF_SEPARATOR + "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+_HEADER_MSGDEFS = (
+    _MSGDEF_SEPARATOR + "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
     + _MSGDEF_SEPARATOR + "MSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
 )
+#: ROS 2 message definitions (schema encoding ``ros2msg``) as rosbag2 and rosbags write them: the
+#: type's fields, then each nested type after a separator line and ``MSG: <type>``.
+COMPRESSED_IMAGE_MSGDEF = "std_msgs/Header header\nstring format\nuint8[] data\n" + _HEADER_MSGDEFS
 STRING_MSGDEF = "string data\n"
-
-
-def encode_compressed_image_cdr(stamp_ns: int, fmt: str, data: bytes, frame_id: str = "") -> bytes:
-    """A ``sensor_msgs/msg/CompressedImage`` as little-endian CDR; stamp_ns: header stamp (ns),
-    fmt: ``"jpeg"`` or ``"png"``, data: the compressed image bytes."""
-    w = _Writer()
-    w.header(stamp_ns, frame_id)
-    w.string(fmt)
-    w.u32(len(data))
-    w.buf += data
-    return bytes(w.buf)
+DIAGNOSTIC_ARRAY_MSGDEF = (
+    "std_msgs/Header header\ndiagnostic_msgs/DiagnosticStatus[] status\n" + _HEADER_MSGDEFS
+    + _MSGDEF_SEPARATOR + "MSG: diagnostic_msgs/DiagnosticStatus\nbyte OK=0\nbyte WARN=1\nbyte ERROR=2\n"
+    "byte STALE=3\nbyte level\nstring name\nstring message\nstring hardware_id\ndiagnostic_msgs/KeyValue[] values\n"
+    + _MSGDEF_SEPARATOR + "MSG: diagnostic_msgs/KeyValue\nstring key\nstring value\n"
+)
+#: Message definition of each type the ros2 profile writes.
+MSGDEFS = {COMPRESSED_IMAGE_TYPE: COMPRESSED_IMAGE_MSGDEF, STRING_TYPE: STRING_MSGDEF,
+           DIAGNOSTIC_ARRAY_TYPE: DIAGNOSTIC_ARRAY_MSGDEF}
 
 
 def decode_string_cdr(data: bytes | memoryview) -> str:

@@ -101,7 +101,8 @@ class RotatingLog:
     """A node's log set being written (see the module docstring).
 
     target: the ``--mcap`` target (file, ``{n}`` pattern or directory, see log_set).
-    Construction checks the target (ConfigError, LogError) and opens no file; :meth:`open`
+    Construction checks the target (ConfigError, LogError), creates a missing directory target
+    (LogSet.make_directory) and opens no file; :meth:`open`
     creates the first one (LogError when it cannot: a start-time failure). After that the
     write methods never raise; ``errors``, ``state``, ``files`` (the last MAX_LISTED_FILES
     created), ``files_opened`` and ``deleted_count`` say how the log fares.
@@ -125,6 +126,7 @@ class RotatingLog:
         base = config or McapLogConfig()
         self.config = replace(base, chunk_size=self.rotation.chunk_size(base.chunk_size))
         self.set = LogSet(target)
+        self.set.make_directory()
         self.set.check_writable()
         self.manifest, self.run_config = manifest, run_config
         self._free_space, self._factory, self._clock = free_space, writer_factory, clock
@@ -323,9 +325,12 @@ class RotatingLog:
         self._in_frame = in_frame
         return done
 
-    def write_stats(self, stats, *, data: bytes | None = None, log_time_ns: int | None = None) -> None:
-        self._write(False, len(data or b""),
-                    lambda w: w.write_stats(stats, data=data, log_time_ns=log_time_ns) or True)
+    def write_stats(self, stats, *, data: bytes | None = None, log_time_ns: int | None = None,
+                    diagnostics: bytes | None = None) -> None:
+        """Log a stats message (see McapLogWriter.write_stats: ``diagnostics``, the published ones)."""
+        self._write(False, len(data or b"") + len(diagnostics or b""),
+                    lambda w: w.write_stats(stats, data=data, log_time_ns=log_time_ns, diagnostics=diagnostics)
+                    or True)
 
     def close(self) -> None:
         """Finish the open file; idempotent. An error finishing it is counted, not raised."""

@@ -86,15 +86,20 @@ class SnapshotInfo:
 class MapStateDir:
     """A state directory owned (flock) by this process; ``open`` it before use, ``close`` after.
 
-    bundle: the id (bundle_id) that states in it must carry.
+    bundle: the id (bundle_id) that states in it must carry. read_only: the directory is only
+    read (localization): it must exist; it is shared with other readers (a shared lock on its
+    lock file when there is one) and nothing in it is created, changed or removed.
     """
 
-    def __init__(self, path: str | Path, bundle: str) -> None:
+    def __init__(self, path: str | Path, bundle: str, read_only: bool = False) -> None:
         self.path = Path(path)
         self.bundle = bundle
+        self.read_only = read_only
         self._lock_fd: int | None = None
 
     def open(self) -> Self:
+        if self.read_only:
+            return self._open_shared()
         try:
             self.path.mkdir(parents=True, exist_ok=True)
             if not self.path.is_dir():  # DIR itself may be a link (e.g. to a data partition); its files may not
@@ -107,6 +112,25 @@ class MapStateDir:
         except OSError:
             os.close(fd)
             raise StateError(f"state directory {self.path} is in use by another process") from None
+        self._lock_fd = fd
+        return self
+
+    def _open_shared(self) -> Self:
+        """Open for reading only: the directory must exist; a writer holding it is refused."""
+        if not self.path.is_dir():
+            raise StateError(f"state directory {self.path} does not exist or is not a directory")
+        lock = self.path / LOCK_NAME
+        if not lock.exists():
+            return self  # a directory no run has written a lock into: nothing to share it with
+        try:
+            fd = open_regular(lock)
+        except OSError as exc:
+            raise StateError(f"cannot open state directory {self.path}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise StateError(f"state directory {self.path} is in use by a process that writes it") from None
         self._lock_fd = fd
         return self
 
@@ -309,12 +333,13 @@ class _DiskFull(OSError):
 
 def load_map(detector, directory: MapStateDir):
     """Load the directory's current state, then replay its journal, into ``detector``; returns
-    (the snapshot's MapState or None, the map_journal.JournalReplay)."""
+    (the snapshot's MapState or None, the map_journal.JournalReplay). A read-only directory is
+    only read (segments the journal cannot reach stay where they are)."""
 
     state = directory.load()
     if state is not None:
         detector.load_state(state)
-    return state, replay_journal(detector, directory)
+    return state, replay_journal(detector, directory, remove_unreachable=not directory.read_only)
 
 
 def load_into(detector, directory: MapStateDir) -> bool:

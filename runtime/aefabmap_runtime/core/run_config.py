@@ -42,6 +42,8 @@ class RunConfig:
         what other robots offered, so a replay cannot decide them again.
     workers: threads that work on frames, the next frames prepared while one is decided
         (runtime/aefabmap_runtime/adapters/frame_pipeline.py); the results do not depend on it.
+    localize: the map of the run's state directory is only read (core/map/place_map.py read_only):
+        frames are ranked and verified against it, nothing is inserted, evicted or written.
     """
 
     model: str = ""
@@ -50,9 +52,12 @@ class RunConfig:
     queue: int = 2
     fleet: FleetConfig | None = None
     workers: int = 1
+    localize: bool = False
 
     def __post_init__(self) -> None:
         check_workers(self.workers)
+        if not isinstance(self.localize, bool):
+            raise ConfigError(f"localize must be true or false, got {str(self.localize)[:40]}")
         if self.fleet is not None and not isinstance(self.fleet, FleetConfig):
             raise ConfigError(f"fleet must be a FleetConfig, got {type(self.fleet).__name__}")
         if not isinstance(self.detector, DetectorConfig):

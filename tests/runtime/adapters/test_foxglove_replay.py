@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
+import socket
 import struct
+import subprocess
+import sys
 import threading
 import time
 
@@ -17,7 +21,7 @@ import pytest
 from aefabmap_runtime.errors import ConfigError, TransportError
 from aefabmap_runtime.adapters.foxglove_view import IMAGE_TOPIC, RESULT_TOPIC
 from aefabmap_runtime.adapters.mcap_log import McapLogWriter
-from aefabmap_runtime.core.records.messages import FrameResult
+from aefabmap_runtime.core.records.messages import FrameResult, StatsMessage
 from aefabmap_runtime.tools.node_process import free_tcp_port
 
 from .stream_fakes import FakeDetector, sample_images
@@ -28,6 +32,8 @@ pytestmark = [pytest.mark.timeout(120)]
 STAMP0 = 1_700_000_000_000_000_000
 #: What Lichtblick offers since it added foxglove.sdk.v1 (lichtblick-suite/lichtblick#819).
 VIEWER_SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+#: What Lichtblick up to 1.21 and older Foxglove Studio offer.
+V1_ONLY = ["foxglove.websocket.v1"]
 
 
 def _log(path, n: int, gap_s: float):
@@ -56,7 +62,9 @@ class _Viewer:
                 threading.Event().wait(0.1)
         self.channels: dict[str, dict] = {}
         self.received: dict[str, list[bytes]] = {}
+        self.log_times: dict[str, list[int]] = {}
         self.sub_topic: dict[int, str] = {}
+        self.first = self.ws.recv()  # the spec: serverInfo comes first
 
     def subscribe(self, topics: list[str], timeout_s: float = 10.0) -> None:
         """Wait for the topics' advertisement, then subscribe to them in one message."""
@@ -81,8 +89,9 @@ class _Viewer:
             except websocket.WebSocketTimeoutException:
                 continue
             if isinstance(msg, bytes) and msg[:1] == b"\x01":  # op, subscription id u32, log time u64, payload
-                sub_id, _log_time = struct.unpack_from("<IQ", msg, 1)
+                sub_id, log_time = struct.unpack_from("<IQ", msg, 1)
                 self.received.setdefault(self.sub_topic[sub_id], []).append(msg[13:])
+                self.log_times.setdefault(self.sub_topic[sub_id], []).append(log_time)
 
     def close(self) -> None:
         self.ws.close()
@@ -196,23 +205,177 @@ def test_library_wait_for_a_viewer_needs_a_view_and_stops_on_the_event(tmp_path)
         view.close()
 
 
-def test_foxglove_sdk_takes_sdk_v1_and_refuses_a_websocket_v1_only_client():
-    """What docs/streaming.md says about viewers: the SDK picks foxglove.sdk.v1 when offered and
-    answers HTTP 400 to a client that offers only foxglove.websocket.v1 (older Lichtblick)."""
+def test_one_port_takes_both_subprotocols_and_refuses_others():
+    """What docs/streaming.md says about viewers: sdk.v1 when offered (the SDK's server), the
+    older foxglove.websocket.v1 alone (Lichtblick up to 1.21) too, and HTTP 400 to a client that
+    offers neither."""
     pytest.importorskip("foxglove")
+    pytest.importorskip("foxglove_websocket")
     websocket = pytest.importorskip("websocket")
     from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer
 
     server = FoxgloveServer(port=0)
     try:
-        viewer = _Viewer(server.port, subprotocols=VIEWER_SUBPROTOCOLS)
-        assert viewer.ws.getsubprotocol() == "foxglove.sdk.v1"
-        viewer.close()
+        for offered, chosen in ((VIEWER_SUBPROTOCOLS, "foxglove.sdk.v1"), (V1_ONLY, "foxglove.websocket.v1")):
+            viewer = _Viewer(server.port, subprotocols=offered)
+            assert viewer.ws.getsubprotocol() == chosen
+            assert json.loads(viewer.first)["op"] == "serverInfo"
+            viewer.close()
         with pytest.raises(websocket.WebSocketBadStatusException) as refused:
-            _Viewer(server.port, subprotocols=["foxglove.websocket.v1"])
+            _Viewer(server.port, subprotocols=["something.else"])
         assert refused.value.status_code == 400
     finally:
         server.stop()
+
+
+def test_without_foxglove_websocket_sdk_viewers_are_served_and_a_warning_says_who_is_not(monkeypatch, caplog):
+    pytest.importorskip("foxglove")
+    websocket = pytest.importorskip("websocket")
+    from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer
+
+    for name in ("foxglove_websocket", "foxglove_websocket.server"):
+        monkeypatch.setitem(sys.modules, name, None)  # not installed
+    server = FoxgloveServer(port=0)
+    try:
+        warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert len(warned) == 1 and "foxglove.websocket.v1" in warned[0] and "aefabmap[foxglove]" in warned[0]
+        viewer = _Viewer(server.port)
+        viewer.subscribe([RESULT_TOPIC])
+        viewer.close()
+        with pytest.raises(websocket.WebSocketBadStatusException):
+            _Viewer(server.port, subprotocols=V1_ONLY)
+    finally:
+        server.stop()
+
+
+def test_a_viewer_speaking_only_websocket_v1_gets_the_replay(tmp_path, fake_detector, holding):
+    """A client written from the ws-protocol spec, offering only foxglove.websocket.v1: it is the
+    viewer --wait-viewer waits for, and it receives every result and the stats."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("foxglove_websocket")
+    pytest.importorskip("websocket")
+    from aefabmap_runtime.adapters.foxglove_view import STATS_TOPIC
+
+    n, port = 8, free_tcp_port()
+    src = _log(tmp_path / "src.mcap", n, gap_s=0.05)
+    cli = _ReplayCli([src, "--model", "fake", "--foxglove", str(port), "--wait-viewer", "60"])
+    cli.start()
+    viewer = None
+    try:
+        viewer = _Viewer(port, subprotocols=V1_ONLY)
+        assert viewer.ws.getsubprotocol() == "foxglove.websocket.v1"
+        viewer.subscribe([RESULT_TOPIC, STATS_TOPIC])
+        viewer.receive_until(lambda got: len(got.get(RESULT_TOPIC, [])) >= n and STATS_TOPIC in got, timeout_s=30)
+        assert holding.wait(30)
+    finally:
+        if viewer is not None:
+            viewer.close()
+        cli.stop.set()
+        cli.join(10)
+    assert not cli.is_alive() and cli.code == 0
+    assert [FrameResult.from_json(b).sequence for b in viewer.received[RESULT_TOPIC]] == list(range(n))
+    assert StatsMessage.from_json(viewer.received[STATS_TOPIC][-1]).frames_processed == n
+
+
+def test_the_port_closes_a_request_head_too_long_and_serves_the_next_viewer():
+    """A hostile client: a request head past HEAD_LIMIT bytes is cut and counted, nothing raised."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websocket")
+    from aefabmap_runtime.adapters.foxglove_front import HEAD_LIMIT
+    from aefabmap_runtime.adapters.foxglove_view import FoxgloveServer
+
+    server = FoxgloveServer(port=0)
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+            sock.sendall(b"GET / HTTP/1.1\r\nX-Junk: " + b"a" * (HEAD_LIMIT + 10))
+            assert _read_to_end(sock) == b""  # closed without an answer
+        assert server.front.router.problems["long_request"] == 1
+        viewer = _Viewer(server.port)
+        viewer.subscribe([RESULT_TOPIC])
+        viewer.close()
+    finally:
+        server.stop()
+
+
+def _read_to_end(sock: socket.socket) -> bytes:
+    data = b""
+    try:
+        while chunk := sock.recv(4096):
+            data += chunk
+    except ConnectionResetError:
+        pass
+    return data
+
+
+def test_replay_sends_stats_on_lcd_stats_every_period_of_replay_time(tmp_path, fake_detector, holding):
+    """`replay --foxglove` sends `run`'s StatsMessage on /lcd/stats: one each time the replayed
+    capture stamps have advanced by the stats period (5 s, as `run`), and one at the end, each at
+    the stamp of the frame that made it due, so the layout's fps and latency plots fill. At
+    --rate 0 the 11 s of log take well under that: the cadence follows replay time, not the clock."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websocket")
+    from aefabmap_runtime.adapters.foxglove_view import STATS_TOPIC
+
+    n, port = 12, free_tcp_port()
+    src = _log(tmp_path / "src.mcap", n, gap_s=1.0)  # frame k at STAMP0 + k s
+    cli = _ReplayCli([src, "--model", "fake", "--foxglove", str(port), "--wait-viewer", "60", "--rate", "0"])
+    cli.start()
+    viewer = None
+    try:
+        viewer = _Viewer(port)
+        viewer.subscribe([STATS_TOPIC, RESULT_TOPIC])
+        assert holding.wait(30)  # the replay ended: every message was sent
+        viewer.receive_until(lambda got: len(got.get(STATS_TOPIC, [])) >= 3 and len(got.get(RESULT_TOPIC, [])) >= n,
+                             timeout_s=10)
+    finally:
+        if viewer is not None:
+            viewer.close()
+        cli.stop.set()
+        cli.join(10)
+    assert cli.code == 0
+    stats = [StatsMessage.from_json(b) for b in viewer.received[STATS_TOPIC]]
+    assert viewer.log_times[STATS_TOPIC] == [STAMP0 + 5 * 10**9, STAMP0 + 10 * 10**9, STAMP0 + 11 * 10**9]
+    assert [m.frames_processed for m in stats] == [6, 11, 12]
+    assert all(m.fps is not None and m.fps > 0 for m in stats)
+    assert all(m.latency_ms.p95 is not None and m.latency_ms.p95 >= m.latency_ms.p50 > 0 for m in stats)
+    assert stats[-1].frames_received == n and stats[-1].uptime_s > 0
+
+
+@pytest.mark.timeout(180)
+def test_ctrl_c_while_waiting_for_a_viewer_exits_130(tmp_path):
+    """`aefabmap replay --foxglove --wait-viewer` as a process, sent SIGINT while it waits: exit 130
+    (interrupted, as --help says), the summary line still printed, no traceback."""
+    pytest.importorskip("foxglove")
+    from tests.conftest import make_synthetic_bundle
+
+    from .stream_fakes import CLI
+
+    bundle = make_synthetic_bundle(tmp_path / "bundle")
+    src = _log(tmp_path / "src.mcap", 3, gap_s=0.05)
+    proc = subprocess.Popen(CLI + ["replay", str(src), "--model", str(bundle), "--foxglove", "0", "--wait-viewer", "120"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    waiting, lines = threading.Event(), []
+
+    def read_stderr() -> None:
+        for line in proc.stderr:
+            lines.append(line)
+            if "waiting up to" in line:
+                waiting.set()
+
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
+    try:
+        assert waiting.wait(120), "".join(lines)
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    reader.join(10)
+    assert proc.returncode == 130, "".join(lines)
+    assert json.loads(out.strip().splitlines()[-1])["stopped"] is True
+    assert "Traceback" not in "".join(lines)
 
 
 def test_replay_serves_a_view_beyond_loopback_only_with_allow_exposure(tmp_path, fake_detector, caplog,

@@ -53,6 +53,21 @@ def test_pattern_and_directory_targets(tmp_path):
         LogSet(tmp_path / "missing" / "a.mcap").check_writable()
 
 
+def test_a_missing_directory_target_is_created_a_missing_file_directory_is_refused(tmp_path):
+    d = LogSet(f"{tmp_path / 'logs' / 'day1'}/")
+    d.make_directory()
+    assert (tmp_path / "logs" / "day1").is_dir()
+    d.check_writable()
+    plain = LogSet(tmp_path / "typo" / "run.mcap")
+    plain.make_directory()  # a file target's directory is not created: a typo stays an error
+    assert not (tmp_path / "typo").exists()
+    with pytest.raises(LogError, match="does not exist"):
+        plain.check_writable()
+    (tmp_path / "taken").write_text("a file, not a directory")
+    with pytest.raises(LogError, match="cannot create the MCAP log directory"):
+        LogSet(f"{tmp_path / 'taken' / 'logs'}/").make_directory()
+
+
 def test_only_our_regular_mcap_files_count_and_the_oldest_go_first(tmp_path):
     s = LogSet(tmp_path / "run.mcap")
     for name in ("run.mcap", "run-0001.mcap", "run-0002.mcap", "run-0003.mcap"):

@@ -1,5 +1,7 @@
 """MCAP logs in the ros2 profile (``--mcap-profile ros2``): every message read back by rosbags'
-AnyReader and mcap-ros2-support, replayed and checked by us; rotated, repaired and hostile files."""
+AnyReader and mcap-ros2-support, replayed and checked by us; rotated, repaired and hostile files;
+what rosbag2 writes besides the messages (QoS per channel, the ``rosbag2`` metadata record) read
+as rosbag2 and rosbags read it; /diagnostics logged as published."""
 
 from __future__ import annotations
 
@@ -32,10 +34,10 @@ from aefabmap_runtime.adapters.replay import replay
 from aefabmap_runtime.adapters.ros_cdr import (
     COMPRESSED_IMAGE_MSGDEF,
     COMPRESSED_IMAGE_TYPE,
+    DIAGNOSTIC_ARRAY_MSGDEF,
+    DIAGNOSTIC_ARRAY_TYPE,
     STRING_MSGDEF,
     STRING_TYPE,
-    encode_compressed_image_cdr,
-    encode_string_cdr,
 )
 from aefabmap_runtime.adapters.rotating_log import LogRotationConfig, RotatingLog
 from aefabmap_runtime.core.records.messages import FrameResult
@@ -53,7 +55,8 @@ pytest.importorskip("rosbags.highlevel")  # a test/dev dependency, never importe
 pytestmark = pytest.mark.timeout(120)
 
 ROS2 = McapLogConfig(profile="ros2")
-TYPES = {ROS2_IMAGE_TOPIC: COMPRESSED_IMAGE_TYPE, "/lcd/result": STRING_TYPE, "/lcd/stats": STRING_TYPE}
+TYPES = {ROS2_IMAGE_TOPIC: COMPRESSED_IMAGE_TYPE, "/lcd/result": STRING_TYPE, "/lcd/stats": STRING_TYPE,
+         "/diagnostics": DIAGNOSTIC_ARRAY_TYPE}
 STAMP0 = 1_700_000_000_000_000_000
 
 
@@ -137,6 +140,7 @@ def test_replay_check_of_a_ros2_profile_run_passes_and_writes_either_profile(ros
     assert ros2_out.check.ok
     types, messages = rosbags_messages(tmp_path / "re.mcap")
     assert types == TYPES and len(messages["/lcd/result"]) == 16 and len(messages["/lcd/stats"]) == 1
+    assert len(messages["/diagnostics"]) == 1 and messages["/diagnostics"][0].status[0].name == "aefabmap"
     assert replay(FakeDetector(), tmp_path / "re.mcap", check=True).check.compared == 16
 
     plain = replay(FakeDetector(), path, out_path=tmp_path / "plain.mcap")  # back to the default layout
@@ -151,6 +155,7 @@ def test_the_message_definitions_are_rosbags_own():
         typestore = get_typestore(store)
         assert typestore.generate_msgdef(COMPRESSED_IMAGE_TYPE, ros_version=2)[0] == COMPRESSED_IMAGE_MSGDEF
         assert typestore.generate_msgdef(STRING_TYPE, ros_version=2)[0] == STRING_MSGDEF
+        assert typestore.generate_msgdef(DIAGNOSTIC_ARRAY_TYPE, ros_version=2)[0] == DIAGNOSTIC_ARRAY_MSGDEF
 
 
 def test_the_default_profile_keeps_its_layout(tmp_path):
@@ -215,7 +220,13 @@ def test_a_cut_ros2_log_is_repaired_into_a_ros2_file(tmp_path):
 
 
 def _hostile_ros2_log(path: Path, images) -> None:
-    """A ros2-profile log written by hand: frame 2's image and frame 4's result are cut CDR."""
+    """A ros2-profile log written by hand (CDR by rosbags): frame 2's image and frame 4's result
+    are cut CDR."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+    Image, String = ts.types[COMPRESSED_IMAGE_TYPE], ts.types[STRING_TYPE]
     detector = FakeDetector()
     with open(path, "wb") as f:
         w = Writer(f)
@@ -229,9 +240,10 @@ def _hostile_ros2_log(path: Path, images) -> None:
         for i, img in enumerate(images):
             payload, _ = encode_frame(img, "jpeg")
             stamp = STAMP0 + i * 50_000_000
-            data = encode_compressed_image_cdr(stamp, "jpeg", payload, "camera")
+            head = Header(Time(stamp // 10**9, stamp % 10**9), "camera")
+            data = ts.serialize_cdr(Image(head, "jpeg", np.frombuffer(payload, np.uint8)), COMPRESSED_IMAGE_TYPE)
             w.add_message(image, stamp, data[:40] if i == 2 else data, stamp, i)
-            text = encode_string_cdr(detector.process(img, stamp).to_json_bytes().decode())
+            text = ts.serialize_cdr(String(detector.process(img, stamp).to_json_bytes().decode()), STRING_TYPE)
             w.add_message(result, stamp, text[:-9] if i == 4 else text, stamp, i)
         w.finish()
 

@@ -222,6 +222,38 @@ def test_a_compressed_image_camera_sees_one_type_on_its_topic(tmp_path, typestor
     assert len(ours) == 1 and f"sensor_msgs::msg::dds_::CompressedImage_/{COMPRESSED_IMAGE_RIHS01}" in ours[0]
 
 
+#: rmw's QoS policy values (rmw/types.h) and rmw_zenoh's defaults (qos.cpp), which a token leaves out.
+RMW_RELIABLE, RMW_BEST_EFFORT, RMW_VOLATILE, RMW_KEEP_LAST = 1, 2, 2, 1
+RMW_ZENOH_DEFAULTS = {"reliability": RMW_RELIABLE, "durability": RMW_VOLATILE, "history": RMW_KEEP_LAST, "depth": 42}
+
+
+def token_qos(token: str) -> dict[str, int]:
+    """A liveliness token's QoS as rmw_zenoh reads it (liveliness_utils.cpp, keyexpr_to_qos): the
+    last chunk is ``<reliability>:<durability>:<history>,<depth>:<deadline>:<lifespan>:<liveliness>``
+    (the last three comma-separated), an empty field meaning rmw_zenoh's default."""
+    parts = token.rsplit("/", 1)[1].split(":")
+    assert len(parts) == 6 and [p.count(",") for p in parts[2:]] == [1, 1, 1, 2], token
+    history, depth = parts[2].split(",")
+    given = {"reliability": parts[0], "durability": parts[1], "history": history, "depth": depth}
+    return {k: int(v) if v else RMW_ZENOH_DEFAULTS[k] for k, v in given.items()}
+
+
+def test_the_image_subscription_advertises_the_sensor_data_qos_cameras_publish(tmp_path, typestore):
+    """Cameras publish with the sensor-data profile: the node's subscription token says best
+    effort, volatile, keep last (its frame queue, 16 here); its publishers keep rmw_zenoh's default."""
+    images = sample_images(2, size=(160, 120))
+    key = f"0/camera/image_raw/sensor_msgs::msg::dds_::Image_/{IMAGE_RIHS01}"
+    frames = [(key, ros_image(typestore, img, "mono8", STAMP0 + i), i + 1) for i, img in enumerate(images)]
+    result_key = f"0/lcd/result/std_msgs::msg::dds_::String_/{STRING_RIHS01}"
+    _, _, tokens, _ = _publish_and_collect(tmp_path, typestore, frames, expect=2, distro="auto",
+                                           result_key=result_key)
+    (sub,) = [t for t in tokens if "/MS/" in t and "/aefabmap/" in t]
+    assert token_qos(sub) == {"reliability": RMW_BEST_EFFORT, "durability": RMW_VOLATILE, "history": RMW_KEEP_LAST,
+                              "depth": 16}
+    pubs = [t for t in tokens if "/MP/" in t and "/aefabmap/" in t]
+    assert len(pubs) == 3 and all(token_qos(t) == RMW_ZENOH_DEFAULTS for t in pubs)
+
+
 def test_namespace_node_name_and_topics_are_the_users(tmp_path, typestore):
     images = sample_images(2, size=(160, 120))
     frames = [(IMAGE_KEY, ros_image(typestore, img, "mono8", STAMP0 + i), i + 1) for i, img in enumerate(images)]

@@ -9,6 +9,10 @@ map epoch. It keeps the caps (max_places, memory_mb) by evicting the least recen
 accounts the map's memory (`map_bytes`), and saves / loads all of it as a MapState
 (core/records/map_state.py). Its listeners (core/map/map_events.py) hear every insertion,
 eviction and load.
+
+A map can be made read-only (`read_only`, localization against a map built once): frames are
+still numbered, ranked and verified against it, but none is queued or inserted, no place is
+evicted and no use is recorded, so the map and its memory stay as loaded however long it runs.
 """
 
 from __future__ import annotations
@@ -64,6 +68,8 @@ class PlaceMap:
         # Names this map's frame numbering (a fleet tells other robots by it that a restarted
         # node's frame numbers mean other places): drawn for an empty map, kept in its state.
         self.map_epoch = secrets.randbits(64)
+        #: Localization: nothing enters or leaves the map (see the module doc).
+        self.read_only = False
 
     # -- what the map holds ------------------------------------------------------------------
 
@@ -131,26 +137,31 @@ class PlaceMap:
         seq = self._sequence
         self._sequence += 1
         done = Insertion()
-        while self._pending and self._pending[0][0] <= seq - self.exclude:
+        while not self.read_only and self._pending and self._pending[0][0] <= seq - self.exclude:
             frame, words, keypoints = self._pending.popleft()
             done = Insertion(frame, *self.add_place(words, frame, keypoints))
         return seq, done
 
     def queue(self, frame: int, words: np.ndarray, keypoints: PlaceKeypoints | None) -> None:
         """Queue frame `frame` (its observed words, its packed keypoints or None) for insertion
-        `exclude` frames later."""
-        self._pending.append((frame, words, keypoints))
+        `exclude` frames later (a read-only map queues nothing)."""
+        if not self.read_only:
+            self._pending.append((frame, words, keypoints))
 
     def mark_used(self, place: int, frame: int) -> None:
-        """Place `place` was matched as a loop by frame `frame`: it is the last to be evicted now."""
-        self._last_used[place] = frame
+        """Place `place` was matched as a loop by frame `frame`: it is the last to be evicted now
+        (a read-only map records nothing)."""
+        if not self.read_only:
+            self._last_used[place] = frame
 
     def add_place(self, words: np.ndarray, frame: int, keypoints: PlaceKeypoints | None = None
                   ) -> tuple[int, int | None]:
         """Store frame `frame` as a place now (words: its observed word ids; keypoints: kept when
         the map verifies), evicting to stay within the caps; returns (its place id, the last
         place id evicted or None). The queue's path, and a tool's that builds a map without
-        queries (the frame must be below `next_sequence`)."""
+        queries (the frame must be below `next_sequence`). StateError on a read-only map."""
+        if self.read_only:
+            raise StateError("the map is read-only (localization): no place can be added")
         evicted = self._make_room()
         place = int(self.scorer.add(words))
         if place >= self._last_used.size:

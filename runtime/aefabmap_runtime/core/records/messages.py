@@ -31,8 +31,9 @@ from aefabmap_runtime.core.records.json_schema import schema_for_dataclass, vali
 #: the stats (``log_errors``, ``log_state``) and the run summary (``log_files``...); 1.3: ``nfa``,
 #: ``geometry_reason``, ``candidates``; 1.4: ``relative_rotation``, ``relative_translation``;
 #: 1.5: ``sequence_nfa``, the status's ``warnings``; 1.6: ``verified_robot``, ``fleet``; 1.7: the
-#: fleet's per-robot ``map_restarts``, ``keypoint_replies`` and ``bytes_out``.
-MESSAGE_FORMAT_VERSION = "1.7"
+#: fleet's per-robot ``map_restarts``, ``keypoint_replies`` and ``bytes_out``; 1.8: the status's
+#: ``ros_topic_published`` and ``ros_image_topics``.
+MESSAGE_FORMAT_VERSION = "1.8"
 
 #: Values of StatsMessage.log_state (runtime/aefabmap_runtime/adapters/rotating_log.py).
 LOG_STATES = ("ok", "images_stopped", "stopped", "failed", "closed")
@@ -423,6 +424,13 @@ class StatusMessage(_Message):
         "what the node warns about now, one line each, e.g. results that no ROS 2 subscriber can read "
         "(empty: nothing)", since="1.5"))
     fleet: FleetStats | None = _f(None, "the node's part in a fleet (null: not in one)", since="1.6")
+    ros_topic_published: bool | None = _f(
+        None, "ROS 2 runs: whether the image topic (--ros-topic) has a publisher in the graph or sent an image; "
+        "false from 3 s after the start while it has neither (null: not a ROS 2 run, or before then)", since="1.8")
+    ros_image_topics: list[str] = field(default_factory=list, metadata=_meta(
+        "when ros_topic_published is false: the sensor_msgs Image and CompressedImage topics that are published, "
+        "'<topic> (<type>)', those outside the run's domain or bridge namespace followed by ' in <where>'",
+        since="1.8"))
 
     def __post_init__(self) -> None:
         self.bad_total = sum(self.bad.values())

@@ -30,12 +30,10 @@ one operand is 0 or 1, so a pair sums to at most 2 * 127.
 from __future__ import annotations
 
 import numpy as np
-import onnxruntime as ort
 
 from aefabmap_runtime.errors import InputError
 from aefabmap_runtime.core.kernels import compiled, native
 from aefabmap_runtime.core.words.onnx_matmul import INPUT_NAME, OUTPUT_NAME, matmul_integer_model
-from aefabmap_runtime.core.words.onnx_quantizer import session_options
 from aefabmap_runtime.core.words.quantizer import NearestCentroidQuantizer, check_vectors
 
 _LEVELS = 127  # int8 steps on each side of 1/2
@@ -82,6 +80,12 @@ class BitCentroidQuantizer:
             raise InputError(f"bit centroids must be a non-empty (K, D) array with D a multiple of 8, got {c.shape}")
         if not np.isfinite(c).all():
             raise InputError("bit centroids hold NaN or infinite values")
+        # onnxruntime here, not at the top: a bundle searched by the float product (flat_quantizer)
+        # never builds a graph, and importing onnxruntime alone costs resident memory on a board.
+        import onnxruntime as ort
+
+        from aefabmap_runtime.core.words.onnx_quantizer import session_options
+
         opts = session_options(threads)
         self.centroids = np.ascontiguousarray(c)
         self._float = NearestCentroidQuantizer(self.centroids)

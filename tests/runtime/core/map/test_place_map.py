@@ -129,3 +129,22 @@ def test_a_tool_can_build_a_map_without_queries():
         assert m.add_place(np.unique(_words(frame)), frame) == (frame, None)
     assert m.next_sequence == 3 and m.n_places == 3 and m.keypoints(0) is None
     assert list(m.place_words(1)) == list(np.unique(_words(1)))
+
+
+def test_a_read_only_map_numbers_frames_but_never_changes():
+    m = _map(exclude=1, max_places=3)
+    _feed(m, 5)  # frames 0-3 stored within the cap, frame 4 queued
+    before = m.state()
+    heard = _Heard()
+    m.listeners.add(heard)
+    m.read_only = True
+    done = _feed(m, 50)
+    m.mark_used(0, 60)
+    assert all(d == Insertion() for d in done) and heard.events == []
+    assert m.next_sequence == 55 and m.n_places == 3 and [f for f, _, _ in m.queued()] == [4]
+    after = m.state()
+    assert {k: v for k, v in after.scalars.items() if k != "sequence"} == {
+        k: v for k, v in before.scalars.items() if k != "sequence"}
+    assert all(np.array_equal(after.arrays[k], before.arrays[k]) for k in before.arrays)
+    with pytest.raises(StateError, match="read-only"):
+        m.add_place(_words(70), 54)
