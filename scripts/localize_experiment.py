@@ -2,8 +2,9 @@
 (docs/localization.md): a map is built by `run --state M` over the first frames of a sequence,
 then `run --state M --localize` streams the rest; its verified loops are scored against the
 ground truth, the state directory is hashed before and after, and the node's RSS is read at
-start, every 50 frames and at the end. Then a localize run is killed (SIGKILL) mid-way and M hashed again, and
-`eval --localize` scores the same frames in one process.
+start, every 50 frames and at the end; 20 of those frames are then sent to the running node's
+"where am I?" queryable and its answers scored. Then a localize run is killed (SIGKILL) mid-way
+and M hashed again, and `eval --localize` scores the same frames in one process.
 
     python scripts/localize_experiment.py --model BUNDLE --images DATA/lip6_outdoor \\
         --gt DATA/lip6_outdoor/ground_truth.npy --split 600 --out localize.json
@@ -46,6 +47,39 @@ def scored(results, gt: np.ndarray, tolerance: int) -> dict:
     return {"frames": len(results), "loops": len(loops), "right": right, "wrong": len(loops) - right}
 
 
+def locate_queries(robot: Robot, paths: list[Path], gt: np.ndarray, args) -> dict:
+    """Send 20 frames of the second part, evenly spaced, to the running node's locate queryable
+    (at its rate: a "busy" answer is asked again after a pause); each answer right or wrong by
+    the ground truth (tolerant)."""
+    import threading
+
+    from aefabmap_runtime.adapters.zenoh_transport import locate_key_for, result_key_for
+    from aefabmap_runtime.core.records.messages import LocateAnswer
+
+    key, pause = locate_key_for(result_key_for(robot.key)), threading.Event()
+    picks = np.linspace(args.split, len(paths) - 1, 20).round().astype(int)
+    rows = []
+    for i in picks:
+        data = paths[i].read_bytes()
+        for _ in range(50):
+            reply = next(iter(robot.session.get(key, payload=data, timeout=30)), None)
+            if reply is not None and reply.ok is None and reply.err.payload.to_string().startswith("busy"):
+                pause.wait(0.25)
+                continue
+            break
+        answer = LocateAnswer.from_json(reply.ok.payload.to_bytes()) if reply is not None and reply.ok else None
+        pred = np.full(gt.shape[0], -1)
+        if answer is not None and answer.verified:
+            pred[i] = answer.frame
+        right = bool(correct_predictions(pred, gt, args.tolerance)[i]) if pred[i] >= 0 else None
+        rows.append({"frame": int(i), "verified": bool(answer and answer.verified),
+                     "place_frame": answer.frame if answer else None, "right": right,
+                     "latency_ms": answer.latency_ms if answer else None})
+    verified = [r for r in rows if r["verified"]]
+    return {"queries": len(rows), "verified": len(verified), "right": sum(bool(r["right"]) for r in verified),
+            "wrong": sum(r["right"] is False for r in verified), "answers": rows}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", required=True)
@@ -76,6 +110,7 @@ def main(argv=None) -> int:
             rss[i + 1] = process_rss_mb(loc.proc.pid)
 
     seconds = loc.stream(paths[args.split:], sample_rss)
+    doc["locate"] = locate_queries(loc, paths, gt, args)
     doc["localize"] = {"seconds": round(seconds, 2), **scored(loc.results, gt, args.tolerance),
                        "rss_mb_by_frames": rss,
                        "places": loc.results[-1].n_places if loc.results else None, **loc.stop()}

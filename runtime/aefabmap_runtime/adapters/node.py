@@ -39,6 +39,7 @@ from aefabmap_runtime.adapters.fleet import FleetNode, join_fleet
 from aefabmap_runtime.adapters.frame_loop import FrameProcessor, FrameLoop, FrameOutcome, PreparedInput
 from aefabmap_runtime.adapters.frame_pipeline import FramePipeline
 from aefabmap_runtime.adapters.health import HealthEndpoint, StatusBoard, peak_rss_mb, rss_mb
+from aefabmap_runtime.adapters.locate_service import LocateService
 from aefabmap_runtime.adapters.mcap_log import McapLogConfig, McapLogWriter
 from aefabmap_runtime.adapters.rmw_zenoh import (
     RosFrameSubscriber,
@@ -53,6 +54,7 @@ from aefabmap_runtime.adapters.zenoh_transport import (
     ReceivedFrame,
     ResultPublisher,
     SessionConfig,
+    locate_key_for,
     open_session,
     result_key_for,
     stats_key_for,
@@ -306,7 +308,8 @@ def run_node(
     board = StatusBoard(image_key=options.key, results_key=options.results_key,
                         manifest=manifest if isinstance(manifest, dict) else None, log=log, t0=t0)
     with _Transport(options) as io, log.open(), _health(io.session, board) as health, \
-            _fleet(io.session, detector, options.fleet) as fleet:
+            _fleet(io.session, detector, options.fleet) as fleet, \
+            LocateService(io.session, detector, locate_key_for(options.results_key)):
         if fleet is not None:  # the fleet node follows the detector; the stats and status carry its counters
             stats.fleet = board.fleet_stats = fleet.fleet_stats
         if io.topic_check is not None:  # /diagnostics carries the status; status, the ROS warnings

@@ -240,6 +240,12 @@ def stats_key_for(result_key: str) -> str:
     return f"{result_key}/{STATS_SUFFIX}"
 
 
+def locate_key_for(result_key: str) -> str:
+    """The node's "where am I?" queryable of a results key: ``<result_key>/locate``
+    (runtime/aefabmap_runtime/adapters/locate_service.py)."""
+    return f"{result_key}/locate"
+
+
 # --------------------------------------------------------------------------- frame meta
 
 

@@ -187,6 +187,18 @@ class PreparedFrame:
     stages_ms: dict[str, float]
 
 
+@dataclass(frozen=True)
+class Location:
+    """Where one image is in the own map (LoopClosureDetector.locate): the verified place, its
+    frame and the pair's geometry (with a calibrated camera, the image's pose in the place's
+    camera frame), or None for each when no place verified; checked: the pair checks made."""
+
+    place: int | None
+    frame: int | None
+    geometry: GeometryResult | None
+    checked: int
+
+
 class LoopClosureDetector:
     """Stateful per-frame detector for one model bundle (not thread-safe).
 
@@ -209,6 +221,8 @@ class LoopClosureDetector:
             extract = replace(extract, max_features=v.keypoints)
         self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright)
         self._extractors = threading.local()  # each thread's extractor (`prepare`)
+        # A frame's step and a `locate` read the map's index and keypoints: one at a time.
+        self._map_lock = threading.Lock()
         self._extractors.extractor = self.extractor
         self.quantizer = bundle.quantizer(c.quantizer_variant, c.threads)
         self.kind = bundle.features.spec
@@ -392,8 +406,41 @@ class LoopClosureDetector:
         self.map.listeners.before_frame()
         return self._step(words, stamp_ns, features, None)
 
+    def locate(self, frame: PreparedFrame) -> Location:
+        """Where a prepared image (`prepare`) is in the own map, changing nothing: no frame
+        number, no track, no insertion, no listener hears of it. FAB-MAP's best `top_k` places
+        are each verified by words and, failing that, all-pairs, against a bar stricter by the
+        log10 of the pair checks; the most significant verified place wins. Safe beside the
+        frames' own steps (one at a time)."""
+        with self._map_lock:
+            observed = frame.words[: self._observed_keypoints]
+            order = self.map.scorer.rank(observed).order
+            top = [int(p) for p in top_places(order, self.config.candidates.top_k) if np.isfinite(order[p])]
+            held = [(p, self.map.keypoints(p)) for p in top if self.map.holds(p)]
+            held = [(p, kps) for p, kps in held if kps is not None and len(kps)]
+            checks = max(2 * len(held), 1)
+            v = self.config.verification
+            check = self.place_check(frame.features, frame.words,
+                                     replace(v, max_log10_nfa=v.max_log10_nfa - math.log10(checks)))
+            best: tuple[int, GeometryResult] | None = None
+            for place, kps in held:
+                g = check(kps, False)
+                if not g.verified:
+                    g = check(kps, False, True)
+                if g.verified and (best is None or g.nfa < best[1].nfa):
+                    best = (place, g)
+            if best is None:
+                return Location(None, None, None, 2 * len(held))
+            return Location(best[0], int(self.map.place_frames()[best[0]]), best[1], 2 * len(held))
+
     def _step(self, words: np.ndarray, stamp_ns: int, features: Features | None,
               stages: dict[str, float] | None) -> FrameResult:
+        """One frame under the map's lock (see `locate`): `_step_locked`."""
+        with self._map_lock:
+            return self._step_locked(words, stamp_ns, features, stages)
+
+    def _step_locked(self, words: np.ndarray, stamp_ns: int, features: Features | None,
+                     stages: dict[str, float] | None) -> FrameResult:
         """One frame: insert the frames now due, rank, verify, decide, queue this frame, build its
         result. stages: times of the stages before (process()); then the result's timings gain
         inference."""

@@ -495,3 +495,30 @@ def test_a_peer_declaring_many_robots_cannot_grow_the_node_without_bound(hub):
         for t in tokens:
             t.undeclare()
         b.close(), sb.close(), evil.close()
+
+
+def test_a_localizing_node_offers_its_read_only_map_and_keeps_it_unchanged(hub, route):
+    """--localize with --fleet: the frozen map's places are offered as a loaded map's are; the
+    node's own frames enter nothing, so it offers no new place."""
+    from aefabmap.cli.demo import default_bundle
+
+    sa, a = _robot(hub, "a")
+    _feed(a, route[:6])
+    state = a.detector.state().resolve()
+    a.close()
+    sa.close()
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    det.load_state(state)
+    det.map.read_only = True
+    s2 = _peer(hub)
+    frozen = FleetNode(s2, det, FleetConfig(name="test", robot="a"))
+    sc, c = _robot(hub, "c")
+    try:
+        assert _until(lambda: c.robots_alive() == ["a"])
+        assert c.join(timeout_s=5) == 5
+        _feed(frozen, route[6:9])  # a localizes on: nothing enters its map, nothing new is offered
+        assert frozen.fleet_stats().places_served == 5 and frozen.fleet_stats().summaries_out == 0
+        r = c.detector.process(route[3], 0)
+        assert r.verified and r.verified_robot == "a" and abs(r.verified_frame - 3) <= 1
+    finally:
+        frozen.close(), s2.close(), c.close(), sc.close()

@@ -150,3 +150,22 @@ def test_a_chain_of_weak_pairs_verifies_the_last_frame_and_survives_a_restart(mo
     assert again.process(images[4]).to_dict() | {"timings_ms": {}} == r.to_dict() | {"timings_ms": {}}
     off = load_detector(default_bundle(), DetectorConfig(exclude=1, sequence=SequenceConfig(frames=0)))
     assert not [off.process(im) for im in images[:5]][-1].verified
+
+
+def test_locate_finds_the_place_of_an_image_and_changes_nothing():
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap_runtime.adapters.bundle_reader import load_detector
+    from aefabmap_runtime.core.detector import DetectorConfig
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(10, seed=3, size=(640, 480))
+    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
+    for im in images[:6]:
+        det.process(im, 0)  # frames 0-4 are places
+    before = (det.next_sequence, det.n_places, det.state().resolve().scalars)
+    where = det.locate(det.prepare(images[3]))
+    assert where.frame is not None and abs(where.frame - 3) <= 1 and where.geometry.verified and where.checked >= 1
+    assert det.map.holds(where.place) and det.map.place_frames()[where.place] == where.frame
+    nowhere = det.locate(det.prepare(np.zeros((480, 640), np.uint8)))
+    assert nowhere.place is None and nowhere.frame is None and nowhere.geometry is None
+    assert (det.next_sequence, det.n_places, det.state().resolve().scalars) == before

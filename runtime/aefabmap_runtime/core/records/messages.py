@@ -354,6 +354,29 @@ class StatsMessage(_Message):
 # ============================================================================ run summary
 
 
+@dataclass
+class LocateAnswer(_Message):
+    """The answer of a node's "where am I?" queryable (``<results key>/locate``): one image
+    located in the map, nothing stored (LoopClosureDetector.locate)."""
+
+    TITLE = "aefabmap.LocateAnswer"
+    DESCRIPTION = "Where one image is in a node's map (its locate queryable); nothing is inserted."
+
+    verified: bool = _f(False, "a place of the map verified geometrically")
+    place: int | None = _f(None, "the verified place's id (null: none verified)")
+    frame: int | None = _f(None, "the frame that made the verified place (null: none verified)")
+    inliers: int = _f(0, "inliers of the accepted geometry")
+    nfa: float | None = _f(None, "log10 number of false alarms of the accepted geometry (null: none verified)")
+    geometry_model: str | None = _f(None, "F, E (calibrated camera) or H", enum=("F", "E", "H"))
+    relative_rotation: list[list[float]] | None = field(default=None, metadata=_meta(
+        "with a calibrated camera (model E): 3x3 row-major rotation R_pq of the image's camera relative to the "
+        "place's camera; null otherwise"))
+    relative_translation: list[float] | None = _f(None, "with relative_rotation: direction of t_pq, unit length")
+    checked: int = _f(0, "pair checks made")
+    places: int = _f(0, "places in the map")
+    latency_ms: float | None = _f(None, "from the query's arrival to the answer (ms)")
+
+
 @dataclass(kw_only=True)
 class RunSummary(_Message):
     """What a streaming run did (the last line `aefabmap run` prints). Latencies in ms
