@@ -53,7 +53,8 @@ def localize_sequence(bundle_path, images_dir, gt_path, state, config: DetectorC
         first = detector.next_sequence
         if first >= len(images):
             raise ConfigError(f"the map in {state} was built over {first} frames; {images_dir} has {len(images)}: "
-                              "no frame is left to localize")
+                              "no frame is left to localize (give the whole sequence, the map's frames first, and "
+                              "its whole ground truth: the frames after the map's are localized)")
         rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         places = detector.n_places
         run = run_sequence(detector, images[first:], keep_matrix=False, show_progress=show_progress, workers=workers)
