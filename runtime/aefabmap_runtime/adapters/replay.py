@@ -391,8 +391,11 @@ def replay(
     t0 = time.monotonic()
     manifest = getattr(detector, "manifest", None)
     if out_path is not None:
-        # Like `run`, never overwrite: an existing NEW.mcap gets NEW-0001.mcap beside it.
-        out_path, writer = LogSet(out_path).create_next(lambda path, opened_ns: McapLogWriter(
+        # Like `run`, never overwrite: an existing NEW.mcap gets NEW-0001.mcap beside it; a
+        # missing DIR/ is created.
+        out_set = LogSet(out_path)
+        out_set.make_directory()
+        out_path, writer = out_set.create_next(lambda path, opened_ns: McapLogWriter(
             path,
             log_config or McapLogConfig(),
             manifest=manifest if isinstance(manifest, dict) else None,

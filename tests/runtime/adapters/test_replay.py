@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,6 +64,13 @@ def test_replay_of_a_live_log_checks_ok_and_writes_a_new_log(live_log, tmp_path)
     second = replay(FakeDetector(), live_log, out_path=out)
     assert second.out_path == str(tmp_path / "replayed-0001.mcap") and out.read_bytes() == before
     assert replay(FakeDetector(), second.out_path, check=True).check.ok
+
+
+def test_replay_out_into_a_missing_directory_creates_it(live_log, tmp_path):
+    out_dir = tmp_path / "new" / "logs"
+    summary = replay(FakeDetector(), live_log, out_path=f"{out_dir}/")
+    assert out_dir.is_dir() and summary.out_path is not None and Path(summary.out_path).parent == out_dir
+    assert replay(FakeDetector(), summary.out_path, check=True).check.ok
 
 
 def test_check_reports_differences(live_log):
