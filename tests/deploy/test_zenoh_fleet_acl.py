@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import shutil
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +15,7 @@ import pytest
 from aefabmap_runtime.adapters.zenoh_transport import SessionConfig, open_session, session_authenticated
 from aefabmap_runtime.core.fleet.fleet_wire import PlaceSummary, encode_keypoints, fleet_key
 from aefabmap_runtime.tools.node_process import free_tcp_port
+from tests.runtime.adapters.test_fleet import _until
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 from fleet_tls import make_certificates, robot_config, router_config  # noqa: E402
@@ -25,15 +24,6 @@ pytestmark = [pytest.mark.skipif(shutil.which("openssl") is None, reason="needs 
               pytest.mark.timeout(240)]
 
 BLANK = np.zeros((480, 640), np.uint8)
-
-
-def _until(condition, timeout_s: float = 15.0) -> bool:
-    deadline, pause = time.monotonic() + timeout_s, threading.Event()
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        pause.wait(0.05)
-    return True
 
 
 def _settle(node, condition, timeout_s: float = 15.0) -> bool:

@@ -29,7 +29,6 @@ from the sequence numbers per publisher gid.
 
 from __future__ import annotations
 
-import json
 import logging
 import socket
 import struct
@@ -65,6 +64,8 @@ from aefabmap_runtime.adapters.ros_diagnostics import (  # noqa: F401 - re-expor
     DIAGNOSTICS_TOPIC,
     diagnostic_level,
     diagnostic_values,
+    diagnostics_cdr,
+    json_text,
     node_diagnostic,
 )
 from aefabmap_runtime.adapters.zenoh_transport import (
@@ -586,7 +587,7 @@ class RosResultPublisher:
         self.plain.publish_result(result)
         self._results_sent += 1
         if self._ready():
-            self.ros_results.put(_text(result))
+            self.ros_results.put(json_text(result))
         self._log_warnings()
 
     def publish_stats(self, stats: dict | bytes) -> bytes | None:
@@ -595,7 +596,7 @@ class RosResultPublisher:
         self.plain.publish_stats(stats)
         diagnostics = None
         if self._ready():
-            self.ros_stats.put(_text(stats))
+            self.ros_stats.put(json_text(stats))
             diagnostics = self._diagnostics(stats)
             self.ros_diagnostics.put_cdr(diagnostics)
         self._log_warnings()
@@ -603,18 +604,11 @@ class RosResultPublisher:
 
     def _diagnostics(self, stats: dict | bytes) -> bytes:
         """The stats (and the node's status, when given) as a DiagnosticArray in CDR."""
-        doc = json.loads(stats) if isinstance(stats, (bytes, str)) else stats
-        status = None
-        if self.status_source is not None:
-            try:
-                status = self.status_source()
-            except Exception:  # noqa: BLE001 - the diagnostics go out without the status's extras
-                status = None
         o = self.options
-        entry = node_diagnostic(doc, status, self._previous_stats, name=f"aefabmap: {o.node}",
-                                hardware_id=self.hardware_id, node=_fq_node(o), distro=self.distro or "")
-        self._previous_stats = doc
-        return encode_diagnostic_array_cdr(int(doc.get("stamp_ns") or time.time_ns()), [entry])
+        cdr, self._previous_stats = diagnostics_cdr(stats, self.status_source, self._previous_stats,
+                                                    name=f"aefabmap: {o.node}", hardware_id=self.hardware_id,
+                                                    node=_fq_node(o), distro=self.distro or "")
+        return cdr
 
     def warnings(self) -> list[str]:
         """Why results published now may reach no ROS 2 subscriber (empty when none)."""
@@ -718,5 +712,3 @@ class GraphWatch:
             pass
 
 
-def _text(doc: dict | bytes) -> str:
-    return doc.decode("utf-8") if isinstance(doc, bytes) else json.dumps(doc, separators=(",", ":"))

@@ -23,7 +23,6 @@ on the bridge's keys of ``/lcd/result``, ``/lcd/stats`` and ``/diagnostics``.
 
 from __future__ import annotations
 
-import json
 import socket
 import threading
 import time
@@ -38,7 +37,6 @@ from aefabmap_runtime.adapters.rmw_zenoh import (
     RosOptions,
     TopicPublisher,
     check_topic,
-    node_diagnostic,
 )
 from aefabmap_runtime.adapters.ros_cdr import (
     COMPRESSED_IMAGE_TYPE,
@@ -46,9 +44,9 @@ from aefabmap_runtime.adapters.ros_cdr import (
     RosImage,
     decode_compressed_cdr,
     decode_image_cdr,
-    encode_diagnostic_array_cdr,
     encode_string_cdr,
 )
+from aefabmap_runtime.adapters.ros_diagnostics import diagnostics_cdr, json_text
 from aefabmap_runtime.adapters.zenoh_transport import DropCounter, FrameMeta, ReceivedFrame, poll_ring
 from aefabmap_runtime.errors import ConfigError, TransportError
 
@@ -225,30 +223,22 @@ class BridgeResultPublisher:
 
     def publish_result(self, result: dict | bytes) -> None:
         self.plain.publish_result(result)
-        self._put(self.results_pub, encode_string_cdr(_text(result)))
+        self._put(self.results_pub, encode_string_cdr(json_text(result)))
 
     def publish_stats(self, stats: dict | bytes) -> bytes:
         """Publish the stats; returns the DiagnosticArray CDR sent (the ros2-profile log records it)."""
         self.plain.publish_stats(stats)
-        self._put(self.stats_pub, encode_string_cdr(_text(stats)))
+        self._put(self.stats_pub, encode_string_cdr(json_text(stats)))
         diagnostics = self._diagnostics(stats)
         self._put(self.diagnostics_pub, diagnostics)
         return diagnostics
 
     def _diagnostics(self, stats: dict | bytes) -> bytes:
-        doc = json.loads(stats) if isinstance(stats, (bytes, str)) else stats
-        status = None
-        if self.status_source is not None:
-            try:
-                status = self.status_source()
-            except Exception:  # noqa: BLE001 - the diagnostics go out without the status's extras
-                status = None
         o = self.options
-        node = o.fq_namespace.rstrip("/") + "/" + o.node
-        entry = node_diagnostic(doc, status, self._previous_stats, name=f"aefabmap: {o.node}",
-                                hardware_id=self.hardware_id, node=node)
-        self._previous_stats = doc
-        return encode_diagnostic_array_cdr(int(doc.get("stamp_ns") or time.time_ns()), [entry])
+        cdr, self._previous_stats = diagnostics_cdr(stats, self.status_source, self._previous_stats,
+                                                    name=f"aefabmap: {o.node}", hardware_id=self.hardware_id,
+                                                    node=o.fq_namespace.rstrip("/") + "/" + o.node)
+        return cdr
 
     def warnings(self) -> list[str]:
         """Nothing to warn about results: the bridge gives them the DDS readers' type."""
@@ -264,7 +254,3 @@ class BridgeResultPublisher:
         for part in (self.plain, self.graph):
             if part is not None:
                 part.close()
-
-
-def _text(doc: dict | bytes) -> str:
-    return doc.decode("utf-8") if isinstance(doc, bytes) else json.dumps(doc, separators=(",", ":"))

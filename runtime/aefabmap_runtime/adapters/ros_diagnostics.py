@@ -4,7 +4,11 @@ ros2-profile log records it (mcap_log.py), so reading or writing a log never imp
 
 from __future__ import annotations
 
-from aefabmap_runtime.adapters.ros_cdr import DiagnosticStatus
+import json
+import time
+from collections.abc import Callable
+
+from aefabmap_runtime.adapters.ros_cdr import DiagnosticStatus, encode_diagnostic_array_cdr
 
 #: Where ROS tools (rqt_robot_monitor, the diagnostic aggregator) read health: absolute, so it
 #: stays ``/diagnostics`` in any namespace.
@@ -51,3 +55,24 @@ def node_diagnostic(stats: dict, status, previous: dict | None, *, name: str, ha
     level, message = diagnostic_level(stats, previous)
     values = diagnostic_values(stats, status) + (("node", node), ("ros_distro", distro))
     return DiagnosticStatus(level, name, message, hardware_id, values)
+
+
+def json_text(doc: dict | bytes) -> str:
+    """A message as the JSON text a std_msgs/String carries (bytes: already JSON)."""
+    return doc.decode("utf-8") if isinstance(doc, bytes) else json.dumps(doc, separators=(",", ":"))
+
+
+def diagnostics_cdr(stats: dict | bytes | str, status_source: Callable[[], object] | None, previous: dict | None, *,
+                    name: str, hardware_id: str, node: str, distro: str = "") -> tuple[bytes, dict]:
+    """One stats message as the DiagnosticArray CDR a ROS 2 publisher sends (node_diagnostic),
+    with the node's status when `status_source` gives it; returns (the CDR, the stats as a dict:
+    the next call's `previous`, which the level compares against)."""
+    doc = json.loads(stats) if isinstance(stats, (bytes, str)) else stats
+    status = None
+    if status_source is not None:
+        try:
+            status = status_source()
+        except Exception:  # noqa: BLE001 - the diagnostics go out without the status's extras
+            status = None
+    entry = node_diagnostic(doc, status, previous, name=name, hardware_id=hardware_id, node=node, distro=distro)
+    return encode_diagnostic_array_cdr(int(doc.get("stamp_ns") or time.time_ns()), [entry]), doc
