@@ -170,6 +170,16 @@ def image_key(domain: int, topic: str) -> str:
     return f"{check_domain(domain)}/{check_topic(topic)}/*/*"
 
 
+def bridge_key(namespace: str, topic: str) -> str:
+    """The bridge's key of a ROS topic: ``camera/image_raw``, or ``bot1/camera/image_raw`` behind a
+    bridge given the namespace ``/bot1`` (zenoh-bridge-ros2dds, ros2dds_bridge.py). ConfigError for a name
+    that is not a ROS name."""
+    prefix = namespace.strip("/")
+    if prefix:
+        check_topic(prefix)
+    return f"{prefix}/{check_topic(topic)}" if prefix else check_topic(topic)
+
+
 def _mangle_name(name: str) -> str:
     return name.replace("/", "%") or "%"
 
@@ -441,8 +451,6 @@ class RosOptions:
     def image_key(self) -> str:
         """The key the images arrive on: rmw_zenoh's (any type, any hash), or the bridge's."""
         if self.bridge is not None:
-            from aefabmap_runtime.adapters.ros2dds_bridge import bridge_key  # that module builds on this one
-
             return bridge_key(self.bridge, self.topic)
         return image_key(self.domain, self.topic)
 

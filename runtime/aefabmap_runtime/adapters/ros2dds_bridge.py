@@ -36,7 +36,7 @@ from aefabmap_runtime.adapters.rmw_zenoh import (
     MAX_GRAPH_TOKENS,
     RosOptions,
     TopicPublisher,
-    check_topic,
+    bridge_key,
 )
 from aefabmap_runtime.adapters.ros_cdr import (
     COMPRESSED_IMAGE_TYPE,
@@ -54,15 +54,6 @@ from aefabmap_runtime.errors import ConfigError, TransportError
 PUBLISHER_TOKENS = "@/*/@ros2_lv/MP/**"
 #: What the bridge writes for ``/`` inside a key or type chunk of a token.
 SLASH = "§"
-
-
-def bridge_key(namespace: str, topic: str) -> str:
-    """The bridge's key of a ROS topic: ``camera/image_raw``, or ``bot1/camera/image_raw`` behind a
-    bridge given the namespace ``/bot1``. ConfigError for a name that is not a ROS name."""
-    prefix = namespace.strip("/")
-    if prefix:
-        check_topic(prefix)
-    return f"{prefix}/{check_topic(topic)}" if prefix else check_topic(topic)
 
 
 def home_of(namespace: str) -> str:
