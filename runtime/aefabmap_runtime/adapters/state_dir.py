@@ -107,13 +107,7 @@ class MapStateDir:
             fd = os.open(self.path / LOCK_NAME, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as exc:
             raise StateError(f"cannot open state directory {self.path}: {exc.strerror or exc}") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            raise StateError(f"state directory {self.path} is in use by another process") from None
-        self._lock_fd = fd
-        return self
+        return self._lock(fd, fcntl.LOCK_EX, "another process")
 
     def _open_shared(self) -> Self:
         """Open for reading only: the directory must exist; a writer holding it is refused."""
@@ -126,11 +120,16 @@ class MapStateDir:
             fd = open_regular(lock)
         except OSError as exc:
             raise StateError(f"cannot open state directory {self.path}: {exc.strerror or exc}") from None
+        return self._lock(fd, fcntl.LOCK_SH, "a process that writes it")
+
+    def _lock(self, fd: int, mode: int, holder: str) -> Self:
+        """Hold the lock file `fd` with flock `mode` (never waiting); StateError naming `holder`
+        when another process holds it in a mode that excludes this one."""
         try:
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            fcntl.flock(fd, mode | fcntl.LOCK_NB)
         except OSError:
             os.close(fd)
-            raise StateError(f"state directory {self.path} is in use by a process that writes it") from None
+            raise StateError(f"state directory {self.path} is in use by {holder}") from None
         self._lock_fd = fd
         return self
 

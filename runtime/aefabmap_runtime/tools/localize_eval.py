@@ -34,7 +34,6 @@ class LocalizationRun:
     run: SequenceRun
     first: int
     map_places: int
-    peak_rss_mb_before: float
 
 
 def localize_sequence(bundle_path, images_dir, gt_path, state, config: DetectorConfig | None = None,
@@ -43,8 +42,6 @@ def localize_sequence(bundle_path, images_dir, gt_path, state, config: DetectorC
 
     The map's frames are frames 0..first-1 of `images_dir` (first: the map's next frame);
     ConfigError when the sequence has no frame after them. Returns (metrics, the run)."""
-    import resource
-
     images = list_images(images_dir)
     gt = load_ground_truth(gt_path, len(images))
     detector = load_detector(bundle_path, config)
@@ -55,12 +52,11 @@ def localize_sequence(bundle_path, images_dir, gt_path, state, config: DetectorC
             raise ConfigError(f"the map in {state} was built over {first} frames; {images_dir} has {len(images)}: "
                               "no frame is left to localize (give the whole sequence, the map's frames first, and "
                               "its whole ground truth: the frames after the map's are localized)")
-        rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         places = detector.n_places
         run = run_sequence(detector, images[first:], keep_matrix=False, show_progress=show_progress, workers=workers)
     finally:
         directory.close()
-    return localization_metrics(run, gt, first, tolerance), LocalizationRun(run, first, places, rss_before)
+    return localization_metrics(run, gt, first, tolerance), LocalizationRun(run, first, places)
 
 
 def localization_metrics(run: SequenceRun, gt: np.ndarray, first: int, tolerance: int) -> dict:

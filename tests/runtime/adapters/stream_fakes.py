@@ -300,10 +300,10 @@ class NodeRun:
 
 
 def run_node_process(run_args: list[str], images_dir, last_seq: int, *, rate: int = 30,
-                     timeout_s: float = 90.0) -> NodeRun:
+                     timeout_s: float = 90.0, stop_signal: int = signal.SIGTERM) -> NodeRun:
     """Start `aefabmap run RUN_ARGS --key KEY --listen EP` as a child process, feed it the images of
     images_dir with `aefabmap publish` once it subscribed, wait for the result of sequence
-    last_seq, then stop it with SIGTERM (killed if it does not exit)."""
+    last_seq, then stop it with stop_signal (SIGTERM: killed if it does not exit; SIGKILL: a crash)."""
     listen, connect = session_pair()
     ep = listen.listen[0]
     run = subprocess.Popen(CLI + ["run", *run_args, "--key", KEY, "--listen", ep],
@@ -319,7 +319,7 @@ def run_node_process(run_args: list[str], images_dir, last_seq: int, *, rate: in
             assert pub.returncode == 0, pub.stderr
             docs = results.wait_for(lambda d: d["sequence"] == last_seq, timeout_s=timeout_s)
             results.close()
-        run.send_signal(signal.SIGTERM)
+        run.send_signal(stop_signal)
         out, err = run.communicate(timeout=60)
     finally:
         if run.poll() is None:

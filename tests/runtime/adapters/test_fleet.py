@@ -152,7 +152,9 @@ def test_hostile_peers_are_counted_and_cannot_crash_or_overfill_a_node(hub, rout
         b.close(), sb.close(), evil.close()
 
 
-def test_a_restarted_node_serves_the_places_of_its_loaded_map(hub, route):
+def _restarted_a(hub, route, read_only: bool = False) -> tuple[zenoh.Session, FleetNode]:
+    """Robot a maps route 0-5 (places 0-4) and leaves; a new node loads its map (read-only:
+    localizing) and rejoins as a."""
     from aefabmap.cli.demo import default_bundle
 
     sa, a = _robot(hub, "a")
@@ -162,8 +164,13 @@ def test_a_restarted_node_serves_the_places_of_its_loaded_map(hub, route):
     sa.close()
     det = load_detector(default_bundle(), DetectorConfig(exclude=1))
     det.load_state(state)
-    s2 = _peer(hub)
-    again = FleetNode(s2, det, FleetConfig(name="test", robot="a"))
+    det.map.read_only = read_only
+    session = _peer(hub)
+    return session, FleetNode(session, det, FleetConfig(name="test", robot="a"))
+
+
+def test_a_restarted_node_serves_the_places_of_its_loaded_map(hub, route):
+    s2, again = _restarted_a(hub, route)
     sc, c = _robot(hub, "c")
     try:
         assert _until(lambda: c.robots_alive() == ["a"])
@@ -500,18 +507,7 @@ def test_a_peer_declaring_many_robots_cannot_grow_the_node_without_bound(hub):
 def test_a_localizing_node_offers_its_read_only_map_and_keeps_it_unchanged(hub, route):
     """--localize with --fleet: the frozen map's places are offered as a loaded map's are; the
     node's own frames enter nothing, so it offers no new place."""
-    from aefabmap.cli.demo import default_bundle
-
-    sa, a = _robot(hub, "a")
-    _feed(a, route[:6])
-    state = a.detector.state().resolve()
-    a.close()
-    sa.close()
-    det = load_detector(default_bundle(), DetectorConfig(exclude=1))
-    det.load_state(state)
-    det.map.read_only = True
-    s2 = _peer(hub)
-    frozen = FleetNode(s2, det, FleetConfig(name="test", robot="a"))
+    s2, frozen = _restarted_a(hub, route, read_only=True)
     sc, c = _robot(hub, "c")
     try:
         assert _until(lambda: c.robots_alive() == ["a"])

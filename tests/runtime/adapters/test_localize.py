@@ -4,27 +4,19 @@ directory is byte for byte what it was, after a clean stop, a kill -9 and a repl
 
 from __future__ import annotations
 
-import hashlib
 import signal
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from aefabmap_runtime.adapters.zenoh_transport import FramePublisher, open_session
+from aefabmap_runtime.tools.localize_eval import state_digest
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence, write_sequence
 from tests.conftest import make_synthetic_bundle
 
-from .stream_fakes import CLI, KEY, RESULTS, JsonCollector, run_node_process, session_pair
+from .stream_fakes import CLI, KEY, run_node_process, session_pair
 
 N, HALF = 120, 60  # two laps: frames 60.. revisit frames 0..59
-
-
-def _digest(directory: Path) -> dict[str, str]:
-    """sha256 of every file under directory, by relative path."""
-    return {str(p.relative_to(directory)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(directory.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +38,7 @@ def mapped(tmp_path_factory):
 @pytest.mark.timeout(300)
 def test_run_localize_verifies_against_the_map_and_never_writes_it(mapped, tmp_path):
     bundle, tmp, state = mapped
-    before = _digest(state)
+    before = state_digest(state)
     node = run_node_process(["--model", str(bundle), "--mcap", str(tmp_path / "loc.mcap"), "--queue", "256",
                              "--state", str(state), "--localize"], tmp / "second", N - 1)
     assert node.returncode == 0, node.stderr
@@ -56,42 +48,25 @@ def test_run_localize_verifies_against_the_map_and_never_writes_it(mapped, tmp_p
     assert loops and all(f < HALF for _, f in loops)  # every match is a place of the map
     assert {d["n_places"] for d in node.results} == {node.results[0]["n_places"]} and node.results[0]["n_places"] > 0
     assert all(d["inserted_frame"] is None and d["evicted_place"] is None for d in node.results)
-    assert _digest(state) == before
+    assert state_digest(state) == before
 
     # The same frames replayed from the localize run's log, against the same map: same matches, DIR unchanged.
     out = subprocess.run(CLI + ["replay", str(tmp_path / "loc.mcap"), "--model", str(bundle), "--state", str(state),
                                 "--localize"], capture_output=True, text=True, timeout=240, check=False)
     assert out.returncode == 0, out.stderr
-    assert _digest(state) == before
+    assert state_digest(state) == before
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_a_localize_node_killed_mid_run_leaves_the_state_unchanged(mapped, tmp_path):
     bundle, tmp, state = mapped
-    before = _digest(state)
-    listen, connect = session_pair()
-    ep = listen.listen[0]
-    run = subprocess.Popen(CLI + ["run", "--model", str(bundle), "--key", KEY, "--listen", ep, "--queue", "256",
-                                  "--mcap", str(tmp_path / "k.mcap"), "--state", str(state), "--localize"],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        with open_session(connect) as s:
-            results = JsonCollector(s, RESULTS)
-            probe = FramePublisher(s, KEY)
-            assert probe.wait_for_subscriber(60), "the node never subscribed"
-            probe.close()
-            subprocess.run(CLI + ["publish", "--images", str(tmp / "second"), "--key", KEY, "--rate", "30",
-                                  "--connect", ep], capture_output=True, text=True, timeout=60, check=True)
-            results.wait_for(lambda d: d["sequence"] >= 30, timeout_s=90)
-            run.send_signal(signal.SIGKILL)
-            run.wait(30)
-            results.close()
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.wait(10)
-    assert _digest(state) == before
+    before = state_digest(state)
+    node = run_node_process(["--model", str(bundle), "--mcap", str(tmp_path / "k.mcap"), "--queue", "256",
+                             "--state", str(state), "--localize"], tmp / "second", HALF + 30,
+                            stop_signal=signal.SIGKILL)
+    assert node.returncode == -signal.SIGKILL
+    assert state_digest(state) == before
 
 
 @pytest.mark.timeout(120)
