@@ -26,7 +26,9 @@ def register(sub) -> None:
                     help="keypoint detector and descriptor (default orb)")
     fe.add_argument("--rootsift", action="store_true", help="RootSIFT descriptors (with --features sift)")
     fe.add_argument("--max-features", type=int, default=500, help="keypoints per image (default 500)")
-    fe.add_argument("--long-side", type=int, default=640, help="resize images so the long side has this many px (0: native)")
+    fe.add_argument("--long-side", type=int, default=512,
+                    help="resize images so the long side has this many px before detection, in training and at run "
+                    "time (0: native; default 512, docs/results.md \"Detection scale\")")
     fe.add_argument("--contrast-stretch", action=argparse.BooleanOptionalAction, default=True,
                     help="stretch each image's grey levels (1st..99th percentile to 0..255) before detection, in "
                     "training and at run time (FeatureConfig.contrast_stretch; default on)")
