@@ -7,6 +7,8 @@ odometry's matching.
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -45,17 +47,21 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return popcount_rows(np.bitwise_xor(a, b))
 
 
-if compiled.numba is not None:
-    from numba import types as _types
-    from numba.extending import intrinsic as _intrinsic
+@functools.cache
+def popcount64_intrinsic():
+    """numba's popcount64(x): bits set in a uint64 (the CPU's popcount instruction where it has
+    one), for kernels built while numba is in use (it imports numba)."""
+    from numba import types
+    from numba.extending import intrinsic
 
-    @_intrinsic
+    @intrinsic
     def popcount64(typingctx, x):
-        """Bits set in a uint64 (the CPU's popcount instruction where it has one)."""
         def codegen(context, builder, signature, args):
             return builder.ctpop(args[0])
 
-        return _types.uint64(_types.uint64), codegen
+        return types.uint64(types.uint64), codegen
+
+    return popcount64
 
 
 @compiled.kernel(native.nearest_two)
@@ -70,6 +76,8 @@ def nearest_two_kernel():
     (as in OpenCV's batchDistance); the second nearest is the minimum once the first's key is masked. (A scan
     that tracked the two smallest with branches took longer than the distances themselves.)
     """
+    popcount64 = popcount64_intrinsic()
+
     def nearest_two(a, bt, dist, index):
         n, w = a.shape
         m = bt.shape[1]

@@ -19,31 +19,61 @@ speed only.
 
 from __future__ import annotations
 
+from types import ModuleType
 from typing import Callable
 
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.core.kernels import native
 
-_numba_unavailable = ""  # why numba cannot run here ("" when it can)
-try:
-    import numba
-except ImportError:  # pragma: no cover - depends on the environment
-    numba, _numba_unavailable = None, "numba is not installed (extra `fast`)"
-except Exception as exc:  # pragma: no cover - depends on the environment
-    numba, _numba_unavailable = None, f"numba cannot run here: {type(exc).__name__}: {exc}"
+# numba is imported only when it may run a kernel: where the native library is in use, a process
+# never pays for importing it (start-up time and resident memory on a board).
+_numba: ModuleType | None = None
+_numba_unavailable: str | None = None  # why numba cannot run here ("" when it can; None: not tried yet)
+
+
+def _load_numba() -> ModuleType | None:
+    """The numba module, imported on the first call (None where it cannot run here)."""
+    global _numba, _numba_unavailable
+    if _numba_unavailable is None:
+        try:
+            import numba as module
+        except ImportError:  # pragma: no cover - depends on the environment
+            module, _numba_unavailable = None, "numba is not installed (extra `fast`)"
+        except Exception as exc:  # pragma: no cover - depends on the environment
+            module, _numba_unavailable = None, f"numba cannot run here: {type(exc).__name__}: {exc}"
+        else:
+            _numba_unavailable = ""
+        _numba = module
+    return _numba
+
+
+def __getattr__(name: str):
+    """`compiled.numba`: the numba module (None where it cannot run), imported on first use."""
+    if name == "numba":
+        return _load_numba()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: What a benchmark or a test may ask for: "auto" (the preferred compiled form here), or a form.
 KERNEL_CHOICES = ("auto", "native", "numba", "numpy")
 
 
+def _forms():
+    """The compiled forms that can run here, preferred first, found one at a time (numba is
+    imported only when asked whether it runs)."""
+    if native.available():
+        yield "native"
+    if _load_numba() is not None:
+        yield "numba"
+
+
 def backends() -> list[str]:
-    """The compiled forms that can run here, preferred first."""
-    return [b for b, ok in (("native", native.available()), ("numba", numba is not None)) if ok]
+    """The compiled forms that can run here, preferred first (imports numba to find out)."""
+    return list(_forms())
 
 
 def _preferred() -> str:
-    found = backends()
-    return found[0] if found else "numpy"
+    return next(_forms(), "numpy")
 
 
 _use = _preferred()
@@ -51,14 +81,14 @@ _use = _preferred()
 
 def available() -> bool:
     """True when some compiled form can run here."""
-    return bool(backends())
+    return next(_forms(), None) is not None
 
 
 def unavailable_reason() -> str:
     """Why no compiled form can be used here ("" when one can)."""
     if available():
         return ""
-    return f"{native.unavailable_reason()}; {_numba_unavailable}"
+    return f"{native.unavailable_reason()}; {_numba_unavailable or ''}"
 
 
 def use(choice: bool | str) -> str:
@@ -75,7 +105,7 @@ def use(choice: bool | str) -> str:
         _use = choice
     else:
         raise ConfigError(f"compiled kernels {choice!r} cannot run here (available: {backends() or 'none'}; "
-                          f"{native.unavailable_reason() or _numba_unavailable})")
+                          f"{native.unavailable_reason() or _numba_unavailable or ''})")
     return previous
 
 
@@ -119,13 +149,13 @@ def prepare(*kernels: Callable[[], Callable]) -> None:
     frame, once per process; docs/results.md, "Per frame"), so that the first frame does not pay
     for it. A JIT that imports but cannot compile here is dropped: the process goes on with the
     native form, or the fallbacks."""
-    global numba, _use, _numba_unavailable
+    global _numba, _use, _numba_unavailable
     if _use != "numba":
         return
     try:
         for get in kernels:
             get()
     except Exception as exc:  # pragma: no cover - a JIT that imports but cannot compile here
-        numba = None
+        _numba = None
         _numba_unavailable = f"numba cannot compile here: {type(exc).__name__}: {exc}"
         _use = _preferred()

@@ -19,30 +19,38 @@ static postings, `scatter_scores`'s concatenated rows).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from aefabmap_runtime.errors import ConfigError
 
 from aefabmap_runtime.core.kernels import compiled, native
 
-if compiled.numba is not None:
-    from numba import types as _types
-    from numba.extending import intrinsic as _intrinsic
+@functools.cache
+def _int32_buffer_intrinsic():
+    """numba's _int32_buffer(address): an integer data address -> int32* (indexable in compiled
+    code; no bounds), for kernels built while numba is in use (it imports numba)."""
+    from numba import types
+    from numba.extending import intrinsic
 
-    @_intrinsic
+    @intrinsic
     def _int32_buffer(typingctx, address):
-        """An integer data address -> int32* (indexable in compiled code; no bounds)."""
-        pointer = _types.CPointer(_types.int32)
+        pointer = types.CPointer(types.int32)
 
         def codegen(context, builder, signature, args):
             return builder.inttoptr(args[0], context.get_value_type(pointer))
 
-        return pointer(_types.intp), codegen
+        return pointer(types.intp), codegen
+
+    return _int32_buffer
 
 
 @compiled.kernel(native.scatter_buffers)
 def buffers_kernel():
     """The address-reading loop, compiled (runtime/aefabmap_runtime/core/kernels/compiled.py)."""
+    _int32_buffer = _int32_buffer_intrinsic()
+
     def scatter(acc, addresses, weights, lens):
         for i in range(addresses.size):
             row = _int32_buffer(addresses[i])
@@ -58,6 +66,8 @@ def buffers_kernel():
 def append_kernel():
     """One posting appended to each of several word buffers, compiled: buffer i (the int32 data
     at addresses[i]) gets `pid` at position positions[i] (the caller checked it has room)."""
+    _int32_buffer = _int32_buffer_intrinsic()
+
     def append(addresses, positions, pid):
         for i in range(addresses.size):
             _int32_buffer(addresses[i])[positions[i]] = pid

@@ -14,10 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from aefabmap_runtime.core.kernels import compiled, native
-from aefabmap_runtime.core.kernels.bits import packed_words
-
-if compiled.numba is not None:
-    from aefabmap_runtime.core.kernels.bits import popcount64
+from aefabmap_runtime.core.kernels.bits import packed_words, popcount64_intrinsic
 
 
 @compiled.kernel(native.same_word)
@@ -29,6 +26,8 @@ def same_word_kernel():
     word's keypoints come in increasing index); pd (M, W) place rows; cap, ratio: float32 as the
     numpy form compares them; out (min(N, M), 2) receives the matches; returns their count.
     """
+    popcount64 = popcount64_intrinsic()
+
     def same_word(qw, qd, pw, order, pd, cap, ratio, out):
         n, w = qd.shape
         m = pd.shape[0]

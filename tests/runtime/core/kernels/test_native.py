@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -73,7 +74,7 @@ def test_a_library_of_another_version_is_not_used(tmp_path, monkeypatch):
 
 
 def test_asking_for_a_form_that_cannot_run_is_a_config_error(monkeypatch):
-    monkeypatch.setattr(compiled, "backends", lambda: [])
+    monkeypatch.setattr(compiled, "_forms", lambda: iter(()))
     previous = compiled.backend()
     try:
         with pytest.raises(ConfigError, match="cannot run here"):
@@ -82,3 +83,15 @@ def test_asking_for_a_form_that_cannot_run_is_a_config_error(monkeypatch):
     finally:
         monkeypatch.undo()
         compiled.use(previous)
+
+
+@needs_native
+def test_a_detector_on_the_native_kernels_never_imports_numba():
+    """numba costs start-up time and resident memory: a process whose kernels are native leaves it out."""
+    probe = ("import sys\nfrom aefabmap import default_bundle, load_detector\nimport numpy as np\n"
+             "d = load_detector(default_bundle())\nd.process(np.random.default_rng(0).integers(0, 255, (240, 320), np.uint8))\n"
+             "from aefabmap_runtime.core.kernels import compiled\n"
+             "print(compiled.backend(), 'numba' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["native", "False"]

@@ -237,3 +237,25 @@ def test_an_empty_copy_shares_the_model_and_scores_as_a_fresh_one():
         a, b = copy.localize(o), fresh.localize(o)
         assert np.array_equal(a.loglik, b.loglik) and a.loglik_new == b.loglik_new and a.p_new == b.p_new
     assert own.n_places == 6  # the original's places are its own
+
+
+def test_training_observations_are_made_word_sets_as_one_at_a_time():
+    from aefabmap_runtime.core.rank.fabmap import as_word_set, as_word_sets
+
+    rng = np.random.default_rng(3)
+    observations = [rng.integers(0, 50, rng.integers(0, 30)) for _ in range(40)]
+    observations += [[], [7, 7, 1], np.array([49], np.uint16), (0,)]
+    sets = as_word_sets(observations, 50)
+    assert len(sets) == len(observations)
+    for got, obs in zip(sets, observations):
+        want = as_word_set(obs, 50)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert as_word_sets([], 50) == [] and [s.size for s in as_word_sets([[], []], 50)] == [0, 0]
+
+
+@pytest.mark.parametrize("bad", [[[1, 2], [50]], [[0], [-1]], [[[1, 2]]], [[0.5]]])
+def test_a_training_observation_outside_the_vocabulary_is_an_input_error(bad):
+    from aefabmap_runtime.core.rank.fabmap import as_word_sets
+
+    with pytest.raises(InputError):
+        as_word_sets(bad, 50)
