@@ -218,10 +218,10 @@ def add_verification_options(g, *flags: str, bench: bool = False) -> None:
         "--verify-top-k": dict(type=int, default=None, metavar="K",
                                help=f"FAB-MAP candidates verified per frame (default {c.top_k})"),
         "--verify-bruteforce": dict(type=int, default=None, metavar="K", help=(
-            f"FAB-MAP candidates retried with all-pairs matching when same-word matching fails {runtime}" if bench
-            else "the best K FAB-MAP candidates are retried with all-pairs matching when same-word matching fails "
-            f"(default {c.bruteforce_fallback}, every candidate of the default top {c.top_k}; fewer cost less on "
-            "frames that are not loops and find fewer loops)")),
+            f"FAB-MAP candidates checked by all-pairs matching {runtime}" if bench
+            else "the best K FAB-MAP candidates are checked by all-pairs matching, the others by same-word "
+            f"matching only (default {c.bruteforce_fallback}, every candidate of the default top {c.top_k}; fewer "
+            "cost less on frames that are not loops and find fewer loops)")),
         "--verify-track-memory": dict(type=int, default=None, metavar="N",
                                       help="frames after a verified match during which its successors are checked "
                                       f"first (default {c.track_memory}; a map journal written with another value "

@@ -170,13 +170,18 @@ def settings_differences(stored: object, current: object, prefix: str = "") -> l
     return [] if stored == current else [prefix.rstrip(".")]
 
 
-def settings_before_upright(detector: object) -> object:
+def settings_as_they_ran(detector: object) -> object:
     """Recorded detector settings (DetectorConfig.to_dict, or part of it) as they ran: a record
     whose verification settings have no `upright` was written before upright descriptors
-    existed and ran without them. Anything else comes back as it is."""
-    verification = detector.get("verification") if isinstance(detector, dict) else None
+    existed and ran without them; one whose candidate settings have no `retry_alone` checked
+    FAB-MAP's retried candidates by same-word matching first. Anything else comes back as it is."""
+    if not isinstance(detector, dict):
+        return detector
+    verification, candidates = detector.get("verification"), detector.get("candidates")
     if isinstance(verification, dict) and "upright" not in verification:
-        return {**detector, "verification": {**verification, "upright": False}}
+        detector = {**detector, "verification": {**verification, "upright": False}}
+    if isinstance(candidates, dict) and "retry_alone" not in candidates:
+        detector = {**detector, "candidates": {**candidates, "retry_alone": False}}
     return detector
 
 
@@ -186,7 +191,7 @@ def recorded_settings_differences(recorded: object, config: DetectorConfig) -> l
     points (they change what is drawn, never a decision); ["(unreadable record)"] when the
     text cannot be read."""
     try:
-        differ = settings_differences(settings_before_upright(json.loads(recorded)), config.to_dict())
+        differ = settings_differences(settings_as_they_ran(json.loads(recorded)), config.to_dict())
     except (TypeError, ValueError, RecursionError):
         return ["(unreadable record)"]
     return [d for d in differ if not d.endswith("keep_inlier_points")]
@@ -204,13 +209,13 @@ def logged_run_config(logged: object) -> RunConfig:
         if isinstance(detector, dict) and "sequence" not in detector:
             detector = {**detector, **_BEFORE_CHAINS}
         if isinstance(detector, dict):
-            doc = {**doc, "detector": settings_before_upright(detector)}
+            doc = {**doc, "detector": settings_as_they_ran(detector)}
         return RunConfig.from_dict(doc)
     legacy = {k: logged.get(k) for k in ("max_places", "memory_mb")}
     camera = logged.get("camera")
     detector = {**legacy, "verification": {"camera": camera}, **_BEFORE_WHOLE_CONFIG}
     doc = {"format": RUN_CONFIG_FORMAT, "model": str(logged.get("model", ""))[:4096],
-           "detector": settings_before_upright(detector)}
+           "detector": settings_as_they_ran(detector)}
     return RunConfig.from_dict(doc)
 
 

@@ -30,6 +30,14 @@ def test_logs_written_before_upright_descriptors_replay_without_them():
     assert not logged_run_config({RUN_CONFIG_KEY: doc}).detector.verification.upright
 
 
+def test_logs_written_before_the_retry_alone_replay_with_same_word_checks_first():
+    doc = RunConfig().to_dict()
+    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.retry_alone
+    del doc["detector"]["candidates"]["retry_alone"]
+    assert not logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.retry_alone
+    assert not logged_run_config({"max_places": 5}).detector.candidates.retry_alone
+
+
 def test_logs_written_before_chains_replay_without_them():
     doc = RunConfig(detector=DetectorConfig(sequence=dataclasses.replace(DetectorConfig().sequence, frames=2))).to_dict()
     assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.frames == 2

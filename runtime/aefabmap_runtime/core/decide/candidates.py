@@ -37,6 +37,14 @@ class CandidateConfig:
         all-pairs descriptor matching when same-word matching did not pass (true matches split
         across words by quantisation, the more so under viewpoint and light change). The default
         retries every candidate of `top_k`.
+    retry_alone: FAB-MAP's candidates that get the brute-force retry are checked by it alone (its
+        all-pairs matches), without the same-word check first; False checks them by same-word
+        matching first, as the tracked places always are. For a candidate FAB-MAP proposes, the
+        retry decides whenever the same-word check fails, which is most of the time: on the
+        training revisits, by day and at night, the same-word check before it changed no decision,
+        while it cost a geometry fit per candidate of every frame that is not a loop
+        (docs/results.md, "A frame's cost by its decision"). A tracked place keeps it: a revisit
+        that goes on mostly passes it, the cheaper check.
     bruteforce_track: the same retry for every tracked place (see `track`).
     track: temporal prior: when the previous query was verified to stored frame f, the stored
         frames f+1, ..., f+`track`, then f, are tried before FAB-MAP's candidates. 0 disables.
@@ -56,6 +64,7 @@ class CandidateConfig:
 
     top_k: int = 5
     bruteforce_fallback: int = 5
+    retry_alone: bool = True
     bruteforce_track: bool = True
     track: int = 2
     track_memory: int = 6
@@ -83,8 +92,8 @@ class CandidateConfig:
 
 
 #: check(place id, bruteforce, retry_only, upright) -> the pair's GeometryResult, or None when the
-#: place holds no keypoints. retry_only: the place's same-word check already failed in this query,
-#: only the brute-force retry is new. upright: a failed brute-force retry is retried with upright
+#: place holds no keypoints. retry_only: the brute-force retry alone (the place's same-word check
+#: already failed in this query, or CandidateConfig.retry_alone skips it). upright: a failed brute-force retry is retried with upright
 #: descriptors (VerificationConfig.upright); the policy asks it for tracked places only.
 PairCheck = Callable[[int, bool, bool, bool], "GeometryResult | None"]
 
@@ -160,7 +169,10 @@ class _Query:
         if done or (done is not None and not bruteforce) or self.exhausted or not np.isfinite(self.ranking[pid]):
             return False
         self.tried[pid] = bruteforce
-        retry_only = done is False
+        first = done is None
+        # A place checked by same-word matching already gets the retry alone; so does FAB-MAP's
+        # candidate given the retry, under `retry_alone`.
+        retry_only = not first or (bruteforce and source == "fabmap" and self.config.retry_alone)
         # Upright descriptors only extend a verified loop (its track's window and reach): a new
         # loop is opened by the oriented test alone. On repetitive structure seen from the same
         # viewpoint (door frames along a corridor), upright descriptors of different places match
@@ -170,7 +182,7 @@ class _Query:
         if g is None:
             return False
         s.bruteforce += bruteforce
-        if not retry_only:
+        if first:
             s.tried += 1
         s.attempts.append(Attempt(pid, source, g))
         if more_significant(g, s.best):

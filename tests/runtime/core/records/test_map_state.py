@@ -158,3 +158,18 @@ def test_settings_recorded_before_upright_descriptors_match_a_run_without_them()
     assert recorded_settings_differences(json.dumps(old), without) == []
     assert recorded_settings_differences(json.dumps(old), now) == ["verification.upright"]
     assert recorded_settings_differences(json.dumps(now.to_dict()), now) == []
+
+
+def test_settings_recorded_before_the_retry_alone_match_a_run_with_same_word_checks_first():
+    import dataclasses
+    import json
+
+    from aefabmap_runtime.core.decide.candidates import CandidateConfig
+    from aefabmap_runtime.core.run_config import recorded_settings_differences
+
+    now = DetectorConfig()
+    old = now.to_dict()
+    del old["candidates"]["retry_alone"]
+    before = dataclasses.replace(now, candidates=CandidateConfig(retry_alone=False))
+    assert recorded_settings_differences(json.dumps(old), before) == []
+    assert recorded_settings_differences(json.dumps(old), now) == ["candidates.retry_alone"]

@@ -496,7 +496,7 @@ def test_track_reach_retries_by_brute_force_a_place_fabmap_checked_by_same_word_
     for reach, found in ((3, True), (0, False)):
         retries_alone.clear()
         _, r = _one_word_run(tmp_path / str(reach), _skip_ahead_sequence(), track=2, track_memory=1,
-                             track_reach=reach, top_k=5, bruteforce_fallback=1)
+                             track_reach=reach, top_k=5, bruteforce_fallback=1, retry_alone=False)
         assert r[6].verified and r[6].verified_frame == 0
         assert r[7].verified == found
         if found:
@@ -630,3 +630,38 @@ def test_the_upright_retry_runs_only_when_the_oriented_one_fails_and_counts_both
     # robot's place): oriented matching alone.
     for result in (retry(wrong, VerificationConfig(upright=False)), retry(wrong, p_up=None), retry(wrong, q_up=None)):
         assert not result.verified
+
+
+def test_fabmap_candidates_given_the_retry_skip_the_same_word_check_and_tracked_places_keep_it(tmp_path, monkeypatch):
+    """CandidateConfig.retry_alone: FAB-MAP's first `bruteforce_fallback` candidates are checked
+    by all-pairs matching alone; the candidates after them by same-word matching alone; the
+    track's places by same-word matching, then the retry. False: every FAB-MAP candidate gets the
+    same-word check first."""
+    from aefabmap_runtime.core import detector as detector_module
+
+    real, real_retry = detector_module.verify_pair, detector_module.verify_pair_bruteforce
+    calls: list[tuple[str, bool]] = []
+
+    def same_word_first(*args, bruteforce=False, **kw):
+        calls.append(("same_word", bruteforce))
+        return real(*args, bruteforce=bruteforce, **kw)
+
+    def retry_alone(*args, **kw):
+        calls.append(("retry", True))
+        return real_retry(*args, **kw)
+
+    monkeypatch.setattr(detector_module, "verify_pair", same_word_first)
+    monkeypatch.setattr(detector_module, "verify_pair_bruteforce", retry_alone)
+    seq = _skip_ahead_sequence()[:6] + [texture(98)]  # frame 6 is no revisit: every candidate fails
+    for alone, want in ((True, [("retry", True), ("retry", True), ("same_word", False)]),
+                        (False, [("same_word", True), ("same_word", True), ("same_word", False)])):
+        calls.clear()
+        _, r = _one_word_run(tmp_path / str(alone), seq, track=0, top_k=3, bruteforce_fallback=2, retry_alone=alone)
+        assert not any(x.verified for x in r)
+        assert r[6].candidates_tried == 3
+        assert calls[-3:] == want
+    # A revisit found by the retry alone is then followed along the track by same-word checks first.
+    calls.clear()
+    _, r = _one_word_run(tmp_path / "track", _revisit_sequence()[:8], track=2, track_memory=1, top_k=1)
+    assert r[6].verified and r[6].verified_frame == 0 and r[7].verified and r[7].verified_frame == 1
+    assert calls[-1] == ("same_word", True)
