@@ -15,7 +15,8 @@ import numpy as np
 
 from aefabmap_runtime.errors import ConfigError, InputError
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind, get_kind
-from aefabmap_runtime.core.features.orb_description import OrbDescriber
+from aefabmap_runtime.core.features.orb_description import OrbDescriber, pyramid
+from aefabmap_runtime.core.features.orb_levels import OrbLevelDetector, keypoint_rows
 
 #: Shortest image side (px) the extractor works on, before and after resizing: OpenCV's
 #: ORB pyramid shrinks each level by 1.2 and asserts when a level reaches 0 px.
@@ -205,8 +206,11 @@ class FeatureExtractor:
         self._detector = self.kind.create(c.max_features * (c.bucket_oversample if c.bucket_grid else 1))
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if c.clahe else None
         # ORB: OpenCV detects, the compiled kernel describes both orientations from one blurred
-        # pyramid, OpenCV's bytes (features/orb_description.py); None: OpenCV describes.
+        # pyramid, OpenCV's bytes (features/orb_description.py); None: OpenCV describes. With the
+        # describer, the pyramid is built once for both: OpenCV detects on each of its levels
+        # (features/orb_levels.py; None: cv2.ORB builds its own).
         self._describer = OrbDescriber.for_detector(self._detector)
+        self._levels = OrbLevelDetector.for_detector(self._detector) if self._describer is not None else None
 
     def extract(self, image: np.ndarray) -> Features:
         """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array.
@@ -237,7 +241,12 @@ class FeatureExtractor:
         if self._clahe is not None:
             work = self._clahe.apply(work)
         if self._describer is not None:
-            packed = self._pack_described(self._detector.detect(work, None), scale, gray.shape, work)
+            if self._levels is not None:
+                levels, _ = pyramid(work, self._levels.n_levels, self._levels.scale_factor)
+                xy, attrs = self._levels.detect(levels)
+            else:
+                levels, (xy, attrs) = None, keypoint_rows(self._detector.detect(work, None))
+            packed = self._pack_described(xy, attrs, scale, gray.shape, work, levels)
             if packed is not None:
                 return packed
         kps, desc = self._detector.detectAndCompute(work, None)
@@ -253,20 +262,19 @@ class FeatureExtractor:
             order = order[_bucket_turns(pts[order], shape_hw, c.bucket_grid)]
         return order[: c.max_features]
 
-    def _pack_described(self, kps, scale: float, shape, work: np.ndarray) -> Features | None:
-        """As `_pack`, with the kept keypoints described by the compiled kernel (None: it cannot
-        describe one of them; the caller lets OpenCV describe the frame)."""
+    def _pack_described(self, pts: np.ndarray, attrs: np.ndarray, scale: float, shape, work: np.ndarray,
+                        levels: list[np.ndarray] | None) -> Features | None:
+        """As `_pack`, for keypoints pts (N, 2) with (N, 4) rows (response, size, angle, octave)
+        (`orb_levels.keypoint_rows`), the kept ones described by the compiled kernel (None: it
+        cannot describe one of them; the caller lets OpenCV describe the frame). levels: `work`'s
+        pyramid when already built."""
         c = self.config
-        n = len(kps)
-        if n == 0:
-            return self._pack(kps, None, scale, shape, work)
-        pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
-        # One pass over the KeyPoint objects for every attribute used (each pass costs per keypoint).
-        attrs = np.fromiter(((k.response, k.size, k.angle, k.octave) for k in kps), np.dtype((np.float32, 4)), n)
+        if len(pts) == 0:
+            return self._pack([], None, scale, shape, work)
         order = self._kept(pts, attrs[:, 0], work.shape)
         kept = attrs[order]
         described = self._describer.describe(work, pts[order], kept[:, 2], kept[:, 3].astype(np.int32),
-                                             oriented=True, upright=self.upright)
+                                             oriented=True, upright=self.upright, levels=levels)
         if described is None:
             return None
         desc, upright = described

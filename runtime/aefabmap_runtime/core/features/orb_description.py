@@ -33,31 +33,31 @@ _PROBE_SIZE = 201
 _PROBE_SHIFTS = range(-40, 41)
 
 
-def _level_scales(n_levels: int, scale_factor: float) -> np.ndarray:
+def level_scales(n_levels: int, scale_factor: float) -> np.ndarray:
     """(L,) float32 scale of each pyramid level, as ORB computes it: pow in double of the
     factor, rounded to float32."""
     return np.array([np.float32(float(scale_factor) ** level) for level in range(n_levels)], np.float32)
 
 
-def blurred_pyramid(image: np.ndarray, n_levels: int, scale_factor: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """ORB's pyramid of a grayscale (H, W) uint8 image, each level blurred for description.
-
-    Level 0 is the image; level l is level l - 1 resized (bit-exact bilinear) to the image size
-    over the level's scale, rounded. Returns the blurred levels and (L,) float32 1 / scale.
-    """
-    scales = _level_scales(n_levels, scale_factor)
-    inv = (np.float32(1.0) / scales).astype(np.float32)
-    kernel = cv2.getGaussianKernel(BLUR_SIZE, BLUR_SIGMA, ktype=cv2.CV_32F).ravel()
-    levels, previous = [], image
+def pyramid(image: np.ndarray, n_levels: int, scale_factor: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """ORB's pyramid of a grayscale (H, W) uint8 image: level 0 is the image; level l is level
+    l - 1 resized (bit-exact bilinear) to the image size over the level's scale, rounded (levels
+    that would have no pixel are left out). Returns the levels and (L,) float32 1 / scale."""
+    inv = (np.float32(1.0) / level_scales(n_levels, scale_factor)).astype(np.float32)
+    levels = [image]
     h, w = image.shape
-    for level in range(n_levels):
-        if level:
-            size = (int(np.rint(np.float32(w) * inv[level])), int(np.rint(np.float32(h) * inv[level])))
-            if min(size) < 1:
-                break
-            previous = cv2.resize(previous, size, interpolation=cv2.INTER_LINEAR_EXACT)
-        levels.append(cv2.sepFilter2D(previous, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT_101))
+    for level in range(1, n_levels):
+        size = (int(np.rint(np.float32(w) * inv[level])), int(np.rint(np.float32(h) * inv[level])))
+        if min(size) < 1:
+            break
+        levels.append(cv2.resize(levels[-1], size, interpolation=cv2.INTER_LINEAR_EXACT))
     return levels, inv[: len(levels)]
+
+
+def blurred(levels: list[np.ndarray]) -> list[np.ndarray]:
+    """Each pyramid level blurred as ORB blurs it before description."""
+    kernel = cv2.getGaussianKernel(BLUR_SIZE, BLUR_SIGMA, ktype=cv2.CV_32F).ravel()
+    return [cv2.sepFilter2D(level, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT_101) for level in levels]
 
 
 def probe_pattern(orb) -> np.ndarray | None:
@@ -138,14 +138,19 @@ class OrbDescriber:
         return None if pattern is None else cls(orb.getNLevels(), orb.getScaleFactor(), pattern)
 
     def describe(self, image: np.ndarray, xy: np.ndarray, angle: np.ndarray, octave: np.ndarray,
-                 oriented: bool = True, upright: bool = False) -> tuple[np.ndarray | None, np.ndarray | None] | None:
+                 oriented: bool = True, upright: bool = False,
+                 levels: list[np.ndarray] | None = None) -> tuple[np.ndarray | None, np.ndarray | None] | None:
         """Descriptors (N, 32) uint8 of keypoints xy (N, 2) float32 on `image` (level-0 pixels),
         angle (N,) degrees and octave (N,) as ORB detected them; None when a keypoint is out of
-        the pyramid's reach (the caller describes with OpenCV instead)."""
+        the pyramid's reach (the caller describes with OpenCV instead). levels: `image`'s
+        `pyramid` when the caller built it already."""
         n = xy.shape[0]
         if octave.size and (octave.min() < 0 or octave.max() >= self.n_levels):
             return None
-        levels, inv = blurred_pyramid(image, self.n_levels, self.scale_factor)
+        if levels is None:
+            levels, _ = pyramid(image, self.n_levels, self.scale_factor)
+        inv = (np.float32(1.0) / level_scales(len(levels), self.scale_factor)).astype(np.float32)
+        levels = blurred(levels)
         if octave.size and octave.max() >= len(levels):
             return None
         out_o = np.empty((n, PAIRS // 8), np.uint8) if oriented else None

@@ -1,0 +1,114 @@
+"""ORB's keypoints detected level by level on a pyramid built once (the one the descriptors use).
+
+cv2.ORB's `detect` builds its own image pyramid, then detects on each level independently: FAST,
+the strongest by FAST score, Harris responses, the strongest of those, orientations; each level
+keeps its own share of the keypoint budget. The describer (`orb_description.py`) needs the same
+pyramid, so building it twice cost a frame a second set of resizes. Here the pyramid is built
+once and each level goes to a one-level cv2.ORB holding that level's share: the same keypoints,
+responses and angles as OpenCV's own multi-level detection, which `OrbLevelDetector.for_detector`
+checks on a test image before it is used (else the extractor lets cv2.ORB detect).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+
+from aefabmap_runtime.core.features.orb_description import level_scales, pyramid
+
+
+def level_budgets(n_features: int, n_levels: int, scale_factor: float) -> list[int]:
+    """Keypoints each level keeps, as cv2.ORB shares them: a geometric series of ratio
+    1 / scale_factor summing to n_features (float32 arithmetic, each level rounded, the last
+    level taking what is left)."""
+    factor = np.float32(1.0 / scale_factor)
+    share = np.float32(n_features * (1 - factor) / (1 - np.float32(np.power(np.float64(factor), n_levels))))
+    budgets = []
+    for _ in range(n_levels - 1):
+        budgets.append(int(np.rint(share)))
+        share = np.float32(share * factor)
+    budgets.append(max(n_features - sum(budgets), 0))
+    return budgets
+
+
+class OrbLevelDetector:
+    """`orb`'s keypoints from a pyramid built by `orb_description.pyramid` (see module doc)."""
+
+    def __init__(self, orb) -> None:
+        n_levels, scale_factor = orb.getNLevels(), orb.getScaleFactor()
+        self.n_levels, self.scale_factor = n_levels, scale_factor
+        self.patch_size = orb.getPatchSize()
+        self._scales = level_scales(n_levels, scale_factor)
+        self._levels = [
+            cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=orb.getEdgeThreshold(),
+                           firstLevel=0, WTA_K=orb.getWTA_K(), scoreType=orb.getScoreType(),
+                           patchSize=orb.getPatchSize(), fastThreshold=orb.getFastThreshold())
+            for budget in level_budgets(orb.getMaxFeatures(), n_levels, scale_factor)
+        ]
+
+    @classmethod
+    def for_detector(cls, orb) -> OrbLevelDetector | None:
+        """A level detector giving `orb`'s own keypoints, or None when it does not on the test
+        images here (another OpenCV, other settings)."""
+        if not isinstance(orb, cv2.ORB) or orb.getFirstLevel() != 0:
+            return None
+        return cls(orb) if _agrees(orb.getMaxFeatures(), orb.getNLevels(), orb.getScaleFactor(),
+                                   orb.getEdgeThreshold(), orb.getFastThreshold(), orb.getScoreType(),
+                                   orb.getPatchSize()) else None
+
+    def detect(self, levels: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints of the pyramid `levels` (level 0 first): xy (N, 2) float32 in level-0 pixels
+        and (N, 4) float32 rows (response, size, angle, octave), level by level."""
+        xy, attrs = [], []
+        for level, (orb, image) in enumerate(zip(self._levels, levels)):
+            kps = orb.detect(image, None)
+            if not kps:
+                continue
+            scale = self._scales[level]
+            # ORB scales a level's coordinates by the level's float32 scale, in float32.
+            xy.append(cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False) * scale)
+            rows = np.fromiter(((k.response, k.angle) for k in kps), np.dtype((np.float32, 2)), len(kps))
+            attrs.append(np.column_stack([rows[:, 0], np.full(len(kps), np.float32(self.patch_size) * scale, np.float32),
+                                          rows[:, 1], np.full(len(kps), level, np.float32)]))
+        if not xy:
+            return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
+        return np.concatenate(xy), np.concatenate(attrs).astype(np.float32, copy=False)
+
+
+def keypoint_rows(kps) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.KeyPoints as `OrbLevelDetector.detect` returns them: xy (N, 2), (N, 4) rows of
+    (response, size, angle, octave), float32."""
+    if not len(kps):
+        return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
+    xy = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
+    # One pass over the KeyPoint objects for every attribute used (each pass costs per keypoint).
+    attrs = np.fromiter(((k.response, k.size, k.angle, k.octave) for k in kps), np.dtype((np.float32, 4)), len(kps))
+    return xy, attrs
+
+
+@functools.lru_cache(maxsize=8)
+def _agrees(n_features, n_levels, scale_factor, edge_threshold, fast_threshold, score_type, patch_size) -> bool:
+    """Whether the level detector finds cv2.ORB's keypoints (positions, responses, sizes, angles,
+    octaves), on seeded textured test images of two sizes; once per process and setting (every
+    thread's extractor asks)."""
+    orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=scale_factor, nlevels=n_levels,
+                         edgeThreshold=edge_threshold, fastThreshold=fast_threshold, scoreType=score_type,
+                         patchSize=patch_size)
+    mine = OrbLevelDetector(orb)
+    rng = np.random.default_rng(0)
+    for size in ((512, 384), (333, 250)):
+        image = cv2.resize(rng.integers(0, 256, (size[1] // 4, size[0] // 4), dtype=np.uint8), size,
+                           interpolation=cv2.INTER_LINEAR)
+        levels, _ = pyramid(image, n_levels, scale_factor)
+        xy, attrs = mine.detect(levels)
+        ref_xy, ref_attrs = keypoint_rows(orb.detect(image, None))
+        if len(ref_xy) < 50:
+            return False
+        ours = np.column_stack([xy, attrs])
+        theirs = np.column_stack([ref_xy, ref_attrs])
+        if ours.shape != theirs.shape or not np.array_equal(ours[np.lexsort(ours.T[::-1])],
+                                                           theirs[np.lexsort(theirs.T[::-1])]):
+            return False
+    return True

@@ -1,0 +1,67 @@
+"""ORB detected level by level on one pyramid (runtime/aefabmap_runtime/core/features/orb_levels.py):
+cv2.ORB's own keypoints, and cv2.ORB detects where the level detector is not offered."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from aefabmap_runtime.core.features import features as F
+from aefabmap_runtime.core.features.orb_description import pyramid
+from aefabmap_runtime.core.features.orb_levels import OrbLevelDetector, keypoint_rows, level_budgets
+from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
+
+
+@pytest.fixture(scope="module")
+def images():
+    frames, _ = generate_loop_sequence(4, seed=3, size=(320, 240))
+    rng = np.random.default_rng(2)
+    noisy = [np.clip(f.astype(np.int16) + rng.integers(-40, 40, f.shape), 0, 255).astype(np.uint8) for f in frames]
+    sizes = [(512, 410), (160, 120), (640, 64), (48, 40)]  # a detection image, a small frame, 10:1, tiny
+    return frames + noisy + [cv2.resize(noisy[0], s, interpolation=cv2.INTER_LINEAR) for s in sizes]
+
+
+def _rows(xy: np.ndarray, attrs: np.ndarray) -> np.ndarray:
+    rows = np.column_stack([xy, attrs])
+    return rows[np.lexsort(rows.T[::-1])]
+
+
+@pytest.mark.parametrize("settings", [dict(nfeatures=1000), dict(nfeatures=300, fastThreshold=10),
+                                      dict(nfeatures=2000, nlevels=5, scaleFactor=1.3)])
+def test_level_by_level_detection_finds_orbs_own_keypoints(images, settings):
+    orb = cv2.ORB_create(**settings)
+    detector = OrbLevelDetector.for_detector(orb)
+    assert detector is not None
+    for image in images:
+        levels, _ = pyramid(image, orb.getNLevels(), orb.getScaleFactor())
+        mine, theirs = _rows(*detector.detect(levels)), _rows(*keypoint_rows(orb.detect(image, None)))
+        assert mine.shape == theirs.shape and np.array_equal(mine, theirs)
+
+
+def test_each_level_keeps_orbs_share_of_the_budget(images):
+    orb = cv2.ORB_create(nfeatures=1000)
+    texture = cv2.resize(np.random.default_rng(5).integers(0, 256, (240, 320), np.uint8), (640, 480),
+                         interpolation=cv2.INTER_LINEAR)  # corners everywhere: every level fills its share
+    _, attrs = keypoint_rows(orb.detect(texture, None))
+    counts = np.bincount(attrs[:, 3].astype(int), minlength=8)
+    assert list(counts) == level_budgets(1000, 8, orb.getScaleFactor())
+    assert sum(level_budgets(1000, 8, 1.2)) == 1000 and level_budgets(5, 8, 1.2)[-1] >= 0
+
+
+def test_settings_it_does_not_cover_leave_detection_to_orb(images):
+    assert OrbLevelDetector.for_detector(cv2.ORB_create(firstLevel=1)) is None
+    assert OrbLevelDetector.for_detector(cv2.SIFT_create()) is None
+    assert F.FeatureExtractor(F.FeatureConfig(kind="sift"))._levels is None
+
+
+def test_the_extractor_gives_the_same_features_with_orbs_own_pyramid(images):
+    config = F.FeatureConfig(max_features=1000, long_side=512, contrast_stretch=True)
+    levels = F.FeatureExtractor(config, upright=True)
+    own = F.FeatureExtractor(config, upright=True)
+    own._levels = None
+    assert levels._levels is not None
+    for image in images:
+        a, b = levels.extract(image), own.extract(image)
+        for field in ("keypoints", "sizes", "descriptors", "upright"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), field
