@@ -374,10 +374,10 @@ API void epipolar_errors(const double *F, const double *xq, const double *xp, do
 
 /* The two passes over each row of products (z + hi in place, the floor max_j (z_j + lo_j), then the
  * candidates above it, whose id is the word when there is one): written so that they vectorise,
- * with an AVX2 clone on x86-64. `where` is unsigned: it is the word only when count is 1 (and may
+ * with AVX-512 and AVX2 clones on x86-64. `where` is unsigned: it is the word only when count is 1 (and may
  * wrap otherwise). */
 #if HAVE_DISPATCH
-__attribute__((target_clones("avx2", "default")))
+__attribute__((target_clones("avx512f", "avx2", "default")))
 #endif
 static void select_rows(int32_t *products, const int32_t *upper_offset, const int32_t *width, int32_t *best,
                         int32_t *floors, int64_t n, int64_t k) {
@@ -446,7 +446,11 @@ static inline float round_even(float v) {
  * outputs, either may be NULL. Bit j is 1 when the level's value at the first point is below the value
  * at the second (oriented: the points turned by the keypoint's angle in float32, as OpenCV's ORB turns
  * them). Returns the number of keypoints whose points leave their level (their rows are zero), -1 when
- * out of memory, -2 for an octave outside the levels. */
+ * out of memory, -2 for an octave outside the levels. The points' turn vectorises: AVX-512 and AVX2
+ * clones on x86-64 (no fused multiply-add in any: the library is built with -ffp-contract=off). */
+#if HAVE_DISPATCH
+__attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
 API int64_t orb_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
                          int64_t n_levels, const float *inv_scale, const float *x, const float *y, const float *angle,
                          const int32_t *octave, int64_t n, const int32_t *pattern, int64_t pairs, uint8_t *oriented,
