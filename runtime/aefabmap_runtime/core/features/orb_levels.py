@@ -6,7 +6,13 @@ keeps its own share of the keypoint budget. The describer (`orb_description.py`)
 pyramid, so building it twice cost a frame a second set of resizes. Here the pyramid is built
 once and each level goes to a one-level cv2.ORB holding that level's share: the same keypoints,
 responses and angles as OpenCV's own multi-level detection, which `OrbLevelDetector.for_detector`
-checks on a test image before it is used (else the extractor lets cv2.ORB detect).
+checks on test images before it is used (else the extractor lets cv2.ORB detect).
+
+ORB drops the keypoints within `edgeThreshold` pixels of a level's edge, after FAST has searched
+the whole level. What a kept keypoint's tests read lies within half a patch of it (the orientation's
+disc; FAST's circle and the Harris window are smaller), so each level is searched without its outer
+edgeThreshold - patchSize / 2 pixels, by a cv2.ORB that drops keypoints within half a patch of
+that crop's edge: the same keypoints, for less of FAST.
 """
 
 from __future__ import annotations
@@ -41,8 +47,11 @@ class OrbLevelDetector:
         self.n_levels, self.scale_factor = n_levels, scale_factor
         self.patch_size = orb.getPatchSize()
         self._scales = level_scales(n_levels, scale_factor)
+        #: Pixels left out at each edge of a level (module doc), and the crop's own edge threshold.
+        self._crop = max(0, orb.getEdgeThreshold() - orb.getPatchSize() // 2)
+        edge = orb.getEdgeThreshold() - self._crop
         self._levels = [
-            cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=orb.getEdgeThreshold(),
+            cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=edge,
                            firstLevel=0, WTA_K=orb.getWTA_K(), scoreType=orb.getScoreType(),
                            patchSize=orb.getPatchSize(), fastThreshold=orb.getFastThreshold())
             for budget in level_budgets(orb.getMaxFeatures(), n_levels, scale_factor)
@@ -62,13 +71,18 @@ class OrbLevelDetector:
         """Keypoints of the pyramid `levels` (level 0 first): xy (N, 2) float32 in level-0 pixels
         and (N, 4) float32 rows (response, size, angle, octave), level by level."""
         xy, attrs = [], []
+        crop = self._crop
         for level, (orb, image) in enumerate(zip(self._levels, levels)):
-            kps = orb.detect(image, None)
+            if min(image.shape) <= 2 * crop:
+                continue  # no pixel lies edgeThreshold away from every edge: ORB keeps none
+            kps = orb.detect(image[crop: image.shape[0] - crop, crop: image.shape[1] - crop], None)
             if not kps:
                 continue
             scale = self._scales[level]
-            # ORB scales a level's coordinates by the level's float32 scale, in float32.
-            xy.append(cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False) * scale)
+            # Back to the level's pixels (whole numbers: exact), then scaled as ORB scales a
+            # level's coordinates: by the level's float32 scale, in float32.
+            at = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False) + np.float32(crop)
+            xy.append(at * scale)
             rows = np.fromiter(((k.response, k.angle) for k in kps), np.dtype((np.float32, 2)), len(kps))
             attrs.append(np.column_stack([rows[:, 0], np.full(len(kps), np.float32(self.patch_size) * scale, np.float32),
                                           rows[:, 1], np.full(len(kps), level, np.float32)]))
