@@ -93,8 +93,9 @@ class CandidateConfig:
 
 #: check(place id, bruteforce, retry_only, upright) -> the pair's GeometryResult, or None when the
 #: place holds no keypoints. retry_only: the brute-force retry alone (the place's same-word check
-#: already failed in this query, or CandidateConfig.retry_alone skips it). upright: a failed brute-force retry is retried with upright
-#: descriptors (VerificationConfig.upright); the policy asks it for tracked places only.
+#: already failed in this query, or CandidateConfig.retry_alone skips it). upright: a failed
+#: brute-force retry is retried with upright descriptors (VerificationConfig.upright); the policy
+#: asks it for tracked places only.
 PairCheck = Callable[[int, bool, bool, bool], "GeometryResult | None"]
 
 

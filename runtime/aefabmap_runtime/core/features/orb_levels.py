@@ -84,8 +84,9 @@ class OrbLevelDetector:
             at = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False) + np.float32(crop)
             xy.append(at * scale)
             rows = np.fromiter(((k.response, k.angle) for k in kps), np.dtype((np.float32, 2)), len(kps))
-            attrs.append(np.column_stack([rows[:, 0], np.full(len(kps), np.float32(self.patch_size) * scale, np.float32),
-                                          rows[:, 1], np.full(len(kps), level, np.float32)]))
+            size = np.float32(self.patch_size) * scale  # ORB's patch size times the level's scale
+            attrs.append(np.column_stack([rows[:, 0], np.full(len(kps), size, np.float32), rows[:, 1],
+                                          np.full(len(kps), level, np.float32)]))
         if not xy:
             return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
         return np.concatenate(xy), np.concatenate(attrs).astype(np.float32, copy=False)

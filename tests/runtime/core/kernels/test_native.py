@@ -89,7 +89,8 @@ def test_asking_for_a_form_that_cannot_run_is_a_config_error(monkeypatch):
 def test_a_detector_on_the_native_kernels_never_imports_numba():
     """numba costs start-up time and resident memory: a process whose kernels are native leaves it out."""
     probe = ("import sys\nfrom aefabmap import default_bundle, load_detector\nimport numpy as np\n"
-             "d = load_detector(default_bundle())\nd.process(np.random.default_rng(0).integers(0, 255, (240, 320), np.uint8))\n"
+             "d = load_detector(default_bundle())\n"
+             "d.process(np.random.default_rng(0).integers(0, 255, (240, 320), np.uint8))\n"
              "from aefabmap_runtime.core.kernels import compiled\n"
              "print(compiled.backend(), 'numba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
