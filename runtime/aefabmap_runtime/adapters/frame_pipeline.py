@@ -11,11 +11,15 @@ compiled kernels release Python's lock while they work, so threads share the cor
 caller's thread as before; N adds N - 1 threads. While the caller waits for the oldest frame it
 prepares a later one itself. At most `depth` frames are in flight (bounded memory). With N > 1,
 OpenCV's own thread pool is held at one thread while the pipeline is open: the cores go to frames,
-not to OpenCV's threads waiting on one another.
+not to OpenCV's threads waiting on one another; and a thread waiting for Python's lock asks its
+holder to hand it over after SWITCH_INTERVAL_S rather than Python's default: every return from
+OpenCV, onnxruntime or a kernel already hands the lock over, and forced hand-overs between the two
+frame threads cost CPU without adding work done (docs/results.md, "Frames in flight").
 """
 
 from __future__ import annotations
 
+import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -28,6 +32,10 @@ from aefabmap_runtime.adapters.frame_loop import FrameLoop, FrameOutcome, Prepar
 from aefabmap_runtime.core.run_config import check_workers
 
 T = TypeVar("T")
+
+#: Seconds a thread waits for Python's lock before it asks the holder for it, while frame threads
+#: run (module doc); Python's default is a quarter of it.
+SWITCH_INTERVAL_S = 0.02
 
 
 class _Job(Generic[T]):
@@ -75,10 +83,12 @@ class FramePipeline(Generic[T]):
         self.depth = max(1, depth if depth is not None else 2 * self.workers if self.workers > 1 else 1)
         self._pool = ThreadPoolExecutor(self.workers - 1, thread_name_prefix="aefabmap-frame") \
             if self.workers > 1 else None
-        self._opencv_threads = None
+        self._opencv_threads = self._switch_interval = None
         if self._pool is not None:
             self._opencv_threads = cv2.getNumThreads()
             cv2.setNumThreads(1)
+            self._switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(max(self._switch_interval, SWITCH_INTERVAL_S))
         self._jobs: deque[_Job[T]] = deque()
         # One worker: each frame is decoded and processed at its turn, exactly as FrameLoop.step does.
         self._extract = self.workers > 1
@@ -101,6 +111,9 @@ class FramePipeline(Generic[T]):
         if self._opencv_threads is not None:
             cv2.setNumThreads(self._opencv_threads)
             self._opencv_threads = None
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
 
     @property
     def pending(self) -> int:

@@ -143,3 +143,19 @@ def test_worker_counts_out_of_range_are_refused(bad):
         RunConfig(workers=bad)
     with pytest.raises(ConfigError, match="workers"):
         RunConfig.from_dict({**RunConfig().to_dict(), "workers": bad})
+
+
+def test_frame_threads_hold_python_s_lock_longer_while_open_and_give_it_back():
+    """With frame threads, a waiting thread asks for Python's lock after SWITCH_INTERVAL_S (never
+    sooner than the process had it); closing the pipeline restores the process's interval, as it
+    does OpenCV's thread count."""
+    import sys
+
+    from aefabmap_runtime.adapters.frame_pipeline import SWITCH_INTERVAL_S
+
+    before, threads = sys.getswitchinterval(), cv2.getNumThreads()
+    with FramePipeline(FrameLoop(_default_detector()), workers=2):
+        assert sys.getswitchinterval() == max(before, SWITCH_INTERVAL_S) and cv2.getNumThreads() == 1
+    assert sys.getswitchinterval() == before and cv2.getNumThreads() == threads
+    with FramePipeline(FrameLoop(_default_detector()), workers=1):
+        assert sys.getswitchinterval() == before
