@@ -24,7 +24,7 @@ from aefabmap_runtime.core.kernels.bits import nearest_two_kernel
 from aefabmap_runtime.core.rank.bow import BowIndex
 from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, Search, top_places
 from aefabmap_runtime.core.fleet.fleet_map import Fetch, FleetMap, RemoteMatch
-from aefabmap_runtime.core.rank.fabmap import FabMap2
+from aefabmap_runtime.core.rank.fabmap import FabMap2, distinct_sorted
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind
 from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features
 from aefabmap_runtime.core.map.keypoint_store import KeypointStore, PlaceKeypoints
@@ -585,7 +585,7 @@ class LoopClosureDetector:
             sequence=seq,
             stamp_ns=int(stamp_ns),
             n_keypoints=int(n_keypoints),
-            n_words=int(np.unique(observed).size),
+            n_words=int(distinct_sorted(np.asarray(observed)).size),
             best_place=best,
             best_frame=int(frames[best]) if best is not None else None,
             score=float(ranked.score),

@@ -18,6 +18,7 @@ that crop's edge: the same keypoints, for less of FAST.
 from __future__ import annotations
 
 import functools
+import operator
 
 import cv2
 import numpy as np
@@ -83,10 +84,9 @@ class OrbLevelDetector:
             # level's coordinates: by the level's float32 scale, in float32.
             at = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False) + np.float32(crop)
             xy.append(at * scale)
-            rows = np.fromiter(((k.response, k.angle) for k in kps), np.dtype((np.float32, 2)), len(kps))
             size = np.float32(self.patch_size) * scale  # ORB's patch size times the level's scale
-            attrs.append(np.column_stack([rows[:, 0], np.full(len(kps), size, np.float32), rows[:, 1],
-                                          np.full(len(kps), level, np.float32)]))
+            attrs.append(np.column_stack([_attribute(kps, "response"), np.full(len(kps), size, np.float32),
+                                          _attribute(kps, "angle"), np.full(len(kps), level, np.float32)]))
         if not xy:
             return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
         return np.concatenate(xy), np.concatenate(attrs).astype(np.float32, copy=False)
@@ -98,9 +98,14 @@ def keypoint_rows(kps) -> tuple[np.ndarray, np.ndarray]:
     if not len(kps):
         return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
     xy = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False)
-    # One pass over the KeyPoint objects for every attribute used (each pass costs per keypoint).
-    attrs = np.fromiter(((k.response, k.size, k.angle, k.octave) for k in kps), np.dtype((np.float32, 4)), len(kps))
+    attrs = np.column_stack([_attribute(kps, name) for name in ("response", "size", "angle", "octave")])
     return xy, attrs
+
+
+def _attribute(kps, name: str) -> np.ndarray:
+    """(N,) float32 of one attribute of every cv2.KeyPoint, one attribute per pass (numpy's
+    fromiter over tuples of several cost several times more per keypoint)."""
+    return np.fromiter(map(operator.attrgetter(name), kps), np.float32, len(kps))
 
 
 @functools.lru_cache(maxsize=8)

@@ -126,6 +126,18 @@ def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return offsets + np.arange(total, dtype=np.int64)
 
 
+def distinct_sorted(values: np.ndarray) -> np.ndarray:
+    """The distinct values of a 1-D array, ascending (np.unique's result; a sort and one
+    comparison cost less than np.unique at the hundreds of words of a frame)."""
+    ordered = np.sort(values)
+    if ordered.size < 2:
+        return ordered
+    first = np.empty(ordered.size, bool)
+    first[0] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=first[1:])
+    return ordered[first]
+
+
 def as_word_set(obs, vocabulary_size: int) -> np.ndarray:
     """Validate an observation (sequence of word ids) -> sorted unique int64 array."""
     arr = np.asarray(obs)
@@ -133,7 +145,7 @@ def as_word_set(obs, vocabulary_size: int) -> np.ndarray:
         return np.zeros(0, np.int64)
     if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
         raise InputError(f"an observation must be a 1-D sequence of integer word ids, got {arr.dtype} {arr.shape}")
-    arr = np.unique(arr.astype(np.int64))
+    arr = distinct_sorted(arr.astype(np.int64))
     if arr[0] < 0 or arr[-1] >= vocabulary_size:
         raise InputError(f"word ids must lie in [0, {vocabulary_size}), got range [{arr[0]}, {arr[-1]}]")
     return arr

@@ -259,3 +259,13 @@ def test_a_training_observation_outside_the_vocabulary_is_an_input_error(bad):
 
     with pytest.raises(InputError):
         as_word_sets(bad, 50)
+
+
+def test_distinct_sorted_is_numpys_unique():
+    from aefabmap_runtime.core.rank.fabmap import distinct_sorted
+
+    rng = np.random.default_rng(4)
+    for values in (np.zeros(0, np.int64), np.array([3]), np.array([2, 2]), rng.integers(0, 40, 300),
+                   rng.integers(-5, 5, 17).astype(np.int32)):
+        got, want = distinct_sorted(values), np.unique(values)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
