@@ -27,6 +27,7 @@ from aefabmap_runtime.errors import ConfigError
 
 from aefabmap_runtime.core.kernels import compiled, native
 
+
 @functools.cache
 def _int32_buffer_intrinsic():
     """numba's _int32_buffer(address): an integer data address -> int32* (indexable in compiled
