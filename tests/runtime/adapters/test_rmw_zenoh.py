@@ -363,13 +363,42 @@ def test_graph_names_and_string_type_hash(typestore):
     assert RosOptions(topic="/camera/image_raw").default_results_key == "camera/lcd"
 
 
-def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, capsys):
-    """`aefabmap run --ros-topic ... --connect <router> --results-key robot/lcd` end to end."""
+def run_cli_while(drive, args, router, capsys) -> dict:
+    """Run `aefabmap run` (args) in this process while `drive()` talks to it through `router` on a
+    thread; when drive ends, SIGINT stops the node. Checks drive raised nothing and the node exited
+    0, closes the router, and returns the node's last JSON line (its summary)."""
     import os
     import signal
 
-    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
     from aefabmap.cli import run
+
+    errors: list[BaseException] = []
+    done = threading.Event()
+
+    def driver() -> None:
+        try:
+            drive()
+            done.set()
+        except BaseException as exc:  # noqa: BLE001 - reported to the test
+            errors.append(exc)
+        finally:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    thread = threading.Thread(target=driver, daemon=True)
+    thread.start()
+    try:
+        code = run.main(args)
+        thread.join(10)
+    finally:
+        router.close()
+    assert not errors and done.is_set()
+    assert code == 0
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, capsys):
+    """`aefabmap run --ros-topic ... --connect <router> --results-key robot/lcd` end to end."""
+    import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
     from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogReader
 
     from .stream_fakes import JsonCollector
@@ -379,46 +408,29 @@ def test_cli_run_ros_topic_through_a_router(tmp_path, typestore, monkeypatch, ca
     log_path = tmp_path / "cli_ros.mcap"
     args = cli_args("run", "--model", "fake", "--ros-topic", TOPIC, "--results-key", "robot/lcd",
                     "--connect", router.endpoint, "--mcap", log_path, "--queue", "4")
-    errors: list[BaseException] = []
-    got = threading.Event()
 
     def drive() -> None:
-        try:
-            with zenoh.open(build_zenoh_config(router.ros_peer())) as camera:
-                plain = JsonCollector(camera, "robot/lcd")
-                ros = RosResults(camera, typestore)
-                pub = camera.declare_publisher(IMAGE_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
-                pause = threading.Event()
-                for _ in range(400):
-                    if pub.matching_status.matching:
-                        break
-                    pause.wait(0.05)
-                for i, img in enumerate(sample_images(2, size=(96, 72))):
-                    pub.put(ros_image(typestore, img, "mono8", STAMP0 + i), attachment=rmw_attachment(i + 1, STAMP0))
-                plain.wait_for(lambda d: d["sequence"] == 1, timeout_s=20)
-                assert [d["sequence"] for d in ros.wait_for(2, timeout_s=20)] == [0, 1]
-                # As between rmw_zenoh's nodes on one host: the node and the camera are peers connected
-                # directly (told of each other by the router), so images need not cross the router.
-                peers = list(camera.info.peers_zid())
-                assert len(peers) == 1 and str(peers[0]) != str(router.session.info.zid())
-                plain.close()
-                ros.sub.undeclare()
-            got.set()
-        except BaseException as exc:  # noqa: BLE001 - reported to the test
-            errors.append(exc)
-        finally:
-            os.kill(os.getpid(), signal.SIGINT)
+        with zenoh.open(build_zenoh_config(router.ros_peer())) as camera:
+            plain = JsonCollector(camera, "robot/lcd")
+            ros = RosResults(camera, typestore)
+            pub = camera.declare_publisher(IMAGE_KEY, congestion_control=zenoh.CongestionControl.BLOCK)
+            pause = threading.Event()
+            for _ in range(400):
+                if pub.matching_status.matching:
+                    break
+                pause.wait(0.05)
+            for i, img in enumerate(sample_images(2, size=(96, 72))):
+                pub.put(ros_image(typestore, img, "mono8", STAMP0 + i), attachment=rmw_attachment(i + 1, STAMP0))
+            plain.wait_for(lambda d: d["sequence"] == 1, timeout_s=20)
+            assert [d["sequence"] for d in ros.wait_for(2, timeout_s=20)] == [0, 1]
+            # As between rmw_zenoh's nodes on one host: the node and the camera are peers connected
+            # directly (told of each other by the router), so images need not cross the router.
+            peers = list(camera.info.peers_zid())
+            assert len(peers) == 1 and str(peers[0]) != str(router.session.info.zid())
+            plain.close()
+            ros.sub.undeclare()
 
-    driver = threading.Thread(target=drive, daemon=True)
-    driver.start()
-    try:
-        code = run.main(args)
-        driver.join(10)
-    finally:
-        router.close()
-    assert not errors and got.is_set()
-    assert code == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    summary = run_cli_while(drive, args, router, capsys)
     assert summary["frames_processed"] == 2 and summary["result_key"] == "robot/lcd"
     reader = McapLogReader(log_path)
     assert len(list(reader.frames())) == 2

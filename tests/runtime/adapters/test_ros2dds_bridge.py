@@ -12,8 +12,6 @@ for the bridge, which runs as one.
 from __future__ import annotations
 
 import json
-import os
-import signal
 import threading
 
 import pytest
@@ -25,7 +23,7 @@ from aefabmap_runtime.adapters.zenoh_transport import build_zenoh_config
 from tests.conftest import cli_args
 
 from .stream_fakes import FakeDetector, JsonCollector, NodeThread, sample_images
-from .test_rmw_zenoh import STAMP0, Router, ros_compressed, ros_image
+from .test_rmw_zenoh import STAMP0, Router, ros_compressed, ros_image, run_cli_while
 from .test_ros_topic_check import RosLog, node_status
 
 rosbags_typesys = pytest.importorskip("rosbags.typesys")
@@ -182,42 +180,24 @@ def test_cli_ros_bridge_options(tmp_path, monkeypatch):
 def test_cli_run_ros_bridge_through_a_router(tmp_path, typestore, monkeypatch, capsys):
     """`aefabmap run --ros-topic /camera/image_raw --ros-bridge --connect <bridge>` end to end."""
     import aefabmap_runtime.adapters.bundle_reader as bundle_reader_mod
-    from aefabmap.cli import run
     from aefabmap_runtime.adapters.mcap_log import RUN_CONFIG_METADATA, McapLogReader
 
     monkeypatch.setattr(bundle_reader_mod, "load_detector", lambda *a, **k: FakeDetector())
     router = Router()
     args = cli_args("run", "--model", "fake", "--ros-topic", "/camera/image_raw", "--ros-bridge",
                     "--connect", router.endpoint, "--mcap", tmp_path / "cli_bridge.mcap", "--queue", "4")
-    errors: list[BaseException] = []
-    got = threading.Event()
 
     def drive() -> None:
-        try:
-            with zenoh.open(build_zenoh_config(router.ros_peer())) as bridge:
-                results = CdrCollector(bridge, "lcd/result", typestore, "std_msgs/msg/String")
-                camera = BridgeCamera(bridge, "/camera/image_raw", IMAGE)
-                camera.wait_for_subscriber(20)
-                for i, img in enumerate(sample_images(2, size=(96, 72))):
-                    camera.pub.put(ros_image(typestore, img, "mono8", STAMP0 + i))
-                assert [json.loads(m.data)["sequence"] for m in results.wait(lambda ms: len(ms) >= 2)] == [0, 1]
-                camera.close()
-            got.set()
-        except BaseException as exc:  # noqa: BLE001 - reported to the test
-            errors.append(exc)
-        finally:
-            os.kill(os.getpid(), signal.SIGINT)
+        with zenoh.open(build_zenoh_config(router.ros_peer())) as bridge:
+            results = CdrCollector(bridge, "lcd/result", typestore, "std_msgs/msg/String")
+            camera = BridgeCamera(bridge, "/camera/image_raw", IMAGE)
+            camera.wait_for_subscriber(20)
+            for i, img in enumerate(sample_images(2, size=(96, 72))):
+                camera.pub.put(ros_image(typestore, img, "mono8", STAMP0 + i))
+            assert [json.loads(m.data)["sequence"] for m in results.wait(lambda ms: len(ms) >= 2)] == [0, 1]
+            camera.close()
 
-    driver = threading.Thread(target=drive, daemon=True)
-    driver.start()
-    try:
-        code = run.main(args)
-        driver.join(10)
-    finally:
-        router.close()
-    assert not errors and got.is_set()
-    assert code == 0
-    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    summary = run_cli_while(drive, args, router, capsys)
     assert summary["frames_processed"] == 2 and summary["result_key"] == "camera/lcd"
     reader = McapLogReader(tmp_path / "cli_bridge.mcap")
     assert len(list(reader.frames())) == 2
