@@ -92,12 +92,6 @@ class FrontEnd:
     window_scale: float
 
 
-def _swap_detector(ex: FeatureExtractor, detector) -> None:
-    """Give the extractor another OpenCV detector, which then also describes: the compiled ORB
-    describer and level detector belong to the extractor's own cv2.ORB."""
-    ex._detector, ex._describer, ex._levels = detector, None, None
-
-
 def make_front_end(name: str) -> FrontEnd:
     """The front-end called `name` (one of FRONT_ENDS); Unavailable when OpenCV lacks it.
 
@@ -121,14 +115,14 @@ def make_front_end(name: str) -> FrontEnd:
         # 1.0: OpenCV's documented scale for ORB keypoints; 256 bits: ORB's descriptor size.
         describe = (x2d.TEBLID_create(1.0, x2d.TEBLID_SIZE_256_BITS) if name == "orb-teblid"
                     else x2d.BEBLID_create(1.0, x2d.BEBLID_SIZE_256_BITS))
-        _swap_detector(ex, DetectThenDescribe(ex._detector, describe))
+        ex.replace_detector(DetectThenDescribe(ex._detector, describe))
     elif name == "akaze":
-        _swap_detector(ex, cv2.AKAZE_create(threshold=AKAZE_THRESHOLD))  # MLDB, 486 bits in 61 bytes
+        ex.replace_detector(cv2.AKAZE_create(threshold=AKAZE_THRESHOLD))  # MLDB, 486 bits in 61 bytes
         window = AKAZE_WINDOW_SCALE
     elif name == "orb-levels12":
-        _swap_detector(ex, cv2.ORB_create(nfeatures=KEYPOINTS, nlevels=12))
+        ex.replace_detector(cv2.ORB_create(nfeatures=KEYPOINTS, nlevels=12))
     elif name.startswith("orb-fast"):
-        _swap_detector(ex, cv2.ORB_create(nfeatures=KEYPOINTS, fastThreshold=int(name[len("orb-fast"):])))
+        ex.replace_detector(cv2.ORB_create(nfeatures=KEYPOINTS, fastThreshold=int(name[len("orb-fast"):])))
     elif name not in ("orb", "orb-native", "orb-clahe", "orb-stretch", "orb-stretch-upright") and not name.startswith("orb-fast"):
         raise ValueError(f"unknown front-end {name!r}; choose from {FRONT_ENDS}")
     return FrontEnd(name, ex, "hamming", window)

@@ -212,6 +212,12 @@ class FeatureExtractor:
         self._describer = OrbDescriber.for_detector(self._detector)
         self._levels = OrbLevelDetector.for_detector(self._detector) if self._describer is not None else None
 
+    def replace_detector(self, detector) -> None:
+        """Detect (and describe) with another OpenCV Feature2D from now on (benchmarks of other
+        front-ends): the compiled ORB describer and level detector belong to this extractor's own
+        cv2.ORB, so they are dropped with it."""
+        self._detector, self._describer, self._levels = detector, None, None
+
     def extract(self, image: np.ndarray) -> Features:
         """Extract features from a grayscale (H, W) or BGR(A) (H, W, 3|4) uint8 array.
 
@@ -242,11 +248,11 @@ class FeatureExtractor:
             work = self._clahe.apply(work)
         if self._describer is not None:
             if self._levels is not None:
-                levels, _ = pyramid(work, self._levels.n_levels, self._levels.scale_factor)
-                xy, attrs = self._levels.detect(levels)
+                built = pyramid(work, self._levels.n_levels, self._levels.scale_factor)
+                xy, attrs = self._levels.detect(built[0])
             else:
-                levels, (xy, attrs) = None, keypoint_rows(self._detector.detect(work, None))
-            packed = self._pack_described(xy, attrs, scale, gray.shape, work, levels)
+                built, (xy, attrs) = None, keypoint_rows(self._detector.detect(work, None))
+            packed = self._pack_described(xy, attrs, scale, gray.shape, work, built)
             if packed is not None:
                 return packed
         kps, desc = self._detector.detectAndCompute(work, None)
@@ -263,18 +269,18 @@ class FeatureExtractor:
         return order[: c.max_features]
 
     def _pack_described(self, pts: np.ndarray, attrs: np.ndarray, scale: float, shape, work: np.ndarray,
-                        levels: list[np.ndarray] | None) -> Features | None:
+                        built: tuple[list[np.ndarray], np.ndarray] | None) -> Features | None:
         """As `_pack`, for keypoints pts (N, 2) with (N, 4) rows (response, size, angle, octave)
         (`orb_levels.keypoint_rows`), the kept ones described by the compiled kernel (None: it
-        cannot describe one of them; the caller lets OpenCV describe the frame). levels: `work`'s
-        pyramid when already built."""
+        cannot describe one of them; the caller lets OpenCV describe the frame). built: `work`'s
+        `pyramid` when already built."""
         c = self.config
         if len(pts) == 0:
             return self._pack([], None, scale, shape, work)
         order = self._kept(pts, attrs[:, 0], work.shape)
         kept = attrs[order]
         described = self._describer.describe(work, pts[order], kept[:, 2], kept[:, 3].astype(np.int32),
-                                             oriented=True, upright=self.upright, levels=levels)
+                                             oriented=True, upright=self.upright, built=built)
         if described is None:
             return None
         desc, upright = described

@@ -139,17 +139,16 @@ class OrbDescriber:
 
     def describe(self, image: np.ndarray, xy: np.ndarray, angle: np.ndarray, octave: np.ndarray,
                  oriented: bool = True, upright: bool = False,
-                 levels: list[np.ndarray] | None = None) -> tuple[np.ndarray | None, np.ndarray | None] | None:
+                 built: tuple[list[np.ndarray], np.ndarray] | None = None,
+                 ) -> tuple[np.ndarray | None, np.ndarray | None] | None:
         """Descriptors (N, 32) uint8 of keypoints xy (N, 2) float32 on `image` (level-0 pixels),
         angle (N,) degrees and octave (N,) as ORB detected them; None when a keypoint is out of
-        the pyramid's reach (the caller describes with OpenCV instead). levels: `image`'s
-        `pyramid` when the caller built it already."""
+        the pyramid's reach (the caller describes with OpenCV instead). built: `pyramid(image)`'s
+        result when the caller built it already."""
         n = xy.shape[0]
         if octave.size and (octave.min() < 0 or octave.max() >= self.n_levels):
             return None
-        if levels is None:
-            levels, _ = pyramid(image, self.n_levels, self.scale_factor)
-        inv = (np.float32(1.0) / level_scales(len(levels), self.scale_factor)).astype(np.float32)
+        levels, inv = built if built is not None else pyramid(image, self.n_levels, self.scale_factor)
         levels = blurred(levels)
         if octave.size and octave.max() >= len(levels):
             return None

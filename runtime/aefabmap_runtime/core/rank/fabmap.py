@@ -165,8 +165,7 @@ def as_word_sets(observations, vocabulary_size: int) -> list[np.ndarray]:
     if flat.min() < 0 or flat.max() >= vocabulary_size:
         raise InputError(f"word ids must lie in [0, {vocabulary_size}), got range [{flat.min()}, {flat.max()}]")
     # One key per (observation, word): sorted, each observation's words come out sorted and unique.
-    keys = np.sort(np.repeat(np.arange(len(arrays), dtype=np.int64), sizes) * vocabulary_size + flat)
-    keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
+    keys = distinct_sorted(np.repeat(np.arange(len(arrays), dtype=np.int64), sizes) * vocabulary_size + flat)
     owner = keys // vocabulary_size
     words = keys - owner * vocabulary_size
     bounds = np.searchsorted(owner, np.arange(len(arrays) + 1))
