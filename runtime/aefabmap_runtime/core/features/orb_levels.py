@@ -13,6 +13,10 @@ the whole level. What a kept keypoint's tests read lies within half a patch of i
 disc; FAST's circle and the Harris window are smaller), so each level is searched without its outer
 edgeThreshold - patchSize / 2 pixels, by a cv2.ORB that drops keypoints within half a patch of
 that crop's edge: the same keypoints, for less of FAST.
+
+Where the compiled kernels are built, one call of `native.orb_keypoints` does the same for every
+level (FAST, Harris responses, orientations: kernels.c), without a cv2.KeyPoint per keypoint; it is
+used only when it gives cv2.ORB's keypoints on the test images here, as the per-level cv2.ORB is.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import cv2
 import numpy as np
 
 from aefabmap_runtime.core.features.orb_description import level_scales, pyramid
+from aefabmap_runtime.core.kernels import native
 
 
 def level_budgets(n_features: int, n_levels: int, scale_factor: float) -> list[int]:
@@ -41,36 +46,49 @@ def level_budgets(n_features: int, n_levels: int, scale_factor: float) -> list[i
 
 
 class OrbLevelDetector:
-    """`orb`'s keypoints from a pyramid built by `orb_description.pyramid` (see module doc)."""
+    """`orb`'s keypoints from a pyramid built by `orb_description.pyramid` (see module doc).
 
-    def __init__(self, orb) -> None:
+    compiled: detect with the compiled kernel (`native.orb_keypoints`, Harris score only) rather
+    than a one-level cv2.ORB per level."""
+
+    def __init__(self, orb, compiled: bool = False) -> None:
         n_levels, scale_factor = orb.getNLevels(), orb.getScaleFactor()
         self.n_levels, self.scale_factor = n_levels, scale_factor
         self.patch_size = orb.getPatchSize()
         self._scales = level_scales(n_levels, scale_factor)
         #: Pixels left out at each edge of a level (module doc), and the crop's own edge threshold.
         self._crop = max(0, orb.getEdgeThreshold() - orb.getPatchSize() // 2)
-        edge = orb.getEdgeThreshold() - self._crop
+        self._edge = orb.getEdgeThreshold() - self._crop
+        self._budgets = level_budgets(orb.getMaxFeatures(), n_levels, scale_factor)
+        self._threshold = orb.getFastThreshold()
+        self.compiled = bool(compiled) and native.available() and orb.getScoreType() == cv2.ORB_HARRIS_SCORE
+        self._disc = orientation_disc(self.patch_size // 2)
         self._levels = [
-            cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=edge,
+            cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=self._edge,
                            firstLevel=0, WTA_K=orb.getWTA_K(), scoreType=orb.getScoreType(),
-                           patchSize=orb.getPatchSize(), fastThreshold=orb.getFastThreshold())
-            for budget in level_budgets(orb.getMaxFeatures(), n_levels, scale_factor)
+                           patchSize=orb.getPatchSize(), fastThreshold=self._threshold)
+            for budget in self._budgets
         ]
 
     @classmethod
     def for_detector(cls, orb) -> OrbLevelDetector | None:
         """A level detector giving `orb`'s own keypoints, or None when it does not on the test
-        images here (another OpenCV, other settings)."""
+        images here (another OpenCV, other settings): the compiled kernel where it does, else a
+        cv2.ORB per level."""
         if not isinstance(orb, cv2.ORB) or orb.getFirstLevel() != 0:
             return None
-        return cls(orb) if _agrees(orb.getMaxFeatures(), orb.getNLevels(), orb.getScaleFactor(),
-                                   orb.getEdgeThreshold(), orb.getFastThreshold(), orb.getScoreType(),
-                                   orb.getPatchSize()) else None
+        settings = (orb.getMaxFeatures(), orb.getNLevels(), orb.getScaleFactor(), orb.getEdgeThreshold(),
+                    orb.getFastThreshold(), orb.getScoreType(), orb.getPatchSize())
+        for compiled in (True, False):
+            if _agrees(*settings, compiled=compiled):
+                return cls(orb, compiled=compiled)
+        return None
 
     def detect(self, levels: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints of the pyramid `levels` (level 0 first): xy (N, 2) float32 in level-0 pixels
         and (N, 4) float32 rows (response, size, angle, octave), level by level."""
+        if self.compiled:
+            return self._detect_compiled(levels)
         xy, attrs = [], []
         crop = self._crop
         for level, (orb, image) in enumerate(zip(self._levels, levels)):
@@ -91,6 +109,34 @@ class OrbLevelDetector:
             return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
         return np.concatenate(xy), np.concatenate(attrs).astype(np.float32, copy=False)
 
+    def _detect_compiled(self, levels: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        x, y, response, angle, level = native.orb_keypoints(levels, self._crop, self._edge, self._threshold,
+                                                            self._budgets[: len(levels)], self.patch_size // 2,
+                                                            self._disc)
+        # Scaled as ORB scales a level's coordinates: by the level's float32 scale, in float32.
+        scale = self._scales[level]
+        xy = np.column_stack([x.astype(np.float32) * scale, y.astype(np.float32) * scale])
+        attrs = np.column_stack([response, np.float32(self.patch_size) * scale, angle, level.astype(np.float32)])
+        return xy, attrs.astype(np.float32, copy=False)
+
+
+def orientation_disc(half_patch: int) -> np.ndarray:
+    """(half_patch + 1,) int32: the half-width of each row of ORB's orientation disc of radius
+    half_patch, as OpenCV's ORB computes it (rows 0 .. half_patch; made symmetric about the
+    diagonal)."""
+    umax = [0] * (half_patch + 2)
+    vmax = int(np.floor(half_patch * np.sqrt(np.float32(2)) / 2 + 1))
+    vmin = int(np.ceil(half_patch * np.sqrt(np.float32(2)) / 2))
+    for v in range(vmax + 1):
+        umax[v] = int(np.rint(half_patch * np.sqrt(1 - v * v / float(half_patch * half_patch))))
+    v0 = 0
+    for v in range(half_patch, vmin - 1, -1):
+        while umax[v0] == umax[v0 + 1]:
+            v0 += 1
+        umax[v] = v0
+        v0 += 1
+    return np.array(umax[: half_patch + 1], np.int32)
+
 
 def keypoint_rows(kps) -> tuple[np.ndarray, np.ndarray]:
     """cv2.KeyPoints as `OrbLevelDetector.detect` returns them: xy (N, 2), (N, 4) rows of
@@ -108,15 +154,18 @@ def _attribute(kps, name: str) -> np.ndarray:
     return np.fromiter(map(operator.attrgetter(name), kps), np.float32, len(kps))
 
 
-@functools.lru_cache(maxsize=8)
-def _agrees(n_features, n_levels, scale_factor, edge_threshold, fast_threshold, score_type, patch_size) -> bool:
-    """Whether the level detector finds cv2.ORB's keypoints (positions, responses, sizes, angles,
-    octaves), on seeded textured test images of two sizes; once per process and setting (every
-    thread's extractor asks)."""
+@functools.lru_cache(maxsize=16)
+def _agrees(n_features, n_levels, scale_factor, edge_threshold, fast_threshold, score_type, patch_size,
+            compiled: bool) -> bool:
+    """Whether the level detector (compiled or not) finds cv2.ORB's keypoints (positions,
+    responses, sizes, angles, octaves), on seeded textured test images of two sizes; once per
+    process and setting (every thread's extractor asks)."""
     orb = cv2.ORB_create(nfeatures=n_features, scaleFactor=scale_factor, nlevels=n_levels,
                          edgeThreshold=edge_threshold, fastThreshold=fast_threshold, scoreType=score_type,
                          patchSize=patch_size)
-    mine = OrbLevelDetector(orb)
+    mine = OrbLevelDetector(orb, compiled=compiled)
+    if mine.compiled != compiled:
+        return False
     rng = np.random.default_rng(0)
     for size in ((512, 384), (333, 250)):
         image = cv2.resize(rng.integers(0, 256, (size[1] // 4, size[0] // 4), dtype=np.uint8), size,

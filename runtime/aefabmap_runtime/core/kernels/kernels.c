@@ -16,7 +16,7 @@
 #define API __attribute__((visibility("default")))
 
 /* Version of this library's functions and arguments: native.py refuses a library built from other sources. */
-API int64_t aefabmap_kernels_version(void) { return 2; }
+API int64_t aefabmap_kernels_version(void) { return 3; }
 
 /* ---- popcount: the CPU instruction where it has one (x86-64 without POPCNT gets libgcc's) ---- */
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -516,4 +516,375 @@ API int64_t orb_describe(const intptr_t *levels, const int64_t *steps, const int
     }
     free(px); free(py); free(offset);
     return outside;
+}
+
+
+/* ---- ORB keypoints of one pyramid (features/orb_levels.py): FAST-9, Harris, orientation ---- */
+
+/* The 16 pixels of FAST's circle of radius 3, in circle order (OpenCV's offsets16). */
+static const int fast_ring[16][2] = {{0, 3}, {1, 3}, {2, 2}, {3, 1}, {3, 0}, {3, -1}, {2, -2}, {1, -3},
+                                     {0, -3}, {-1, -3}, {-2, -2}, {-3, -1}, {-3, 0}, {-3, 1}, {-2, 2}, {-1, 3}};
+
+typedef uint8_t u8x64 __attribute__((vector_size(64)));
+
+/* FAST-9 (OpenCV's FAST with TYPE_9_16 and non-maximum suppression). A pixel is a corner when its
+ * circle of 16 holds an arc of 9 pixels all brighter than centre + threshold, or all darker than
+ * centre - threshold; its score (OpenCV's cornerScore<16>) is the largest such threshold less 1:
+ * the larger, over the 16 arcs of each side, of the arc's smallest difference to the centre, less 1.
+ * Computed 64 pixels at a time, byte-wise: the differences clamped at 0 (an arc whose minimum is
+ * below the threshold is no corner either way), each arc's minimum by doubling (pairs, fours,
+ * eights, then the ninth). A block where no two neighbouring compass pixels (0, 4, 8, 12 of the
+ * circle) pass the threshold on one side holds no arc of 9 and is skipped.
+ *
+ * block_corners: pixels p[0 .. width - 1] (width <= 64) of an image whose circle offsets are
+ * `ring`; writes each one's score (0 where no corner) to out[0 .. width - 1], unless the block is
+ * skipped (out is left as it is: zeros); returns the corners as bits (bit k: pixel k). */
+typedef uint64_t (*block_corners_fn)(const uint8_t *p, const int32_t *ring, int64_t width, int threshold, uint8_t *out);
+
+#define U8_MIN(a, b) ((b) ^ (((a) ^ (b)) & (u8x64)((a) < (b))))
+#define U8_MAX(a, b) ((b) ^ (((a) ^ (b)) & (u8x64)((a) > (b))))
+#define U8_SUBS(a, b) (((a) - (b)) & (u8x64)((a) > (b)))
+
+static inline void load_u8x64(u8x64 *out, const uint8_t *p, int64_t width) {
+    if (width == 64) {
+        memcpy(out, p, 64);
+    } else {
+        *out = (u8x64){0};
+        memcpy(out, p, (size_t)width);
+    }
+}
+
+static uint64_t block_corners_generic(const uint8_t *p, const int32_t *ring, int64_t width, int threshold,
+                                      uint8_t *out) {
+    const u8x64 t = (u8x64){0} + (uint8_t)threshold, one = (u8x64){0} + 1;
+    u8x64 v, x, bright[16], dark[16];
+    load_u8x64(&v, p, width);
+    for (int c = 0; c < 16; c++) {
+        load_u8x64(&x, p + ring[c], width);
+        bright[c] = U8_SUBS(x, v);
+        dark[c] = U8_SUBS(v, x);
+    }
+    const u8x64 maybe = ((u8x64)(U8_MIN(U8_MAX(bright[0], bright[8]), U8_MAX(bright[4], bright[12])) > t)) |
+                        ((u8x64)(U8_MIN(U8_MAX(dark[0], dark[8]), U8_MAX(dark[4], dark[12])) > t));
+    uint64_t lanes[8], any = 0;
+    memcpy(lanes, &maybe, 64);
+    for (int w = 0; w < 8; w++) any |= lanes[w];
+    if (!any) return 0;
+    u8x64 best = {0};
+    for (int side = 0; side < 2; side++) {
+        const u8x64 *d = side ? dark : bright;
+        u8x64 m2[16], m4[16];
+        for (int k = 0; k < 16; k++) m2[k] = U8_MIN(d[k], d[(k + 1) & 15]);
+        for (int k = 0; k < 16; k++) m4[k] = U8_MIN(m2[k], m2[(k + 2) & 15]);
+        for (int k = 0; k < 16; k++) {
+            const u8x64 m8 = U8_MIN(m4[k], m4[(k + 4) & 15]);
+            best = U8_MAX(best, U8_MIN(m8, d[(k + 8) & 15]));
+        }
+    }
+    const u8x64 corner = (u8x64)(best > t), value = (best - one) & corner;
+    memcpy(out, &value, (size_t)width);
+    memcpy(lanes, &corner, 64);
+    uint64_t bits = 0;
+    for (int w = 0; w < 8; w++) /* the top bit of each byte, gathered into one byte */
+        bits |= (((lanes[w] & 0x8080808080808080ULL) * 0x0002040810204081ULL) >> 56) << (8 * w);
+    return width == 64 ? bits : bits & ((1ULL << width) - 1);
+}
+
+#if HAVE_DISPATCH
+static __attribute__((target("avx512f,avx512bw"))) uint64_t block_corners_avx512(
+        const uint8_t *p, const int32_t *ring, int64_t width, int threshold, uint8_t *out) {
+    const __mmask64 inside = width == 64 ? ~(__mmask64)0 : (((__mmask64)1 << width) - 1);
+    const __m512i t = _mm512_set1_epi8((char)threshold), one = _mm512_set1_epi8(1);
+    const __m512i v = _mm512_maskz_loadu_epi8(inside, p);
+    __m512i bright[16], dark[16];
+    for (int c = 0; c < 16; c += 4) {
+        const __m512i x = _mm512_maskz_loadu_epi8(inside, p + ring[c]);
+        bright[c] = _mm512_subs_epu8(x, v);
+        dark[c] = _mm512_subs_epu8(v, x);
+    }
+    const __mmask64 maybe =
+        _mm512_cmpgt_epu8_mask(_mm512_min_epu8(_mm512_max_epu8(bright[0], bright[8]), _mm512_max_epu8(bright[4], bright[12])), t) |
+        _mm512_cmpgt_epu8_mask(_mm512_min_epu8(_mm512_max_epu8(dark[0], dark[8]), _mm512_max_epu8(dark[4], dark[12])), t);
+    if (!maybe) return 0;
+    for (int c = 0; c < 16; c++) {
+        if ((c & 3) == 0) continue;
+        const __m512i x = _mm512_maskz_loadu_epi8(inside, p + ring[c]);
+        bright[c] = _mm512_subs_epu8(x, v);
+        dark[c] = _mm512_subs_epu8(v, x);
+    }
+    __m512i best = _mm512_setzero_si512();
+    for (int side = 0; side < 2; side++) {
+        const __m512i *d = side ? dark : bright;
+        __m512i m2[16], m4[16];
+        for (int k = 0; k < 16; k++) m2[k] = _mm512_min_epu8(d[k], d[(k + 1) & 15]);
+        for (int k = 0; k < 16; k++) m4[k] = _mm512_min_epu8(m2[k], m2[(k + 2) & 15]);
+        for (int k = 0; k < 16; k++)
+            best = _mm512_max_epu8(best, _mm512_min_epu8(_mm512_min_epu8(m4[k], m4[(k + 4) & 15]), d[(k + 8) & 15]));
+    }
+    const __mmask64 corner = _mm512_cmpgt_epu8_mask(best, t) & inside;
+    _mm512_mask_storeu_epi8(out, inside, _mm512_maskz_sub_epi8(corner, best, one));
+    return corner;
+}
+#endif
+
+/* FAST-9 corners of an rows x cols image (row stride `step`) kept by non-maximum suppression, as
+ * OpenCV finds them: pixels of rows and columns 3..size-4, a corner kept when its score exceeds
+ * each of its 8 neighbours' (0 where no corner). score (rows x cols) is scratch, zeroed here;
+ * cand_i, cand_j: scratch of rows x cols; xs, ys, scores receive the kept corners in row-major
+ * order. Returns their number. */
+static int64_t fast9(const uint8_t *img, int64_t step, int64_t rows, int64_t cols, int threshold, uint8_t *score,
+                     int32_t *cand_i, int32_t *cand_j, int32_t *xs, int32_t *ys, uint8_t *scores) {
+    block_corners_fn block_corners = block_corners_generic;
+#if HAVE_DISPATCH
+    if (__builtin_cpu_supports("avx512bw")) block_corners = block_corners_avx512;
+#endif
+    int32_t ring[16];
+    for (int k = 0; k < 16; k++) ring[k] = (int32_t)(fast_ring[k][0] + fast_ring[k][1] * step);
+    memset(score, 0, (size_t)(rows * cols));
+    int64_t n_cand = 0;
+    for (int64_t i = 3; i < rows - 3; i++) {
+        for (int64_t j0 = 3; j0 < cols - 3; j0 += 64) {
+            const int64_t width = cols - 3 - j0 < 64 ? cols - 3 - j0 : 64;
+            uint64_t bits = block_corners(img + i * step + j0, ring, width, threshold, score + i * cols + j0);
+            while (bits) {
+                cand_i[n_cand] = (int32_t)i;
+                cand_j[n_cand++] = (int32_t)(j0 + __builtin_ctzll(bits));
+                bits &= bits - 1;
+            }
+        }
+    }
+    int64_t n = 0;
+    for (int64_t c = 0; c < n_cand; c++) {
+        const int64_t i = cand_i[c], j = cand_j[c], at = i * cols + j;
+        const uint8_t s = score[at];
+        const uint8_t *up = score + at - cols, *down = score + at + cols;
+        /* branch-free: whether a corner is kept is unpredictable */
+        const int kept = (s > up[-1]) & (s > up[0]) & (s > up[1]) & (s > score[at - 1]) & (s > score[at + 1]) &
+                         (s > down[-1]) & (s > down[0]) & (s > down[1]);
+        xs[n] = (int32_t)j;
+        ys[n] = (int32_t)i;
+        scores[n] = s;
+        n += kept;
+    }
+    return n;
+}
+
+/* The k-th largest (k >= 1) of a[0 .. n - 1] (n >= k), reordering a (Hoare's selection). */
+static float kth_largest(float *a, int64_t n, int64_t k) {
+    int64_t lo = 0, hi = n - 1, want = k - 1;
+    while (lo < hi) {
+        const float pivot = a[lo + (hi - lo) / 2];
+        int64_t i = lo, j = hi;
+        while (i <= j) {
+            while (a[i] > pivot) i++;
+            while (a[j] < pivot) j--;
+            if (i <= j) {
+                const float swap = a[i];
+                a[i] = a[j];
+                a[j] = swap;
+                i++;
+                j--;
+            }
+        }
+        if (want <= j) hi = j;
+        else if (want >= i) lo = i;
+        else break; /* a[want] equals the pivot */
+    }
+    return a[want];
+}
+
+/* atan2 in degrees [0, 360) as OpenCV's fastAtan2 computes it (a polynomial, float arithmetic). */
+static float fast_atan2(float y, float x) {
+    const float p1 = 0.9997878412794807f * (float)(180 / 3.14159265358979323846);
+    const float p3 = -0.3258083974640975f * (float)(180 / 3.14159265358979323846);
+    const float p5 = 0.1555786518463281f * (float)(180 / 3.14159265358979323846);
+    const float p7 = -0.04432655554792128f * (float)(180 / 3.14159265358979323846);
+    const float eps = (float)2.220446049250313080847e-16;
+    const float ax = fabsf(x), ay = fabsf(y);
+    float a, c, c2;
+    if (ax >= ay) {
+        c = ay / (ax + eps);
+        c2 = c * c;
+        a = (((p7 * c2 + p5) * c2 + p3) * c2 + p1) * c;
+    } else {
+        c = ax / (ay + eps);
+        c2 = c * c;
+        a = 90.f - (((p7 * c2 + p5) * c2 + p3) * c2 + p1) * c;
+    }
+    if (x < 0) a = 180.f - a;
+    if (y < 0) a = 360.f - a;
+    return a;
+}
+
+/* ORB's Harris response at a pixel (OpenCV's HarrisResponses: a 7 x 7 block of Sobel gradients,
+ * k = 0.04, scaled by (4 * 7 * 255)^-4; integer sums, then float32 in OpenCV's order). Each row of
+ * the block is taken 8 columns wide with the eighth weighted 0, a loop of fixed length. */
+static inline float harris_response(const uint8_t *center, int64_t step) {
+    const float harris_k = 0.04f, scale = 1.f / ((1 << 2) * 7 * 255.f);
+    const float scale_sq_sq = scale * scale * scale * scale;
+    int a = 0, b = 0, c = 0;
+    for (int r = -3; r <= 3; r++) {
+        const uint8_t *p = center + r * step - 3;
+        for (int q = 0; q < 8; q++) {
+            const int on = q < 7;
+            const int ix = ((p[q + 1] - p[q - 1]) * 2 + (p[q - step + 1] - p[q - step - 1]) +
+                            (p[q + step + 1] - p[q + step - 1])) * on;
+            const int iy = (p[q + step] - p[q - step]) * 2 + (p[q + step - 1] - p[q - step - 1]) +
+                           (p[q + step + 1] - p[q - step + 1]);
+            a += ix * ix;
+            b += iy * iy * on;
+            c += ix * iy;
+        }
+    }
+    const float fa = (float)a, fb = (float)b, fc = (float)c;
+    const float det = fa * fb - fc * fc, sum = fa + fb;
+    const float k_sum = harris_k * sum;
+    return (det - k_sum * sum) * scale_sq_sq;
+}
+
+/* ORB's orientation at a pixel (OpenCV's ICAngles): the angle (degrees, fastAtan2) of the
+ * intensity centroid over the disc of radius half_patch whose row v spans |u| <= umax[v]. */
+static inline float centroid_angle(const uint8_t *center, int64_t step, int64_t half_patch, const int32_t *umax) {
+    int m01 = 0, m10 = 0;
+    for (int64_t u = -half_patch; u <= half_patch; u++) m10 += (int)u * center[u];
+    for (int64_t v = 1; v <= half_patch; v++) {
+        int v_sum = 0;
+        const int64_t d = umax[v];
+        for (int64_t u = -d; u <= d; u++) {
+            const int plus = center[u + v * step], minus = center[u - v * step];
+            v_sum += plus - minus;
+            m10 += (int)u * (plus + minus);
+        }
+        m01 += (int)v * v_sum;
+    }
+    return fast_atan2((float)m01, (float)m10);
+}
+
+/* centroid_angle for half_patch <= 15 with the disc as a table: disc[v][k] is 1 where u = k - 16
+ * lies in row v (0 elsewhere), each row read 32 pixels wide, a loop of fixed length. The sums are
+ * integers, so the order does not change them. */
+typedef int16_t disc_table[16][32];
+
+static inline float disc_angle(const uint8_t *center, int64_t step, const disc_table *disc) {
+    int m01 = 0, m10 = 0;
+    const uint8_t *row = center - 16;
+    for (int k = 0; k < 32; k++) m10 += (k - 16) * (*disc)[0][k] * row[k];
+    for (int64_t v = 1; v < 16; v++) {
+        const uint8_t *up = center + v * step - 16, *down = center - v * step - 16;
+        int v_sum = 0;
+        for (int k = 0; k < 32; k++) {
+            const int in = (*disc)[v][k], plus = up[k], minus = down[k];
+            v_sum += in * (plus - minus);
+            m10 += in * (k - 16) * (plus + minus);
+        }
+        m01 += (int)v * v_sum;
+    }
+    return fast_atan2((float)m01, (float)m10);
+}
+
+/* cv2.ORB's keypoints (Harris score) of each level of a pyramid, as a one-level cv2.ORB finds them
+ * on the level's crop (features/orb_levels.py): FAST-9 corners (`fast9`) at least `edge` pixels
+ * inside the crop; when more than 2 * budget, those scoring at least the 2 * budget-th score; their
+ * Harris responses (7 x 7 block, k = 0.04, OpenCV's scaling); when more than budget, those at least
+ * the budget-th response; their intensity-centroid angles over the disc of radius half_patch
+ * (umax: the disc's half-width per row, half_patch + 1 rows). levels, steps, rows, cols: the
+ * pyramid (uint8); crop: pixels left out at each edge of every level; budgets (n_levels,).
+ * Out (capacity rows): x, y (int32, level pixels), response, angle (float32), level (int32).
+ * Returns the number of keypoints, -1 when out of memory, -3 when more than capacity. */
+#if HAVE_DISPATCH
+__attribute__((target_clones("arch=x86-64-v4", "avx2", "default")))
+#endif
+API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
+                          int64_t n_levels, int64_t crop, int64_t edge, int64_t threshold, const int64_t *budgets,
+                          int64_t half_patch, const int32_t *umax, int64_t capacity, int32_t *out_x,
+                          int32_t *out_y, float *out_response, float *out_angle, int32_t *out_level) {
+    int64_t largest = 0;
+    for (int64_t l = 0; l < n_levels; l++) {
+        const int64_t area = (rows[l] - 2 * crop) * (cols[l] - 2 * crop);
+        largest = area > largest ? area : largest;
+    }
+    if (largest <= 0) return 0;
+    uint8_t *score = (uint8_t *)malloc((size_t)largest), *fast_scores = (uint8_t *)malloc((size_t)largest);
+    int32_t *cand_i = (int32_t *)malloc((size_t)largest * sizeof(int32_t)), *cand_j = (int32_t *)malloc((size_t)largest * sizeof(int32_t));
+    int32_t *xs = (int32_t *)malloc((size_t)largest * sizeof(int32_t)), *ys = (int32_t *)malloc((size_t)largest * sizeof(int32_t));
+    float *response = (float *)malloc((size_t)largest * sizeof(float)), *sorted = (float *)malloc((size_t)largest * sizeof(float));
+    if (!score || !fast_scores || !cand_i || !cand_j || !xs || !ys || !response || !sorted) {
+        free(score); free(fast_scores); free(cand_i); free(cand_j); free(xs); free(ys); free(response); free(sorted);
+        return -1;
+    }
+    disc_table table;
+    const disc_table *disc = NULL;
+    if (half_patch <= 15) {
+        memset(table, 0, sizeof(table));
+        for (int64_t v = 0; v <= half_patch; v++)
+            for (int64_t u = -(v ? umax[v] : half_patch); u <= (v ? umax[v] : half_patch); u++) table[v][u + 16] = 1;
+        disc = (const disc_table *)&table;
+    }
+    int64_t total = 0, status = 0;
+    for (int64_t l = 0; l < n_levels && status == 0; l++) {
+        const int64_t h = rows[l] - 2 * crop, w = cols[l] - 2 * crop, step = steps[l];
+        if (h <= 0 || w <= 0 || h <= 2 * edge || w <= 2 * edge) continue;
+        const uint8_t *img = (const uint8_t *)levels[l] + crop * step + crop;
+        int64_t n = fast9(img, step, h, w, (int)threshold, score, cand_i, cand_j, xs, ys, fast_scores);
+        /* ORB's border: keep x in [edge, w - edge), y in [edge, h - edge) */
+        int64_t m = 0;
+        for (int64_t i = 0; i < n; i++) {
+            if (xs[i] >= edge && xs[i] < w - edge && ys[i] >= edge && ys[i] < h - edge) {
+                xs[m] = xs[i]; ys[m] = ys[i]; fast_scores[m] = fast_scores[i];
+                m++;
+            }
+        }
+        n = m;
+        /* The best 2 * budget by FAST score, every tie at the last place kept (KeyPointsFilter::retainBest). */
+        const int64_t keep_fast = 2 * budgets[l];
+        if (n > keep_fast) {
+            int64_t counts[256] = {0};
+            for (int64_t i = 0; i < n; i++) counts[fast_scores[i]]++;
+            int bar = 255;
+            int64_t above = counts[255];
+            while (above < keep_fast && bar > 0) above += counts[--bar];
+            m = 0;
+            if (keep_fast > 0) {
+                for (int64_t i = 0; i < n; i++) {
+                    if (fast_scores[i] >= bar) {
+                        xs[m] = xs[i]; ys[m] = ys[i];
+                        m++;
+                    }
+                }
+            }
+            n = m;
+        }
+        for (int64_t i = 0; i < n; i++) response[i] = harris_response(img + ys[i] * step + xs[i], step);
+        /* The best `budget` by Harris response, ties at the last place kept. */
+        const int64_t keep = budgets[l];
+        if (n > keep) {
+            m = 0;
+            if (keep > 0) {
+                memcpy(sorted, response, (size_t)n * sizeof(float));
+                const float bar = kth_largest(sorted, n, keep);
+                for (int64_t i = 0; i < n; i++) {
+                    if (response[i] >= bar) {
+                        xs[m] = xs[i]; ys[m] = ys[i]; response[m] = response[i];
+                        m++;
+                    }
+                }
+            }
+            n = m;
+        }
+        if (total + n > capacity) {
+            status = -3;
+            break;
+        }
+        for (int64_t i = 0; i < n; i++) {
+            const uint8_t *center = img + ys[i] * step + xs[i];
+            out_x[total] = (int32_t)(xs[i] + crop);
+            out_y[total] = (int32_t)(ys[i] + crop);
+            out_response[total] = response[i];
+            out_angle[total] = disc ? disc_angle(center, step, disc) : centroid_angle(center, step, half_patch, umax);
+            out_level[total] = (int32_t)l;
+            total++;
+        }
+    }
+    free(score); free(fast_scores); free(cand_i); free(cand_j); free(xs); free(ys); free(response); free(sorted);
+    return status ? status : total;
 }

@@ -22,7 +22,7 @@ from aefabmap_runtime.errors import ConfigError
 
 #: The interface version kernels.c reports (aefabmap_kernels_version): a library built from other
 #: sources is not used.
-VERSION = 2
+VERSION = 3
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -37,6 +37,7 @@ _SIGNATURES = {
     "epipolar_errors": (None, [_P, _P, _P, ctypes.c_double, _P, _I64]),
     "select_words": (ctypes.c_int, [_P, _P, _P, _P, _P, _P, _P, _I64, _I64, _I64]),
     "orb_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _I64, _P, _I64, _P, _P]),
+    "orb_keypoints": (_I64, [_P, _P, _P, _P, _I64, _I64, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _P]),
 }
 
 
@@ -201,12 +202,7 @@ def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upri
     for out in (oriented, upright):
         if out is not None and out.shape != (n, pattern.shape[0] // 8):
             raise ConfigError(f"orb_describe: output {out.shape} is not ({n}, {pattern.shape[0] // 8})")
-    if any(lv.dtype != np.uint8 or lv.ndim != 2 or lv.strides[1] != 1 for lv in levels):
-        raise ConfigError("orb_describe: levels must be 2-D uint8 arrays with contiguous rows")
-    addresses = np.array([lv.__array_interface__["data"][0] for lv in levels], np.intp)
-    steps = np.array([lv.strides[0] for lv in levels], np.int64)
-    rows = np.array([lv.shape[0] for lv in levels], np.int64)
-    cols = np.array([lv.shape[1] for lv in levels], np.int64)
+    addresses, steps, rows, cols = _level_arrays(levels)
     status = _lib.orb_describe(
         _arg(addresses, np.intp, 1), _arg(steps, np.int64, 1), _arg(rows, np.int64, 1), _arg(cols, np.int64, 1),
         n_levels, _arg(inv_scale, np.float32, 1), _arg(x, np.float32, 1), _arg(y, np.float32, 1),
@@ -217,3 +213,41 @@ def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upri
         raise ConfigError("orb_describe: a keypoint's octave lies outside the pyramid")
     _memory(status)
     return int(status)
+
+
+def _level_arrays(levels) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Addresses, row strides, rows and columns (L,) of a pyramid's uint8 levels (rows may be strided)."""
+    if any(not isinstance(lv, np.ndarray) or lv.dtype != np.uint8 or lv.ndim != 2 or lv.strides[1] != 1
+           for lv in levels):
+        raise ConfigError("compiled kernel: pyramid levels must be 2-D uint8 arrays with contiguous rows")
+    return (np.array([lv.__array_interface__["data"][0] for lv in levels], np.intp),
+            np.array([lv.strides[0] for lv in levels], np.int64),
+            np.array([lv.shape[0] for lv in levels], np.int64),
+            np.array([lv.shape[1] for lv in levels], np.int64))
+
+
+def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_patch: int, umax):
+    """cv2.ORB's keypoints (Harris score) of a pyramid, each level searched as a one-level cv2.ORB
+    searches its crop (features/orb_levels.py). levels: list of (rows, cols) uint8 arrays; crop:
+    pixels left out at each edge; edge: the crop's edge threshold; budgets (L,) keypoints per
+    level; umax (half_patch + 1,) int32 half-widths of the orientation disc.
+
+    Returns x, y (N,) int32 level pixels, response, angle (N,) float32 and level (N,) int32."""
+    addresses, steps, rows, cols = _level_arrays(levels)
+    budgets = np.ascontiguousarray(budgets, np.int64)
+    umax = np.ascontiguousarray(umax, np.int32)
+    _same(len(levels), budgets.size)
+    if half_patch < 1 or umax.size < half_patch + 1 or crop < 0 or edge < 3:
+        raise ConfigError("orb_keypoints: half_patch, umax, crop or edge out of range")
+    # FAST keeps at most one corner of any 2 x 2 pixels (a kept one exceeds its neighbours).
+    capacity = int(sum(max(0, r - 2 * crop) * max(0, c - 2 * crop) for r, c in zip(rows, cols)) // 4 + 1)
+    x, y, level = (np.empty(capacity, np.int32) for _ in range(3))
+    response, angle = np.empty(capacity, np.float32), np.empty(capacity, np.float32)
+    n = _lib.orb_keypoints(addresses.ctypes.data, steps.ctypes.data, rows.ctypes.data, cols.ctypes.data,
+                           len(levels), int(crop), int(edge), int(threshold), budgets.ctypes.data, int(half_patch),
+                           umax.ctypes.data, capacity, x.ctypes.data, y.ctypes.data, response.ctypes.data,
+                           angle.ctypes.data, level.ctypes.data)
+    if n == -3:
+        raise ConfigError("orb_keypoints: more keypoints than the output holds")
+    _memory(n)
+    return x[:n], y[:n], response[:n], angle[:n], level[:n]

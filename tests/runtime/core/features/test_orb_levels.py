@@ -1,5 +1,6 @@
 """ORB detected level by level on one pyramid (runtime/aefabmap_runtime/core/features/orb_levels.py):
-cv2.ORB's own keypoints, and cv2.ORB detects where the level detector is not offered."""
+cv2.ORB's own keypoints, by a cv2.ORB per level and by the compiled kernel, and cv2.ORB detects
+where the level detector is not offered."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import pytest
 
 from aefabmap_runtime.core.features import features as F
 from aefabmap_runtime.core.features.orb_description import pyramid
-from aefabmap_runtime.core.features.orb_levels import OrbLevelDetector, keypoint_rows, level_budgets
+from aefabmap_runtime.core.features.orb_levels import OrbLevelDetector, keypoint_rows, level_budgets, orientation_disc
+from aefabmap_runtime.core.kernels import native
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
 
@@ -19,7 +21,18 @@ def images():
     rng = np.random.default_rng(2)
     noisy = [np.clip(f.astype(np.int16) + rng.integers(-40, 40, f.shape), 0, 255).astype(np.uint8) for f in frames]
     sizes = [(512, 410), (160, 120), (640, 64), (48, 40)]  # a detection image, a small frame, 10:1, tiny
-    return frames + noisy + [cv2.resize(noisy[0], s, interpolation=cv2.INTER_LINEAR) for s in sizes]
+    # black and white squares of 1-5 pixels: differences that saturate, scores at their extremes
+    squares = [np.kron(rng.integers(0, 2, (480 // k, 640 // k)), np.ones((k, k))).astype(np.uint8) * 255
+               for k in (1, 2, 3, 5)]
+    flat = [np.full((240, 320), 128, np.uint8)]  # no corner
+    return frames + noisy + [cv2.resize(noisy[0], s, interpolation=cv2.INTER_LINEAR) for s in sizes] + squares + flat
+
+
+@pytest.fixture(params=[False, True], ids=["per-level-orb", "compiled"])
+def compiled(request):
+    if request.param and not native.available():
+        pytest.skip("the compiled kernels are not built here")
+    return request.param
 
 
 def _rows(xy: np.ndarray, attrs: np.ndarray) -> np.ndarray:
@@ -28,11 +41,14 @@ def _rows(xy: np.ndarray, attrs: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("settings", [dict(nfeatures=1000), dict(nfeatures=300, fastThreshold=10),
-                                      dict(nfeatures=2000, nlevels=5, scaleFactor=1.3)])
-def test_level_by_level_detection_finds_orbs_own_keypoints(images, settings):
+                                      dict(nfeatures=2000, nlevels=5, scaleFactor=1.3),
+                                      dict(nfeatures=500, fastThreshold=0, patchSize=21, edgeThreshold=21),
+                                      dict(nfeatures=500, fastThreshold=60, patchSize=41, edgeThreshold=45)])
+def test_level_by_level_detection_finds_orbs_own_keypoints(images, settings, compiled):
     orb = cv2.ORB_create(**settings)
-    detector = OrbLevelDetector.for_detector(orb)
-    assert detector is not None
+    assert OrbLevelDetector.for_detector(orb) is not None
+    detector = OrbLevelDetector(orb, compiled=compiled)
+    assert detector.compiled == compiled
     for image in images:
         levels, _ = pyramid(image, orb.getNLevels(), orb.getScaleFactor())
         mine, theirs = _rows(*detector.detect(levels)), _rows(*keypoint_rows(orb.detect(image, None)))
@@ -47,6 +63,33 @@ def test_each_level_keeps_orbs_share_of_the_budget(images):
     counts = np.bincount(attrs[:, 3].astype(int), minlength=8)
     assert list(counts) == level_budgets(1000, 8, orb.getScaleFactor())
     assert sum(level_budgets(1000, 8, 1.2)) == 1000 and level_budgets(5, 8, 1.2)[-1] >= 0
+
+
+def test_the_compiled_detector_is_chosen_where_it_agrees():
+    detector = OrbLevelDetector.for_detector(cv2.ORB_create(nfeatures=1000))
+    assert detector.compiled == native.available()
+    # FAST's score instead of Harris': the compiled kernel computes Harris' only
+    fast_scored = OrbLevelDetector.for_detector(cv2.ORB_create(scoreType=cv2.ORB_FAST_SCORE))
+    assert fast_scored is not None and not fast_scored.compiled
+
+
+def test_orientation_disc_is_orbs():
+    assert orientation_disc(15).tolist() == [15, 15, 15, 15, 14, 14, 14, 13, 13, 12, 11, 10, 9, 8, 6, 3]
+    for half in (3, 10, 20):
+        umax = orientation_disc(half)
+        rows = [(v, u) for v in range(half + 1) for u in range(umax[v] + 1)]
+        assert {(u, v) for v, u in rows} == set(rows)  # symmetric about the diagonal, as OpenCV makes it
+
+
+def test_real_frames_get_orbs_own_keypoints(lip6):
+    orb = cv2.ORB_create(nfeatures=1000)
+    detector = OrbLevelDetector.for_detector(orb)
+    for path in sorted(lip6.glob("*.jpg"))[::25]:
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        image = cv2.resize(gray, (512, round(gray.shape[0] * 512 / gray.shape[1])), interpolation=cv2.INTER_LINEAR_EXACT)
+        levels, _ = pyramid(image, orb.getNLevels(), orb.getScaleFactor())
+        mine, theirs = _rows(*detector.detect(levels)), _rows(*keypoint_rows(orb.detect(image, None)))
+        assert mine.shape == theirs.shape and np.array_equal(mine, theirs), path.name
 
 
 def test_settings_it_does_not_cover_leave_detection_to_orb(images):
