@@ -7,10 +7,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from aefabmap_runtime.core.features import features as F
 from aefabmap_runtime.core.features.orb_description import pyramid
-from aefabmap_runtime.core.features.orb_levels import OrbLevelDetector, keypoint_rows, level_budgets, orientation_disc
+from aefabmap_runtime.core.features.orb_levels import (
+    OrbLevelDetector,
+    keypoint_rows,
+    level_budgets,
+    orientation_disc,
+)
 from aefabmap_runtime.core.kernels import native
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
@@ -40,10 +44,10 @@ def _rows(xy: np.ndarray, attrs: np.ndarray) -> np.ndarray:
     return rows[np.lexsort(rows.T[::-1])]
 
 
-@pytest.mark.parametrize("settings", [dict(nfeatures=1000), dict(nfeatures=300, fastThreshold=10),
-                                      dict(nfeatures=2000, nlevels=5, scaleFactor=1.3),
-                                      dict(nfeatures=500, fastThreshold=0, patchSize=21, edgeThreshold=21),
-                                      dict(nfeatures=500, fastThreshold=60, patchSize=41, edgeThreshold=45)])
+@pytest.mark.parametrize("settings", [{"nfeatures": 1000}, {"nfeatures": 300, "fastThreshold": 10},
+                                      {"nfeatures": 2000, "nlevels": 5, "scaleFactor": 1.3},
+                                      {"nfeatures": 500, "fastThreshold": 0, "patchSize": 21, "edgeThreshold": 21},
+                                      {"nfeatures": 500, "fastThreshold": 60, "patchSize": 41, "edgeThreshold": 45}])
 def test_level_by_level_detection_finds_orbs_own_keypoints(images, settings, compiled):
     orb = cv2.ORB_create(**settings)
     assert OrbLevelDetector.for_detector(orb) is not None
