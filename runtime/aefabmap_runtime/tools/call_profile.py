@@ -2,7 +2,8 @@
 
 Groups (GROUPS) of the calls a frame makes:
 
-- opencv_features: OpenCV's feature detectors and describers (``Feature2D`` methods: ORB, SIFT);
+- opencv_features: OpenCV's feature detectors and describers (``Feature2D`` methods: SIFT, and
+  ORB where the compiled kernels do not detect and describe it);
 - opencv_fits: OpenCV's two-view model fits (homography, fundamental and essential matrices);
 - opencv_matching: OpenCV's descriptor distances (the numpy kernels' all-pairs matching);
 - opencv_image: JPEG decoding and image preparation (any other OpenCV call);
