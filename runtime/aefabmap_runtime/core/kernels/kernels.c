@@ -631,12 +631,14 @@ static __attribute__((target("avx512f,avx512bw"))) uint64_t block_corners_avx512
  * OpenCV finds them: pixels of rows and columns 3..size-4, a corner kept when its score exceeds
  * each of its 8 neighbours' (0 where no corner). score (rows x cols) is scratch, zeroed here;
  * cand_i, cand_j: scratch of rows x cols; xs, ys, scores receive the kept corners in row-major
- * order. Returns their number. */
+ * order. Returns their number. portable: the GCC-vector form even where AVX-512BW runs. */
 static int64_t fast9(const uint8_t *img, int64_t step, int64_t rows, int64_t cols, int threshold, uint8_t *score,
-                     int32_t *cand_i, int32_t *cand_j, int32_t *xs, int32_t *ys, uint8_t *scores) {
+                     int32_t *cand_i, int32_t *cand_j, int32_t *xs, int32_t *ys, uint8_t *scores, int portable) {
     block_corners_fn block_corners = block_corners_generic;
 #if HAVE_DISPATCH
-    if (__builtin_cpu_supports("avx512bw")) block_corners = block_corners_avx512;
+    if (!portable && __builtin_cpu_supports("avx512bw")) block_corners = block_corners_avx512;
+#else
+    (void)portable;
 #endif
     int32_t ring[16];
     for (int k = 0; k < 16; k++) ring[k] = (int32_t)(fast_ring[k][0] + fast_ring[k][1] * step);
@@ -717,22 +719,18 @@ static float fast_atan2(float y, float x) {
 }
 
 /* ORB's Harris response at a pixel (OpenCV's HarrisResponses: a 7 x 7 block of Sobel gradients,
- * k = 0.04, scaled by (4 * 7 * 255)^-4; integer sums, then float32 in OpenCV's order). Each row of
- * the block is taken 8 columns wide with the eighth weighted 0, a loop of fixed length. */
+ * k = 0.04, scaled by (4 * 7 * 255)^-4; integer sums, then float32 in OpenCV's order). */
 static inline float harris_response(const uint8_t *center, int64_t step) {
     const float harris_k = 0.04f, scale = 1.f / ((1 << 2) * 7 * 255.f);
     const float scale_sq_sq = scale * scale * scale * scale;
     int a = 0, b = 0, c = 0;
     for (int r = -3; r <= 3; r++) {
-        const uint8_t *p = center + r * step - 3;
-        for (int q = 0; q < 8; q++) {
-            const int on = q < 7;
-            const int ix = ((p[q + 1] - p[q - 1]) * 2 + (p[q - step + 1] - p[q - step - 1]) +
-                            (p[q + step + 1] - p[q + step - 1])) * on;
-            const int iy = (p[q + step] - p[q - step]) * 2 + (p[q + step - 1] - p[q - step - 1]) +
-                           (p[q + step + 1] - p[q - step + 1]);
+        for (int q = -3; q <= 3; q++) {
+            const uint8_t *p = center + r * step + q;
+            const int ix = (p[1] - p[-1]) * 2 + (p[-step + 1] - p[-step - 1]) + (p[step + 1] - p[step - 1]);
+            const int iy = (p[step] - p[-step]) * 2 + (p[step - 1] - p[-step - 1]) + (p[step + 1] - p[-step + 1]);
             a += ix * ix;
-            b += iy * iy * on;
+            b += iy * iy;
             c += ix * iy;
         }
     }
@@ -760,28 +758,6 @@ static inline float centroid_angle(const uint8_t *center, int64_t step, int64_t 
     return fast_atan2((float)m01, (float)m10);
 }
 
-/* centroid_angle for half_patch <= 15 with the disc as a table: disc[v][k] is 1 where u = k - 16
- * lies in row v (0 elsewhere), each row read 32 pixels wide, a loop of fixed length. The sums are
- * integers, so the order does not change them. */
-typedef int16_t disc_table[16][32];
-
-static inline float disc_angle(const uint8_t *center, int64_t step, const disc_table *disc) {
-    int m01 = 0, m10 = 0;
-    const uint8_t *row = center - 16;
-    for (int k = 0; k < 32; k++) m10 += (k - 16) * (*disc)[0][k] * row[k];
-    for (int64_t v = 1; v < 16; v++) {
-        const uint8_t *up = center + v * step - 16, *down = center - v * step - 16;
-        int v_sum = 0;
-        for (int k = 0; k < 32; k++) {
-            const int in = (*disc)[v][k], plus = up[k], minus = down[k];
-            v_sum += in * (plus - minus);
-            m10 += in * (k - 16) * (plus + minus);
-        }
-        m01 += (int)v * v_sum;
-    }
-    return fast_atan2((float)m01, (float)m10);
-}
-
 /* cv2.ORB's keypoints (Harris score) of each level of a pyramid, as a one-level cv2.ORB finds them
  * on the level's crop (features/orb_levels.py): FAST-9 corners (`fast9`) at least `edge` pixels
  * inside the crop; when more than 2 * budget, those scoring at least the 2 * budget-th score; their
@@ -790,6 +766,7 @@ static inline float disc_angle(const uint8_t *center, int64_t step, const disc_t
  * (umax: the disc's half-width per row, half_patch + 1 rows). levels, steps, rows, cols: the
  * pyramid (uint8); crop: pixels left out at each edge of every level; budgets (n_levels,).
  * Out (capacity rows): x, y (int32, level pixels), response, angle (float32), level (int32).
+ * portable: FAST's GCC-vector form even where its AVX-512BW form runs (tests compare them).
  * Returns the number of keypoints, -1 when out of memory, -3 when more than capacity. */
 #if HAVE_DISPATCH
 __attribute__((target_clones("arch=x86-64-v4", "avx2", "default")))
@@ -797,7 +774,8 @@ __attribute__((target_clones("arch=x86-64-v4", "avx2", "default")))
 API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
                           int64_t n_levels, int64_t crop, int64_t edge, int64_t threshold, const int64_t *budgets,
                           int64_t half_patch, const int32_t *umax, int64_t capacity, int32_t *out_x,
-                          int32_t *out_y, float *out_response, float *out_angle, int32_t *out_level) {
+                          int32_t *out_y, float *out_response, float *out_angle, int32_t *out_level,
+                          int64_t portable) {
     int64_t largest = 0;
     for (int64_t l = 0; l < n_levels; l++) {
         const int64_t area = (rows[l] - 2 * crop) * (cols[l] - 2 * crop);
@@ -812,20 +790,12 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
         free(score); free(fast_scores); free(cand_i); free(cand_j); free(xs); free(ys); free(response); free(sorted);
         return -1;
     }
-    disc_table table;
-    const disc_table *disc = NULL;
-    if (half_patch <= 15) {
-        memset(table, 0, sizeof(table));
-        for (int64_t v = 0; v <= half_patch; v++)
-            for (int64_t u = -(v ? umax[v] : half_patch); u <= (v ? umax[v] : half_patch); u++) table[v][u + 16] = 1;
-        disc = (const disc_table *)&table;
-    }
     int64_t total = 0, status = 0;
     for (int64_t l = 0; l < n_levels && status == 0; l++) {
         const int64_t h = rows[l] - 2 * crop, w = cols[l] - 2 * crop, step = steps[l];
         if (h <= 0 || w <= 0 || h <= 2 * edge || w <= 2 * edge) continue;
         const uint8_t *img = (const uint8_t *)levels[l] + crop * step + crop;
-        int64_t n = fast9(img, step, h, w, (int)threshold, score, cand_i, cand_j, xs, ys, fast_scores);
+        int64_t n = fast9(img, step, h, w, (int)threshold, score, cand_i, cand_j, xs, ys, fast_scores, (int)portable);
         /* ORB's border: keep x in [edge, w - edge), y in [edge, h - edge) */
         int64_t m = 0;
         for (int64_t i = 0; i < n; i++) {
@@ -880,7 +850,7 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
             out_x[total] = (int32_t)(xs[i] + crop);
             out_y[total] = (int32_t)(ys[i] + crop);
             out_response[total] = response[i];
-            out_angle[total] = disc ? disc_angle(center, step, disc) : centroid_angle(center, step, half_patch, umax);
+            out_angle[total] = centroid_angle(center, step, half_patch, umax);
             out_level[total] = (int32_t)l;
             total++;
         }

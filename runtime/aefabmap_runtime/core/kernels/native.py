@@ -37,7 +37,7 @@ _SIGNATURES = {
     "epipolar_errors": (None, [_P, _P, _P, ctypes.c_double, _P, _I64]),
     "select_words": (ctypes.c_int, [_P, _P, _P, _P, _P, _P, _P, _I64, _I64, _I64]),
     "orb_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _I64, _P, _I64, _P, _P]),
-    "orb_keypoints": (_I64, [_P, _P, _P, _P, _I64, _I64, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _P]),
+    "orb_keypoints": (_I64, [_P, _P, _P, _P, _I64, _I64, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I64]),
 }
 
 
@@ -226,11 +226,12 @@ def _level_arrays(levels) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
             np.array([lv.shape[1] for lv in levels], np.int64))
 
 
-def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_patch: int, umax):
+def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_patch: int, umax, portable: bool = False):
     """cv2.ORB's keypoints (Harris score) of a pyramid, each level searched as a one-level cv2.ORB
     searches its crop (features/orb_levels.py). levels: list of (rows, cols) uint8 arrays; crop:
     pixels left out at each edge; edge: the crop's edge threshold; budgets (L,) keypoints per
-    level; umax (half_patch + 1,) int32 half-widths of the orientation disc.
+    level; umax (half_patch + 1,) int32 half-widths of the orientation disc; portable: FAST's
+    portable form even where the CPU runs its AVX-512 form (the same keypoints; for tests).
 
     Returns x, y (N,) int32 level pixels, response, angle (N,) float32 and level (N,) int32."""
     addresses, steps, rows, cols = _level_arrays(levels)
@@ -246,7 +247,7 @@ def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_pa
     n = _lib.orb_keypoints(addresses.ctypes.data, steps.ctypes.data, rows.ctypes.data, cols.ctypes.data,
                            len(levels), int(crop), int(edge), int(threshold), budgets.ctypes.data, int(half_patch),
                            umax.ctypes.data, capacity, x.ctypes.data, y.ctypes.data, response.ctypes.data,
-                           angle.ctypes.data, level.ctypes.data)
+                           angle.ctypes.data, level.ctypes.data, int(bool(portable)))
     if n == -3:
         raise ConfigError("orb_keypoints: more keypoints than the output holds")
     _memory(n)

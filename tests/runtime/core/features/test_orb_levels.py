@@ -69,6 +69,20 @@ def test_each_level_keeps_orbs_share_of_the_budget(images):
     assert sum(level_budgets(1000, 8, 1.2)) == 1000 and level_budgets(5, 8, 1.2)[-1] >= 0
 
 
+def test_fasts_portable_form_finds_the_same_keypoints(images):
+    # The portable form (GCC vectors) runs where AVX-512BW does not (ARM boards): the same keypoints.
+    if not native.available():
+        pytest.skip("the compiled kernels are not built here")
+    orb = cv2.ORB_create(nfeatures=1000)
+    detector = OrbLevelDetector(orb, compiled=True)
+    for image in images:
+        levels, _ = pyramid(image, orb.getNLevels(), orb.getScaleFactor())
+        args = (levels, detector._crop, detector._edge, orb.getFastThreshold(), detector._budgets[: len(levels)],
+                orb.getPatchSize() // 2, orientation_disc(orb.getPatchSize() // 2))
+        fast, portable = native.orb_keypoints(*args), native.orb_keypoints(*args, portable=True)
+        assert all(np.array_equal(a, b) for a, b in zip(fast, portable))
+
+
 def test_the_compiled_detector_is_chosen_where_it_agrees():
     detector = OrbLevelDetector.for_detector(cv2.ORB_create(nfeatures=1000))
     assert detector.compiled == native.available()
