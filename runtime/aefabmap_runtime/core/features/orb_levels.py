@@ -61,7 +61,9 @@ class OrbLevelDetector:
         self._edge = orb.getEdgeThreshold() - self._crop
         self._budgets = level_budgets(orb.getMaxFeatures(), n_levels, scale_factor)
         self._threshold = orb.getFastThreshold()
-        self.compiled = bool(compiled) and native.available() and orb.getScoreType() == cv2.ORB_HARRIS_SCORE
+        # The kernel reads a keypoint's orientation disc and Harris window inside its level only.
+        self.compiled = (bool(compiled) and native.available() and orb.getScoreType() == cv2.ORB_HARRIS_SCORE
+                         and orb.getEdgeThreshold() >= max(4, self.patch_size // 2))
         self._disc = orientation_disc(self.patch_size // 2)
         self._levels = [
             cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=self._edge,

@@ -767,7 +767,8 @@ static inline float centroid_angle(const uint8_t *center, int64_t step, int64_t 
  * pyramid (uint8); crop: pixels left out at each edge of every level; budgets (n_levels,).
  * Out (capacity rows): x, y (int32, level pixels), response, angle (float32), level (int32).
  * portable: FAST's GCC-vector form even where its AVX-512BW form runs (tests compare them).
- * Returns the number of keypoints, -1 when out of memory, -3 when more than capacity. */
+ * Returns the number of keypoints, -1 when out of memory, -2 when edge, crop, half_patch or umax
+ * would read outside a level, -3 when more than capacity. */
 #if HAVE_DISPATCH
 __attribute__((target_clones("arch=x86-64-v4", "avx2", "default")))
 #endif
@@ -781,6 +782,11 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
         const int64_t area = (rows[l] - 2 * crop) * (cols[l] - 2 * crop);
         largest = area > largest ? area : largest;
     }
+    /* every read stays inside the level: FAST's circle (3) and the Harris window (4) inside the
+     * crop's edge, the orientation disc (half_patch) inside the level */
+    if (edge < 4 || crop + edge < half_patch) return -2;
+    for (int64_t v = 0; v <= half_patch; v++)
+        if (umax[v] < 0 || umax[v] > half_patch) return -2;
     if (largest <= 0) return 0;
     uint8_t *score = (uint8_t *)malloc((size_t)largest), *fast_scores = (uint8_t *)malloc((size_t)largest);
     int32_t *cand_i = (int32_t *)malloc((size_t)largest * sizeof(int32_t)), *cand_j = (int32_t *)malloc((size_t)largest * sizeof(int32_t));

@@ -238,7 +238,10 @@ def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_pa
     budgets = np.ascontiguousarray(budgets, np.int64)
     umax = np.ascontiguousarray(umax, np.int32)
     _same(len(levels), budgets.size)
-    if half_patch < 1 or umax.size < half_patch + 1 or crop < 0 or edge < 3:
+    # A kept keypoint lies `edge` pixels inside the crop: its Harris window (4 pixels) and its
+    # orientation disc (half_patch) must lie inside the level.
+    if half_patch < 1 or umax.size < half_patch + 1 or crop < 0 or edge < 4 or crop + edge < half_patch \
+            or np.any(umax[: half_patch + 1] > half_patch) or np.any(umax < 0):
         raise ConfigError("orb_keypoints: half_patch, umax, crop or edge out of range")
     # FAST keeps at most one corner of any 2 x 2 pixels (a kept one exceeds its neighbours).
     capacity = int(sum(max(0, r - 2 * crop) * max(0, c - 2 * crop) for r, c in zip(rows, cols)) // 4 + 1)
@@ -250,5 +253,7 @@ def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_pa
                            angle.ctypes.data, level.ctypes.data, int(bool(portable)))
     if n == -3:
         raise ConfigError("orb_keypoints: more keypoints than the output holds")
+    if n == -2:
+        raise ConfigError("orb_keypoints: edge, crop or the orientation disc would read outside a level")
     _memory(n)
     return x[:n], y[:n], response[:n], angle[:n], level[:n]

@@ -16,6 +16,7 @@ from aefabmap_runtime.core.features.orb_levels import (
     orientation_disc,
 )
 from aefabmap_runtime.core.kernels import native
+from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
 
 
@@ -89,6 +90,23 @@ def test_the_compiled_detector_is_chosen_where_it_agrees():
     # FAST's score instead of Harris': the compiled kernel computes Harris' only
     fast_scored = OrbLevelDetector.for_detector(cv2.ORB_create(scoreType=cv2.ORB_FAST_SCORE))
     assert fast_scored is not None and not fast_scored.compiled
+    # an edge threshold under half a patch: the orientation disc would leave the level
+    assert not OrbLevelDetector(cv2.ORB_create(edgeThreshold=10, patchSize=31), compiled=True).compiled
+
+
+def test_the_kernel_refuses_reads_outside_a_level():
+    if not native.available():
+        pytest.skip("the compiled kernels are not built here")
+    levels = [np.zeros((64, 64), np.uint8)]
+    disc = orientation_disc(15)
+    with pytest.raises(ConfigError):
+        native.orb_keypoints(levels, 0, 10, 20, [100], 15, disc)  # the disc reaches 15 pixels
+    with pytest.raises(ConfigError):
+        native.orb_keypoints(levels, 16, 3, 20, [100], 15, disc)  # the Harris window reaches 4
+    bad = disc.copy()
+    bad[3] = 40
+    with pytest.raises(ConfigError):
+        native.orb_keypoints(levels, 16, 15, 20, [100], 15, bad)
 
 
 def test_orientation_disc_is_orbs():
