@@ -65,7 +65,7 @@ class OrbLevelDetector:
         self.compiled = (bool(compiled) and native.available() and orb.getScoreType() == cv2.ORB_HARRIS_SCORE
                          and orb.getEdgeThreshold() >= max(4, self.patch_size // 2))
         self._disc = orientation_disc(self.patch_size // 2)
-        self._levels = [
+        self._levels = [] if self.compiled else [
             cv2.ORB_create(nfeatures=budget, scaleFactor=scale_factor, nlevels=1, edgeThreshold=self._edge,
                            firstLevel=0, WTA_K=orb.getWTA_K(), scoreType=orb.getScoreType(),
                            patchSize=orb.getPatchSize(), fastThreshold=self._threshold)
@@ -90,8 +90,22 @@ class OrbLevelDetector:
         """Keypoints of the pyramid `levels` (level 0 first): xy (N, 2) float32 in level-0 pixels
         and (N, 4) float32 rows (response, size, angle, octave), level by level."""
         if self.compiled:
-            return self._detect_compiled(levels)
-        xy, attrs = [], []
+            x, y, response, angle, level = native.orb_keypoints(
+                levels, self._crop, self._edge, self._threshold, self._budgets[: len(levels)], self.patch_size // 2,
+                self._disc)
+        else:
+            x, y, response, angle, level = self._detect_per_level(levels)
+        # Scaled as ORB scales a level's coordinates: by the level's float32 scale, in float32; the
+        # size is ORB's patch size times the level's scale.
+        scale = self._scales[level]
+        xy = np.column_stack([x.astype(np.float32) * scale, y.astype(np.float32) * scale])
+        attrs = np.column_stack([response, np.float32(self.patch_size) * scale, angle, level.astype(np.float32)])
+        return xy, attrs.astype(np.float32, copy=False)
+
+    def _detect_per_level(self, levels: list[np.ndarray]) -> tuple[np.ndarray, ...]:
+        """`native.orb_keypoints`' arrays, by a one-level cv2.ORB on each level's crop: x, y
+        (float32 level pixels), response, angle and level."""
+        found = []
         crop = self._crop
         for level, (orb, image) in enumerate(zip(self._levels, levels)):
             if min(image.shape) <= 2 * crop:
@@ -99,27 +113,13 @@ class OrbLevelDetector:
             kps = orb.detect(image[crop: image.shape[0] - crop, crop: image.shape[1] - crop], None)
             if not kps:
                 continue
-            scale = self._scales[level]
-            # Back to the level's pixels (whole numbers: exact), then scaled as ORB scales a
-            # level's coordinates: by the level's float32 scale, in float32.
+            # Back to the level's pixels (whole numbers: exact).
             at = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32, copy=False) + np.float32(crop)
-            xy.append(at * scale)
-            size = np.float32(self.patch_size) * scale  # ORB's patch size times the level's scale
-            attrs.append(np.column_stack([_attribute(kps, "response"), np.full(len(kps), size, np.float32),
-                                          _attribute(kps, "angle"), np.full(len(kps), level, np.float32)]))
-        if not xy:
-            return np.zeros((0, 2), np.float32), np.zeros((0, 4), np.float32)
-        return np.concatenate(xy), np.concatenate(attrs).astype(np.float32, copy=False)
-
-    def _detect_compiled(self, levels: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        x, y, response, angle, level = native.orb_keypoints(levels, self._crop, self._edge, self._threshold,
-                                                            self._budgets[: len(levels)], self.patch_size // 2,
-                                                            self._disc)
-        # Scaled as ORB scales a level's coordinates: by the level's float32 scale, in float32.
-        scale = self._scales[level]
-        xy = np.column_stack([x.astype(np.float32) * scale, y.astype(np.float32) * scale])
-        attrs = np.column_stack([response, np.float32(self.patch_size) * scale, angle, level.astype(np.float32)])
-        return xy, attrs.astype(np.float32, copy=False)
+            found.append((at[:, 0], at[:, 1], _attribute(kps, "response"), _attribute(kps, "angle"),
+                          np.full(len(kps), level, np.int32)))
+        if not found:
+            return (np.zeros(0, np.float32),) * 4 + (np.zeros(0, np.int32),)
+        return tuple(np.concatenate(column) for column in zip(*found))
 
 
 def orientation_disc(half_patch: int) -> np.ndarray:

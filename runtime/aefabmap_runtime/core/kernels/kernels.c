@@ -628,12 +628,14 @@ static __attribute__((target("avx512f,avx512bw"))) uint64_t block_corners_avx512
 #endif
 
 /* FAST-9 corners of an rows x cols image (row stride `step`) kept by non-maximum suppression, as
- * OpenCV finds them: pixels of rows and columns 3..size-4, a corner kept when its score exceeds
- * each of its 8 neighbours' (0 where no corner). score (rows x cols) is scratch, zeroed here;
- * cand_i, cand_j: scratch of rows x cols; xs, ys, scores receive the kept corners in row-major
- * order. Returns their number. portable: the GCC-vector form even where AVX-512BW runs. */
-static int64_t fast9(const uint8_t *img, int64_t step, int64_t rows, int64_t cols, int threshold, uint8_t *score,
-                     int32_t *cand_i, int32_t *cand_j, int32_t *xs, int32_t *ys, uint8_t *scores, int portable) {
+ * OpenCV finds them (a corner kept when its score exceeds each of its 8 neighbours', 0 where no
+ * corner), of those at least `border` (>= 4) pixels inside every edge, as ORB keeps them: only
+ * they and their neighbours are searched. score (rows x cols) and cand_i, cand_j (rows x cols) are
+ * scratch; xs, ys, scores receive the corners in row-major order. Returns their number. portable:
+ * the GCC-vector form even where AVX-512BW runs. */
+static int64_t fast9(const uint8_t *img, int64_t step, int64_t rows, int64_t cols, int threshold, int64_t border,
+                     uint8_t *score, int32_t *cand_i, int32_t *cand_j, int32_t *xs, int32_t *ys, uint8_t *scores,
+                     int portable) {
     block_corners_fn block_corners = block_corners_generic;
 #if HAVE_DISPATCH
     if (!portable && __builtin_cpu_supports("avx512bw")) block_corners = block_corners_avx512;
@@ -643,10 +645,12 @@ static int64_t fast9(const uint8_t *img, int64_t step, int64_t rows, int64_t col
     int32_t ring[16];
     for (int k = 0; k < 16; k++) ring[k] = (int32_t)(fast_ring[k][0] + fast_ring[k][1] * step);
     memset(score, 0, (size_t)(rows * cols));
+    /* the searched band: the kept corners' rows and columns and one more on each side */
+    const int64_t lo = border - 1, hi_row = rows - border + 1, hi_col = cols - border + 1;
     int64_t n_cand = 0;
-    for (int64_t i = 3; i < rows - 3; i++) {
-        for (int64_t j0 = 3; j0 < cols - 3; j0 += 64) {
-            const int64_t width = cols - 3 - j0 < 64 ? cols - 3 - j0 : 64;
+    for (int64_t i = lo; i < hi_row; i++) {
+        for (int64_t j0 = lo; j0 < hi_col; j0 += 64) {
+            const int64_t width = hi_col - j0 < 64 ? hi_col - j0 : 64;
             uint64_t bits = block_corners(img + i * step + j0, ring, width, threshold, score + i * cols + j0);
             while (bits) {
                 cand_i[n_cand] = (int32_t)i;
@@ -662,7 +666,8 @@ static int64_t fast9(const uint8_t *img, int64_t step, int64_t rows, int64_t col
         const uint8_t *up = score + at - cols, *down = score + at + cols;
         /* branch-free: whether a corner is kept is unpredictable */
         const int kept = (s > up[-1]) & (s > up[0]) & (s > up[1]) & (s > score[at - 1]) & (s > score[at + 1]) &
-                         (s > down[-1]) & (s > down[0]) & (s > down[1]);
+                         (s > down[-1]) & (s > down[0]) & (s > down[1]) & (i > lo) & (i < hi_row - 1) &
+                         (j > lo) & (j < hi_col - 1);
         xs[n] = (int32_t)j;
         ys[n] = (int32_t)i;
         scores[n] = s;
@@ -801,16 +806,10 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
         const int64_t h = rows[l] - 2 * crop, w = cols[l] - 2 * crop, step = steps[l];
         if (h <= 0 || w <= 0 || h <= 2 * edge || w <= 2 * edge) continue;
         const uint8_t *img = (const uint8_t *)levels[l] + crop * step + crop;
-        int64_t n = fast9(img, step, h, w, (int)threshold, score, cand_i, cand_j, xs, ys, fast_scores, (int)portable);
-        /* ORB's border: keep x in [edge, w - edge), y in [edge, h - edge) */
-        int64_t m = 0;
-        for (int64_t i = 0; i < n; i++) {
-            if (xs[i] >= edge && xs[i] < w - edge && ys[i] >= edge && ys[i] < h - edge) {
-                xs[m] = xs[i]; ys[m] = ys[i]; fast_scores[m] = fast_scores[i];
-                m++;
-            }
-        }
-        n = m;
+        /* ORB's border: x in [edge, w - edge), y in [edge, h - edge) */
+        int64_t n = fast9(img, step, h, w, (int)threshold, edge, score, cand_i, cand_j, xs, ys, fast_scores,
+                          (int)portable);
+        int64_t m;
         /* The best 2 * budget by FAST score, every tie at the last place kept (KeyPointsFilter::retainBest). */
         const int64_t keep_fast = 2 * budgets[l];
         if (n > keep_fast) {

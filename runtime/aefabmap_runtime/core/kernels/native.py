@@ -247,10 +247,12 @@ def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_pa
     capacity = int(sum(max(0, r - 2 * crop) * max(0, c - 2 * crop) for r, c in zip(rows, cols)) // 4 + 1)
     x, y, level = (np.empty(capacity, np.int32) for _ in range(3))
     response, angle = np.empty(capacity, np.float32), np.empty(capacity, np.float32)
-    n = _lib.orb_keypoints(addresses.ctypes.data, steps.ctypes.data, rows.ctypes.data, cols.ctypes.data,
-                           len(levels), int(crop), int(edge), int(threshold), budgets.ctypes.data, int(half_patch),
-                           umax.ctypes.data, capacity, x.ctypes.data, y.ctypes.data, response.ctypes.data,
-                           angle.ctypes.data, level.ctypes.data, int(bool(portable)))
+    n = _lib.orb_keypoints(
+        _arg(addresses, np.intp, 1), _arg(steps, np.int64, 1), _arg(rows, np.int64, 1), _arg(cols, np.int64, 1),
+        len(levels), int(crop), int(edge), int(threshold), _arg(budgets, np.int64, 1), int(half_patch),
+        _arg(umax, np.int32, 1), capacity, _writable(x, np.int32, 1), _writable(y, np.int32, 1),
+        _writable(response, np.float32, 1), _writable(angle, np.float32, 1), _writable(level, np.int32, 1),
+        int(bool(portable)))
     if n == -3:
         raise ConfigError("orb_keypoints: more keypoints than the output holds")
     if n == -2:
