@@ -16,7 +16,7 @@
 #define API __attribute__((visibility("default")))
 
 /* Version of this library's functions and arguments: native.py refuses a library built from other sources. */
-API int64_t aefabmap_kernels_version(void) { return 3; }
+API int64_t aefabmap_kernels_version(void) { return 4; }
 
 /* ---- popcount: the CPU instruction where it has one (x86-64 without POPCNT gets libgcc's) ---- */
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -862,4 +862,73 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
     }
     free(score); free(fast_scores); free(cand_i); free(cand_j); free(xs); free(ys); free(response); free(sorted);
     return status ? status : total;
+}
+
+/* ---- ORB's pyramid: OpenCV's bit-exact bilinear resize (INTER_LINEAR_EXACT), level by level ---- */
+
+/* Source index and 8-bit fixed-point weights of each destination index along one axis: the
+ * source position (d + 0.5) * src / dst - 0.5 in double, clamped to the first and last pixel (weight
+ * 0 on the neighbour), its fraction rounded to 1/256 (ties to even); the weights sum to 256. next:
+ * the neighbour's index (the last pixel's is itself). */
+static void linear_weights(int64_t src_n, int64_t dst_n, int32_t *index, int32_t *next, int32_t *w0, int32_t *w1) {
+    const double scale = (double)src_n / (double)dst_n;
+    for (int64_t d = 0; d < dst_n; d++) {
+        const double pos = ((double)d + 0.5) * scale - 0.5;
+        const double whole = floor(pos);
+        int64_t s = (int64_t)whole;
+        double frac = pos - whole;
+        if (s < 0) { s = 0; frac = 0.0; }
+        if (s >= src_n - 1) { s = src_n - 1; frac = 0.0; }
+        const int32_t c1 = (int32_t)nearbyint(frac * 256.0);
+        index[d] = (int32_t)s;
+        next[d] = (int32_t)(s + 1 < src_n ? s + 1 : s);
+        w1[d] = c1;
+        w0[d] = 256 - c1;
+    }
+}
+
+/* Level l (l >= 1) of `levels` resized from level l - 1: horizontal pass to 8 fractional bits,
+ * vertical pass to 16, rounded half up. Level 0 is read only. Returns 0, or -1 out of memory. */
+#if HAVE_DISPATCH
+__attribute__((target_clones("avx512f", "avx2", "default")))
+#endif
+API int64_t resize_levels(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
+                          int64_t n_levels) {
+    for (int64_t l = 1; l < n_levels; l++) {
+        const uint8_t *src = (const uint8_t *)levels[l - 1];
+        uint8_t *dst = (uint8_t *)levels[l];
+        const int64_t sr = rows[l - 1], sc = cols[l - 1], sstep = steps[l - 1];
+        const int64_t dr = rows[l], dc = cols[l], dstep = steps[l];
+        int32_t *xw = malloc((size_t)dc * 4 * sizeof(int32_t)), *yw = malloc((size_t)dr * 4 * sizeof(int32_t));
+        uint16_t *hor = malloc((size_t)sr * (size_t)dc * sizeof(uint16_t));
+        if (!xw || !yw || !hor) {
+            free(xw); free(yw); free(hor);
+            return -1;
+        }
+        int32_t *xi = xw, *xj = xw + dc, *x0 = xw + 2 * dc, *x1 = xw + 3 * dc;
+        int32_t *yi = yw, *yj = yw + dr, *y0 = yw + 2 * dr, *y1 = yw + 3 * dr;
+        linear_weights(sc, dc, xi, xj, x0, x1);
+        linear_weights(sr, dr, yi, yj, y0, y1);
+        /* Only the source rows some destination row reads: each is passed once. */
+        int64_t done = -1;
+        for (int64_t y = 0; y < dr; y++) {
+            for (int64_t r = yi[y]; r <= yj[y]; r++) {
+                if (r <= done) continue;
+                const uint8_t *s = src + r * sstep;
+                uint16_t *h = hor + r * dc;
+                for (int64_t x = 0; x < dc; x++)
+                    h[x] = (uint16_t)((int32_t)s[xi[x]] * x0[x] + (int32_t)s[xj[x]] * x1[x]);
+                done = r;
+            }
+            const uint16_t *h0 = hor + (int64_t)yi[y] * dc, *h1 = hor + (int64_t)yj[y] * dc;
+            const int32_t a = y0[y], b = y1[y];
+            uint8_t *d = dst + y * dstep;
+            for (int64_t x = 0; x < dc; x++) {
+                const int32_t v = ((int32_t)h0[x] * a + (int32_t)h1[x] * b + (1 << 15)) >> 16;
+                d[x] = (uint8_t)(v > 255 ? 255 : v);
+            }
+        }
+        free(xw); free(yw); free(hor);
+    }
+    return 0;
 }

@@ -22,7 +22,7 @@ from aefabmap_runtime.errors import ConfigError
 
 #: The interface version kernels.c reports (aefabmap_kernels_version): a library built from other
 #: sources is not used.
-VERSION = 3
+VERSION = 4
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -38,6 +38,7 @@ _SIGNATURES = {
     "select_words": (ctypes.c_int, [_P, _P, _P, _P, _P, _P, _P, _I64, _I64, _I64]),
     "orb_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _I64, _P, _I64, _P, _P]),
     "orb_keypoints": (_I64, [_P, _P, _P, _P, _I64, _I64, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I64]),
+    "resize_levels": (_I64, [_P, _P, _P, _P, _I64]),
 }
 
 
@@ -224,6 +225,20 @@ def _level_arrays(levels) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
             np.array([lv.strides[0] for lv in levels], np.int64),
             np.array([lv.shape[0] for lv in levels], np.int64),
             np.array([lv.shape[1] for lv in levels], np.int64))
+
+
+def resize_levels(levels) -> None:
+    """Fill levels[1:] (uint8, rows may be strided, sizes set by the caller), each from the one
+    before, by OpenCV's bit-exact bilinear resize (cv2.INTER_LINEAR_EXACT); levels[0] is read only."""
+    if len(levels) < 2:
+        return
+    if any(not lv.flags.writeable for lv in levels[1:]):
+        raise ConfigError("resize_levels: an output level is read-only")
+    addresses, steps, rows, cols = _level_arrays(levels)
+    if np.any(rows < 1) or np.any(cols < 1):
+        raise ConfigError("resize_levels: a level has no pixel")
+    _memory(_lib.resize_levels(_arg(addresses, np.intp, 1), _arg(steps, np.int64, 1), _arg(rows, np.int64, 1),
+                               _arg(cols, np.int64, 1), len(levels)))
 
 
 def orb_keypoints(levels, crop: int, edge: int, threshold: int, budgets, half_patch: int, umax, portable: bool = False):

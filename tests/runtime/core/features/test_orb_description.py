@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from aefabmap_runtime.core.features import features as F
-from aefabmap_runtime.core.features.orb_description import PAIRS, OrbDescriber, probe_pattern
+from aefabmap_runtime.core.features.orb_description import (
+    PAIRS,
+    OrbDescriber,
+    compiled_resize_agrees,
+    probe_pattern,
+    pyramid,
+)
 from aefabmap_runtime.core.kernels import native
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
@@ -89,3 +95,40 @@ def test_the_kernel_refuses_arguments_that_do_not_agree():
     with pytest.raises(ConfigError):
         native.orb_describe([level], np.ones(1, np.float32), one, one, one, np.zeros(1, np.int32), pattern,
                             np.zeros((2, PAIRS // 8), np.uint8), None)
+
+
+def test_the_compiled_pyramid_gives_opencvs_levels():
+    rng = np.random.default_rng(7)
+    assert compiled_resize_agrees()
+    for _ in range(150):
+        rows, cols = (int(v) for v in rng.integers(1, 260, 2))
+        smooth = cv2.resize(rng.integers(0, 256, (max(1, rows // 6), max(1, cols // 6)), dtype=np.uint8), (cols, rows))
+        image = smooth if rng.random() < 0.5 else rng.integers(0, 256, (rows, cols), dtype=np.uint8)
+        n_levels, factor = int(rng.integers(2, 10)), float(rng.uniform(1.01, 3.0))
+        mine, inv = pyramid(image, n_levels, factor, compiled=True)
+        theirs, inv_cv = pyramid(image, n_levels, factor, compiled=False)
+        assert len(mine) == len(theirs) and np.array_equal(inv, inv_cv)
+        assert all(np.array_equal(a, b) for a, b in zip(mine, theirs)), (rows, cols, n_levels, factor)
+
+
+def test_the_compiled_pyramid_reads_strided_rows_and_one_pixel_images(frames):
+    view = frames[0][7:200, 3:300]  # rows strided: a crop of a larger image
+    mine, _ = pyramid(view, 8, 1.2, compiled=True)
+    theirs, _ = pyramid(view, 8, 1.2, compiled=False)
+    assert all(np.array_equal(a, b) for a, b in zip(mine, theirs))
+    single = np.full((1, 1), 9, np.uint8)
+    mine, _ = pyramid(single, 8, 1.2, compiled=True)
+    theirs, _ = pyramid(single, 8, 1.2, compiled=False)
+    assert [lv.tolist() for lv in mine] == [lv.tolist() for lv in theirs] == [[[9]]] * len(theirs)
+
+
+def test_the_pyramid_kernel_refuses_levels_it_cannot_write():
+    source = np.zeros((20, 20), np.uint8)
+    read_only = np.zeros((10, 10), np.uint8)
+    read_only.flags.writeable = False
+    with pytest.raises(ConfigError):
+        native.resize_levels([source, read_only])
+    with pytest.raises(ConfigError):
+        native.resize_levels([source, np.zeros((0, 10), np.uint8)])
+    with pytest.raises(ConfigError):
+        native.resize_levels([source, np.zeros((10, 10), np.float32)])
