@@ -809,7 +809,6 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
         /* ORB's border: x in [edge, w - edge), y in [edge, h - edge) */
         int64_t n = fast9(img, step, h, w, (int)threshold, edge, score, cand_i, cand_j, xs, ys, fast_scores,
                           (int)portable);
-        int64_t m;
         /* The best 2 * budget by FAST score, every tie at the last place kept (KeyPointsFilter::retainBest). */
         const int64_t keep_fast = 2 * budgets[l];
         if (n > keep_fast) {
@@ -818,7 +817,7 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
             int bar = 255;
             int64_t above = counts[255];
             while (above < keep_fast && bar > 0) above += counts[--bar];
-            m = 0;
+            int64_t m = 0;
             if (keep_fast > 0) {
                 for (int64_t i = 0; i < n; i++) {
                     if (fast_scores[i] >= bar) {
@@ -833,7 +832,7 @@ API int64_t orb_keypoints(const intptr_t *levels, const int64_t *steps, const in
         /* The best `budget` by Harris response, ties at the last place kept. */
         const int64_t keep = budgets[l];
         if (n > keep) {
-            m = 0;
+            int64_t m = 0;
             if (keep > 0) {
                 memcpy(sorted, response, (size_t)n * sizeof(float));
                 const float bar = kth_largest(sorted, n, keep);
