@@ -893,17 +893,25 @@ __attribute__((target_clones("avx512f", "avx2", "default")))
 #endif
 API int64_t resize_levels(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
                           int64_t n_levels) {
+    if (n_levels < 2) return 0;
+    /* One set of buffers for every level, sized for the largest. */
+    int64_t max_dr = 0, max_dc = 0, max_hor = 0;
+    for (int64_t l = 1; l < n_levels; l++) {
+        if (rows[l] > max_dr) max_dr = rows[l];
+        if (cols[l] > max_dc) max_dc = cols[l];
+        if (rows[l - 1] * cols[l] > max_hor) max_hor = rows[l - 1] * cols[l];
+    }
+    int32_t *xw = malloc((size_t)max_dc * 4 * sizeof(int32_t)), *yw = malloc((size_t)max_dr * 4 * sizeof(int32_t));
+    uint16_t *hor = malloc((size_t)max_hor * sizeof(uint16_t));
+    if (!xw || !yw || !hor) {
+        free(xw); free(yw); free(hor);
+        return -1;
+    }
     for (int64_t l = 1; l < n_levels; l++) {
         const uint8_t *src = (const uint8_t *)levels[l - 1];
         uint8_t *dst = (uint8_t *)levels[l];
         const int64_t sr = rows[l - 1], sc = cols[l - 1], sstep = steps[l - 1];
         const int64_t dr = rows[l], dc = cols[l], dstep = steps[l];
-        int32_t *xw = malloc((size_t)dc * 4 * sizeof(int32_t)), *yw = malloc((size_t)dr * 4 * sizeof(int32_t));
-        uint16_t *hor = malloc((size_t)sr * (size_t)dc * sizeof(uint16_t));
-        if (!xw || !yw || !hor) {
-            free(xw); free(yw); free(hor);
-            return -1;
-        }
         int32_t *xi = xw, *xj = xw + dc, *x0 = xw + 2 * dc, *x1 = xw + 3 * dc;
         int32_t *yi = yw, *yj = yw + dr, *y0 = yw + 2 * dr, *y1 = yw + 3 * dr;
         linear_weights(sc, dc, xi, xj, x0, x1);
@@ -927,7 +935,7 @@ API int64_t resize_levels(const intptr_t *levels, const int64_t *steps, const in
                 d[x] = (uint8_t)(v > 255 ? 255 : v);
             }
         }
-        free(xw); free(yw); free(hor);
     }
+    free(xw); free(yw); free(hor);
     return 0;
 }
