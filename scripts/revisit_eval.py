@@ -26,7 +26,7 @@ from calibrate_sequence import drives  # the training drives, one list of frames
 from revisit_sequences import write_sequence  # the sequences' one definition
 
 from aefabmap.cli.main import main as aefabmap_main
-from aefabmap_runtime.tools.frame_evidence import MISS_REASONS
+from aefabmap_runtime.tools.frame_evidence import revisit_split
 
 #: The eval options every drive runs with (docs/results.md, "Candidate policy").
 EVAL_OPTIONS = ("--exclude", "15", "--tolerance", "1", "--fabmap-score", "llr", "--no-progress")
@@ -38,10 +38,11 @@ def ensure_sequences(data: Path, root: Path, step: int) -> dict[str, dict[str, P
     camvid = data / "train" / "camvid"
     if not camvid.is_dir():
         raise SystemExit(f"no CamVid training drives under {camvid}")
+    by_drive = drives(camvid)
     out: dict[str, dict[str, Path]] = {}
     for light in LIGHTS:
         out[light] = {}
-        for drive, frames in drives(camvid).items():
+        for drive, frames in by_drive.items():
             folder = root / f"{light}-step{step}" / drive
             if not (folder / "gt.npy").is_file():
                 write_sequence(frames, step, folder, night=light == "night")
@@ -66,11 +67,10 @@ def drive_split(model: Path, folder: Path, extra: list[str]) -> dict:
 
 
 def summed(splits: dict[str, dict]) -> dict:
-    """The splits of several drives added up (the same keys as one split)."""
-    total = {"revisits": 0, "verified": 0, "wrong_place": 0, "true_place_checked": 0,
-             "misses": {reason: 0 for reason in MISS_REASONS}}
+    """The splits of several drives added up (the same keys as one split: `revisit_split`'s)."""
+    total = revisit_split([])  # every count and every miss reason at 0
     for split in splits.values():
-        for key in ("revisits", "verified", "wrong_place", "true_place_checked"):
+        for key in total.keys() - {"misses"}:
             total[key] += int(split[key])
         for reason, n in split["misses"].items():
             total["misses"][reason] = total["misses"].get(reason, 0) + int(n)
@@ -91,8 +91,8 @@ def table(sums: dict[str, dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     repo = Path(__file__).resolve().parents[1]
     argv = list(sys.argv[1:] if argv is None else argv)
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
-    own = argv[: argv.index("--")] if "--" in argv else argv
+    cut = argv.index("--") if "--" in argv else len(argv)
+    own, extra = argv[:cut], argv[cut + 1:]
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", type=Path, required=True, help="the bundle to evaluate")
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("AEFABMAP_DATA", repo.parent / "shared" / "data")))

@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from aefabmap_runtime.tools.frame_evidence import MISS_REASONS
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import revisit_eval as re_  # noqa: E402
 import revisit_sequences as rs  # noqa: E402
@@ -81,4 +83,4 @@ def test_summed_adds_each_key_and_reason():
     total = re_.summed({"a": one, "b": two})
     assert (total["revisits"], total["verified"], total["wrong_place"], total["true_place_checked"]) == (7, 3, 1, 5)
     assert total["misses"]["no_model"] == 1 and total["misses"]["nfa_below_0"] == 2
-    assert set(total["misses"]) >= set(re_.MISS_REASONS)
+    assert set(total["misses"]) >= set(MISS_REASONS)
