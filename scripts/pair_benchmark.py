@@ -22,6 +22,7 @@ and the median milliseconds of one extraction and of one pair's verification.
     python scripts/pair_benchmark.py orb orb-teblid akaze sift --per-drive 6 --warps-per-setting 24 \
         --long-side 160 --json pairs_160.json
     python scripts/pair_benchmark.py orb orb-stretch --per-drive 6 --night --json pairs_night.json
+    python scripts/pair_benchmark.py orb-stretch-upright orb-learned --learned BUNDLE --night
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibrate_verification import GAPS, training_pairs  # noqa: E402
 
+from aefabmap_runtime.adapters.bundle_reader import load_bundle  # noqa: E402
 from aefabmap_runtime.adapters.frames import load_image  # noqa: E402
 from aefabmap_runtime.core.verify import verification as V  # noqa: E402
 from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features  # noqa: E402
@@ -55,7 +57,7 @@ ANGLES = (10, 20, 30, 40)  # degrees of out-of-plane rotation
 SCALES = (0.5, 0.75, 1.5, 2.0)
 KEYPOINTS = 1000  # the runtime's verification budget (VerificationConfig.keypoints)
 FRONT_ENDS = ("orb", "orb-teblid", "orb-beblid", "akaze", "sift", "orb-native", "orb-levels12", "orb-fast10", "orb-fast5", "orb-clahe", "orb-stretch",
-              "orb-stretch-upright")
+              "orb-stretch-upright", "orb-learned")
 #: AKAZE's detector threshold: OpenCV's default (0.001) finds 200-1300 keypoints on 640-px CamVid
 #: frames, so the 1000-keypoint cap would rarely bind; at 0.0001 it finds 1000-4500.
 AKAZE_THRESHOLD = 1e-4
@@ -92,8 +94,10 @@ class FrontEnd:
     window_scale: float
 
 
-def make_front_end(name: str) -> FrontEnd:
-    """The front-end called `name` (one of FRONT_ENDS); Unavailable when OpenCV lacks it.
+def make_front_end(name: str, learned: Path | None = None) -> FrontEnd:
+    """The front-end called `name` (one of FRONT_ENDS); Unavailable when OpenCV lacks it, or for
+    orb-learned (the runtime's default ORB with a bundle's learned descriptor) without `learned`,
+    the bundle.
 
     All run through the runtime's FeatureExtractor (resizing to its 640-px long side unless
     stated, strongest KEYPOINTS kept, positions mapped back to original pixels); the others
@@ -102,6 +106,15 @@ def make_front_end(name: str) -> FrontEnd:
     if name == "sift":
         ex = FeatureExtractor(FeatureConfig(kind="sift", max_features=KEYPOINTS, rootsift=True))
         return FrontEnd(name, ex, "l2", ex.kind.window_scale)
+    if name == "orb-learned":
+        if learned is None:
+            raise Unavailable("orb-learned needs --learned BUNDLE (a bundle trained with --descriptor learned)")
+        bundle = load_bundle(learned)
+        if bundle.learned_description is None:
+            raise Unavailable(f"{learned} has no learned descriptor")
+        ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=KEYPOINTS, long_side=640, contrast_stretch=True,
+                                            descriptor="learned"), upright=True, learned=bundle.learned_description)
+        return FrontEnd(name, ex, "hamming", ex.kind.window_scale)
     native = name == "orb-native"
     # orb-stretch-upright: the runtime's default (contrast stretch, the retry with upright descriptors).
     ex = FeatureExtractor(FeatureConfig(kind="orb", max_features=KEYPOINTS, long_side=None if native else 640,
@@ -298,13 +311,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--night", action="store_true",
                     help="the second image of every pair at the synthetic night (trainer/aefabmap_trainer/multiview.NIGHT)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--learned", type=Path, metavar="BUNDLE", help="orb-learned: the bundle whose learned descriptor to use")
     ap.add_argument("--json", type=Path, help="also write the numbers here")
     args = ap.parse_args(argv)
     rows = benchmark_pairs(args.data / "train", args.seed, args.per_drive, args.warps_per_setting, args.night)
     results, seconds = {}, {}
     for name in args.front_ends:
         try:
-            front = make_front_end(name)
+            front = make_front_end(name, args.learned)
         except Unavailable as exc:
             print(f"skipped {name}: {exc}", file=sys.stderr)
             continue

@@ -34,6 +34,14 @@ def register(sub) -> None:
                     "training and at run time (FeatureConfig.contrast_stretch; default on)")
     fe.add_argument("--clahe", action="store_true",
                     help="equalise contrast locally (CLAHE) before detection, in training and at run time (FeatureConfig)")
+    fe.add_argument("--descriptor", choices=("brief", "learned"), default="brief",
+                    help="ORB's descriptor: its own tests (brief, default) or a projection learned first from the "
+                    "training images under homographies and synthetic night (learned; stored in the bundle; "
+                    "docs/results.md \"A learned descriptor\")")
+    fe.add_argument("--descriptor-images", type=int, default=2400,
+                    help="--descriptor learned: training images that give keypoint pairs (default 2400)")
+    fe.add_argument("--descriptor-epochs", type=int, default=6,
+                    help="--descriptor learned: passes over the pairs (default 6)")
     vo = p.add_argument_group("vocabulary (quantiser)")
     vo.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",
                     help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
@@ -100,6 +108,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     require_extra("train", "train", TRAIN_EXTRA_MODULES)
+    from aefabmap_trainer.learned_descriptor import DescriptorTraining
     from aefabmap_trainer.train import TrainConfig, train_bundle
 
     features = FeatureConfig(
@@ -109,6 +118,7 @@ def run(args) -> int:
         rootsift=args.rootsift,
         clahe=args.clahe,
         contrast_stretch=args.contrast_stretch,
+        descriptor=args.descriptor,
     )
     config = TrainConfig(
         images=tuple(args.images),
@@ -123,6 +133,8 @@ def run(args) -> int:
         seed=args.seed,
         max_descriptors=args.max_descriptors,
         cache_dir=args.cache,
+        descriptor_training=DescriptorTraining(images=args.descriptor_images, epochs=args.descriptor_epochs,
+                                               seed=args.seed),
         ae_epochs=args.ae_epochs,
         ae_descriptors=args.ae_descriptors,
         ae_arch=args.ae_arch,

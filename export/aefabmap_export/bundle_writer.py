@@ -14,6 +14,7 @@ from aefabmap_runtime.errors import BundleError
 from aefabmap_runtime.adapters.bundle_reader import (
     BUNDLE_FORMAT,
     BUNDLE_VERSION,
+    DESCRIPTOR_WEIGHTS,
     MANIFEST_NAME,
     OBS_FILES,
     TREE_FILES,
@@ -21,6 +22,7 @@ from aefabmap_runtime.adapters.bundle_reader import (
     sha256_file,
 )
 from aefabmap_runtime.core.features.features import FeatureConfig
+from aefabmap_runtime.core.features.learned_description import LearnedDescription
 from aefabmap_runtime.core.rank.tree import ChowLiuTree
 
 
@@ -34,11 +36,13 @@ def write_bundle(
     quantizer_files: dict[str, np.ndarray | Path],
     training_summary: dict,
     detector: dict | None = None,
+    learned: LearnedDescription | None = None,
 ) -> Path:
     """Write a bundle directory atomically and return its path.
 
     quantizer: manifest entry, e.g. {"type": "kmeans", "files": {"centroids": "vocabulary.npy"}}.
     quantizer_files: file name -> array (saved as .npy) or path of a file to copy (e.g. ONNX).
+    learned: the learned descriptor's projection, for features with descriptor "learned".
     An existing bundle at `out` is replaced only once the new one is complete and valid;
     any other existing file or directory there is refused.
     """
@@ -59,6 +63,8 @@ def write_bundle(
         arrays[OBS_FILES["indptr"]] = np.concatenate([[0], np.cumsum([r.size for r in rows])]).astype(np.int64)
         idx_dtype = np.uint16 if v <= 65536 else np.uint32
         arrays[OBS_FILES["indices"]] = (np.concatenate(rows) if rows else np.zeros(0)).astype(idx_dtype)
+        if learned is not None:
+            arrays[DESCRIPTOR_WEIGHTS] = learned.weights
         for name, arr in arrays.items():
             np.save(tmp / name, arr, allow_pickle=False)
         for name, src in quantizer_files.items():
@@ -85,6 +91,8 @@ def write_bundle(
             "training": training_summary,
             "files": files,
         }
+        if learned is not None:
+            manifest["descriptor_weights"] = DESCRIPTOR_WEIGHTS
         (tmp / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
         written = load_bundle(tmp)  # never leave behind a bundle the runtime would refuse
         if quantizer.get("type") != "ae":

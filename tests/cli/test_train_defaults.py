@@ -31,3 +31,11 @@ def test_the_word_usage_weight_and_temperature_default_to_assign_configs():
 
     c, a = TrainConfig(images=(), out="b", quantizer="ae"), AssignConfig()
     assert (c.ae_balance_weight, c.ae_temperature_end) == (a.balance_weight, a.temperature_end)
+
+
+def test_the_descriptor_training_options_default_to_its_config():
+    from aefabmap_trainer.learned_descriptor import DescriptorTraining
+
+    args = vars(build_parser().parse_args(["train", "--images", "imgs", "--out", "b"]))
+    d = DescriptorTraining()
+    assert (args["descriptor_images"], args["descriptor_epochs"]) == (d.images, d.epochs)

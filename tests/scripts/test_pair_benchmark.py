@@ -118,3 +118,26 @@ def test_night_pairs_keep_the_first_view_by_day(tmp_path):
     night = pb.benchmark_pairs(train, 0, 1, 2, night=True)
     assert [(g, s, a, b.path, b.warp) for g, s, a, b in day] == [(g, s, a, b.path, b.warp) for g, s, a, b in night]
     assert not any(a.night for _, _, a, _ in night) and all(b.night for _, _, _, b in night)
+
+
+def test_orb_learned_describes_with_the_bundles_projection(tmp_path):
+    from aefabmap_export.bundle_writer import write_bundle
+    from aefabmap_runtime.core.features.features import FeatureConfig
+    from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES, LearnedDescription
+    from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
+
+    rng = np.random.default_rng(0)
+    learned = LearnedDescription(rng.integers(-127, 128, (BITS, SAMPLES)).astype(np.int8))
+    bundle = write_bundle(tmp_path / "b", features=FeatureConfig(descriptor="learned"), tree=random_tree(32, 0),
+                          training_observations=synthetic_observations(10, 32, 5, 0),
+                          quantizer={"type": "kmeans", "files": {"centroids": "vocabulary.npy"}},
+                          quantizer_files={"vocabulary.npy": rng.random((32, 256)).astype(np.float32)},
+                          training_summary={}, learned=learned)
+    with pytest.raises(pb.Unavailable, match="--learned"):
+        pb.make_front_end("orb-learned")
+    front = pb.make_front_end("orb-learned", bundle)
+    assert np.array_equal(front.extractor.learned.weights, learned.weights)
+    base = texture(seed=1)
+    fa = front.extractor.extract(base)
+    # Random projections of the centred patch keep similar patches close (sign random projections).
+    assert pb.verify(fa, front.extractor.extract(pb.rotate_view(base, 20)), front, pb.V.VerificationConfig()).verified

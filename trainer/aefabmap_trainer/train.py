@@ -18,11 +18,13 @@ from aefabmap_runtime.adapters.frames import load_image
 from aefabmap_runtime.adapters.image_folder import IMAGE_SUFFIXES
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind
 from aefabmap_runtime.core.features.features import EXTRACTION_VERSION, FeatureConfig, FeatureExtractor
+from aefabmap_runtime.core.features.learned_description import LearnedDescription
 from aefabmap_runtime.core.words.quantizer import quantize_raw
 from aefabmap_trainer.ae_quantizer import OBJECTIVES
 from aefabmap_trainer.assign_objective import ASSIGN_INITS
 from aefabmap_trainer.chow_liu import fit_chow_liu
 from aefabmap_trainer.kmeans import KMeansConfig, fit_kmeans
+from aefabmap_trainer.learned_descriptor import DescriptorTraining, train_learned_description
 
 QUANTIZERS = ("kmeans", "kmeans-tree", "ae")
 
@@ -76,6 +78,8 @@ class TrainConfig:
     cache_dir: where extracted training features are kept between runs (None: no cache);
         entries are keyed by the feature settings and the image list, so a stale entry is
         never reused.
+    descriptor_training: features.descriptor "learned": how the descriptor is trained first
+        (trainer/aefabmap_trainer/learned_descriptor.py).
     """
 
     images: tuple[Path, ...]
@@ -111,6 +115,7 @@ class TrainConfig:
     ae_temperature_end: float = 0.3
     ae_init: str = "random"
     cache_dir: Path | None = None
+    descriptor_training: DescriptorTraining = field(default_factory=DescriptorTraining)
     show_progress: bool = True
 
     def __post_init__(self) -> None:
@@ -134,6 +139,8 @@ class TrainConfig:
             raise ConfigError(f"--ae-light-views must be >= 0 and below --ae-views ({self.ae_views}), got {self.ae_light_views}")
         if not (math.isfinite(self.ae_temperature_end) and self.ae_temperature_end > 0):
             raise ConfigError(f"--ae-temperature-end must be a finite number > 0, got {self.ae_temperature_end}")
+        if self.features.descriptor == "learned" and self.quantizer == "ae":
+            raise ConfigError("--descriptor learned trains k-means vocabularies (--quantizer kmeans or kmeans-tree)")
         if self.ae_init not in ASSIGN_INITS or (self.ae_init != "random" and self.ae_objective != "assign"):
             raise ConfigError(f"--ae-init must be one of {ASSIGN_INITS} (with --ae-objective assign), got {self.ae_init!r}")
 
@@ -152,13 +159,14 @@ def find_training_images(dirs) -> list[Path]:
     return files
 
 
-def extract_training_vectors(files: list[Path], features: FeatureConfig, show_progress: bool = True) -> list[np.ndarray]:
+def extract_training_vectors(files: list[Path], features: FeatureConfig, show_progress: bool = True,
+                             learned: LearnedDescription | None = None) -> list[np.ndarray]:
     """Raw descriptors (n_i, width) of every training image (unreadable images are an error).
 
     Kept in the kind's raw form (binary kinds stay packed: 32 bytes for ORB instead of 1 KiB of
     float bits) and turned into descriptor vectors per use (`FeatureKind.vectors`).
     """
-    extractor = FeatureExtractor(features)
+    extractor = FeatureExtractor(features, learned=learned)
     return [
         extractor.extract(load_image(f)).descriptors
         for f in tqdm(files, desc="features", disable=not show_progress, mininterval=1.0)
@@ -201,17 +209,19 @@ def write_cache_entry(entry: Path, **arrays: np.ndarray) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_dir: Path | None, show_progress: bool) -> list[np.ndarray]:
-    """extract_training_vectors, reusing a cache entry for the same settings and images."""
+def cached_training_vectors(files: list[Path], features: FeatureConfig, cache_dir: Path | None, show_progress: bool,
+                            learned: LearnedDescription | None = None) -> list[np.ndarray]:
+    """extract_training_vectors, reusing a cache entry for the same settings, projection and images."""
     if cache_dir is None:
-        return extract_training_vectors(files, features, show_progress)
-    entry = cache_entry(cache_dir, "features", features, files)
+        return extract_training_vectors(files, features, show_progress, learned)
+    weights = "" if learned is None else "learned " + hashlib.sha256(learned.weights.tobytes()).hexdigest()
+    entry = cache_entry(cache_dir, "features", features, files, weights)
     cached = read_cache_entry(entry, ("descriptors", "counts"))
     if cached is not None:
         flat, counts = cached["descriptors"], cached["counts"]
         if counts.size == len(files) and counts.sum() == flat.shape[0]:
             return np.split(flat, np.cumsum(counts)[:-1])
-    per_image = extract_training_vectors(files, features, show_progress)
+    per_image = extract_training_vectors(files, features, show_progress, learned)
     flat = np.concatenate(per_image) if per_image else features.spec.empty()
     write_cache_entry(entry, descriptors=flat, counts=np.array([len(a) for a in per_image]))
     return per_image
@@ -283,8 +293,14 @@ def train_bundle(config: TrainConfig) -> TrainResult:
     timings = {}
     files = find_training_images(config.images)
     kind = config.features.spec
+    learned, descriptor_pairs = None, 0
+    if config.features.descriptor == "learned":
+        t0 = time.perf_counter()
+        learned, descriptor_pairs = train_learned_description(files, config.features, config.descriptor_training,
+                                                              config.show_progress)
+        timings["descriptor_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    per_image = cached_training_vectors(files, config.features, config.cache_dir, config.show_progress)
+    per_image = cached_training_vectors(files, config.features, config.cache_dir, config.show_progress, learned)
     timings["features_s"] = time.perf_counter() - t0
     # The AE trains on ae_descriptors of the sample, so its sample holds at least that many.
     n_sample = max(config.max_descriptors, config.ae_descriptors) if config.quantizer == "ae" else config.max_descriptors
@@ -406,6 +422,9 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             summary["vocabulary_from"] = Path(config.vocabulary_from).name
         if config.quantizer == "kmeans-tree":
             summary |= {"branching": config.branching, "tree_depth": quantizer.depth, "tree_nodes": quantizer.nodes}
+        if learned is not None:
+            d = config.descriptor_training
+            summary |= {"descriptor_images": d.images, "descriptor_epochs": d.epochs, "descriptor_pairs": descriptor_pairs}
         out = write_bundle(
             config.out,
             features=config.features,
@@ -414,6 +433,7 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             quantizer=q_manifest,
             quantizer_files=q_files,
             training_summary=summary,
+            learned=learned,
         )
     timings["total_s"] = time.perf_counter() - t_start
     return TrainResult(out, summary, timings)

@@ -17,6 +17,9 @@ A bundle is a directory:
                                    vocab_tree_leaf_words.npy (M,) int32; the manifest's
                                    quantizer entry gives "nodes" M and "branching" B;
                                    ae: quantizer_fp32.onnx, quantizer_int8.onnx
+    descriptor_weights.npy (256, 256) int8
+                                   features "descriptor": "learned" only: the learned ORB
+                                   descriptor's projection (manifest "descriptor_weights" names it)
 Arrays load with allow_pickle=False. Every file is listed in manifest["files"] with its sha256;
 the runtime refuses a bundle whose version, shapes or checksums do not match.
 
@@ -39,12 +42,14 @@ import numpy as np
 from aefabmap_runtime.errors import BundleError, ConfigError, InputError
 from aefabmap_runtime.adapters.npy_file import load_npy
 from aefabmap_runtime.core.features.features import FeatureConfig
+from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES, LearnedDescription
 from aefabmap_runtime.core.rank.tree import ChowLiuTree
 
 BUNDLE_FORMAT = "aefabmap-bundle"
 BUNDLE_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 TREE_FILES = {"parent": "tree_parent.npy", "p": "tree_p.npy", "a": "tree_a.npy", "b": "tree_b.npy"}
+DESCRIPTOR_WEIGHTS = "descriptor_weights.npy"
 OBS_FILES = {"indptr": "train_obs_indptr.npy", "indices": "train_obs_indices.npy"}
 QUANTIZER_TYPES = ("kmeans", "kmeans-tree", "ae")
 TREE_QUANTIZER_FILES = ("centers", "children", "leaf_words")
@@ -81,6 +86,8 @@ class ModelBundle:
     features: FeatureConfig
     tree: ChowLiuTree
     training_observations: list[np.ndarray] = field(repr=False)
+    #: The learned descriptor's projection (features.descriptor "learned"), else None.
+    learned_description: LearnedDescription | None = field(default=None, repr=False)
 
     @property
     def vocabulary_size(self) -> int:
@@ -250,7 +257,26 @@ def load_bundle(path: str | Path, verify_checksums: bool = True) -> ModelBundle:
         )
     indices = indices.astype(np.int64)
     observations = [indices[a:b] for a, b in zip(indptr[:-1], indptr[1:])]
-    return ModelBundle(path, manifest, features, tree, observations)
+    return ModelBundle(path, manifest, features, tree, observations, _learned_description(path, manifest, features))
+
+
+def _learned_description(path: Path, manifest: dict, features: FeatureConfig) -> LearnedDescription | None:
+    """The learned descriptor's projection a "learned" bundle names (header checked first)."""
+    name = manifest.get("descriptor_weights")
+    if features.descriptor != "learned":
+        if name is not None:
+            raise BundleError(f"{path}: 'descriptor_weights' belongs to features with descriptor 'learned'")
+        return None
+    if not isinstance(name, str) or name not in manifest["files"]:
+        raise BundleError(f"{path}: a learned descriptor needs 'descriptor_weights' naming a checksummed file")
+    _check_file_name(path, name)
+    weights = _load_array(path, name, kinds="i", shape=(BITS, SAMPLES))
+    if weights.dtype != np.int8:
+        raise BundleError(f"{path}: {name} must hold int8, got {weights.dtype}")
+    try:
+        return LearnedDescription(weights)
+    except InputError as exc:
+        raise BundleError(f"{path}: invalid learned descriptor: {exc}") from exc
 
 
 def load_detector(path: str | Path, config=None):

@@ -27,6 +27,7 @@ from aefabmap_runtime.core.fleet.fleet_map import Fetch, FleetMap, RemoteMatch
 from aefabmap_runtime.core.rank.fabmap import FabMap2, distinct_sorted
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind
 from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor, Features
+from aefabmap_runtime.core.features.learned_description import LearnedDescription
 from aefabmap_runtime.core.map.keypoint_store import KeypointStore, PlaceKeypoints
 from aefabmap_runtime.core.map.map_events import MapListener
 from aefabmap_runtime.core.map.place_map import Insertion, PlaceMap
@@ -54,6 +55,7 @@ class TrainedModel(Protocol):
     """What the detector needs from a trained model (a bundle reader provides it).
 
     training_observations: list of sorted word-id arrays, the new-place model's samples.
+    learned_description: the learned descriptor's projection (features.descriptor "learned"), else None.
     quantizer(variant, threads) -> an object with quantize((N, D) float32) -> (N,) word ids.
     """
 
@@ -61,6 +63,7 @@ class TrainedModel(Protocol):
     features: FeatureConfig
     tree: ChowLiuTree
     training_observations: list[np.ndarray]
+    learned_description: LearnedDescription | None
 
     @property
     def vocabulary_size(self) -> int: ...
@@ -219,7 +222,7 @@ class LoopClosureDetector:
         extract = bundle.features
         if v.enabled and v.keypoints is not None and v.keypoints > extract.max_features:
             extract = replace(extract, max_features=v.keypoints)
-        self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright)
+        self.extractor = FeatureExtractor(extract, upright=v.enabled and v.upright, learned=bundle.learned_description)
         self._extractors = threading.local()  # each thread's extractor (`prepare`)
         # A frame's step and a `locate` read the map's index and keypoints: one at a time.
         self._map_lock = threading.Lock()
@@ -372,7 +375,8 @@ class LoopClosureDetector:
         Raises InputError for an image the extractor refuses."""
         extractor = getattr(self._extractors, "extractor", None)
         if extractor is None:
-            extractor = self._extractors.extractor = FeatureExtractor(self.extractor.config, self.extractor.upright)
+            extractor = self._extractors.extractor = FeatureExtractor(self.extractor.config, self.extractor.upright,
+                                                                      self.extractor.learned)
         return self._prepare(image, extractor)
 
     def process_prepared(self, frame: PreparedFrame, stamp_ns: int = 0) -> FrameResult:

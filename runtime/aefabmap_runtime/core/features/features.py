@@ -15,7 +15,8 @@ import numpy as np
 
 from aefabmap_runtime.errors import ConfigError, InputError
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind, get_kind
-from aefabmap_runtime.core.features.orb_description import OrbDescriber, pyramid
+from aefabmap_runtime.core.features.learned_description import LearnedDescriber, LearnedDescription, sample_patches
+from aefabmap_runtime.core.features.orb_description import OrbDescriber, blurred, pyramid
 from aefabmap_runtime.core.features.orb_levels import OrbLevelDetector, keypoint_rows
 
 #: Shortest image side (px) the extractor works on, before and after resizing: OpenCV's
@@ -69,6 +70,9 @@ def image_shape_problem(height: int, width: int, long_side: int | None = None) -
 #: settings must bump it. 2: small frames upsampled by the bit-exact bilinear.
 EXTRACTION_VERSION = 2
 
+#: FeatureConfig.descriptor values: ORB's own tests, or the bundle's learned projection.
+DESCRIPTORS = ("brief", "learned")
+
 
 @dataclass(frozen=True)
 class FeatureConfig:
@@ -93,6 +97,8 @@ class FeatureConfig:
         most MAX_STRETCH_GAIN): FAST's fixed threshold then finds corners in a dark or low-contrast
         frame (night, dusk, fog) where it finds them in a well-exposed one, and a well-exposed frame
         is left almost as it is. Measured on training images (docs/results.md, "Light").
+    descriptor: ORB only: "brief" (ORB's own tests) or "learned" (a projection trained with the
+        bundle, features/learned_description.py; the extractor needs its LearnedDescription).
     """
 
     kind: str = "orb"
@@ -103,6 +109,7 @@ class FeatureConfig:
     bucket_oversample: int = 4
     clahe: bool = False
     contrast_stretch: bool = False
+    descriptor: str = "brief"
 
     def __post_init__(self) -> None:
         if not isinstance(self.kind, str):
@@ -126,6 +133,10 @@ class FeatureConfig:
             raise ConfigError(f"rootsift must be true or false, got {_clip(self.rootsift)}")
         if self.rootsift and "rootsift" not in spec.options:
             raise ConfigError(f"rootsift applies to SIFT features only, not to {self.kind!r}")
+        if self.descriptor not in DESCRIPTORS:
+            raise ConfigError(f"descriptor must be one of {DESCRIPTORS}, got {_clip(self.descriptor)}")
+        if self.descriptor == "learned" and self.kind != "orb":
+            raise ConfigError(f"the learned descriptor describes ORB keypoints, not {self.kind!r}")
 
     @property
     def spec(self) -> FeatureKind:
@@ -143,7 +154,7 @@ class FeatureConfig:
     @classmethod
     def from_dict(cls, data: dict) -> FeatureConfig:
         known = {k: data[k] for k in ("kind", "max_features", "long_side", "rootsift", "bucket_grid",
-                                      "bucket_oversample", "clahe", "contrast_stretch") if k in data}
+                                      "bucket_oversample", "clahe", "contrast_stretch", "descriptor") if k in data}
         # A bundle written before bucketing existed was trained without it: keep it that way.
         known.setdefault("bucket_grid", 0)
         known.setdefault("clahe", False)
@@ -197,11 +208,15 @@ class FeatureExtractor:
         The words come from the oriented descriptors, as in training.
     """
 
-    def __init__(self, config: FeatureConfig | None = None, upright: bool = False) -> None:
+    def __init__(self, config: FeatureConfig | None = None, upright: bool = False,
+                 learned: LearnedDescription | None = None) -> None:
         self.config = config or FeatureConfig()
         c = self.config
         self.kind = c.spec
         self.upright = bool(upright) and self.kind.upright
+        if (c.descriptor == "learned") != (learned is not None):
+            raise ConfigError("descriptor 'learned' needs the bundle's learned projection, and only it takes one")
+        self.learned = learned
         # Bucketing proposes more keypoints than it keeps, then spreads the budget over a grid.
         self._detector = self.kind.create(c.max_features * (c.bucket_oversample if c.bucket_grid else 1))
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if c.clahe else None
@@ -211,11 +226,19 @@ class FeatureExtractor:
         # (features/orb_levels.py; None: cv2.ORB builds its own).
         self._describer = OrbDescriber.for_detector(self._detector)
         self._levels = OrbLevelDetector.for_detector(self._detector) if self._describer is not None else None
+        if learned is not None:
+            # Detected on the pyramid the projection reads (compiled or per-level OpenCV).
+            self._levels = OrbLevelDetector.for_detector(self._detector)
+            if self._levels is None:
+                raise ConfigError("this OpenCV's ORB cannot detect by pyramid level: no learned descriptor here")
+            self._describer = LearnedDescriber(self._levels.n_levels, self._levels.scale_factor, learned)
 
     def replace_detector(self, detector) -> None:
         """Detect (and describe) with another OpenCV Feature2D from now on (benchmarks of other
         front-ends): the compiled ORB describer and level detector belong to this extractor's own
         cv2.ORB, so they are dropped with it."""
+        if self.learned is not None:
+            raise ConfigError("a learned-descriptor extractor keeps its own ORB detector")
         self._detector, self._describer, self._levels = detector, None, None
 
     def extract(self, image: np.ndarray) -> Features:
@@ -224,6 +247,38 @@ class FeatureExtractor:
         Raises InputError for anything else, and for shapes it cannot use
         (see :func:`image_shape_problem`), before any OpenCV call.
         """
+        gray, scale, work = self._work_image(image)
+        if self._describer is not None:
+            if self._levels is not None:
+                built = pyramid(work, self._levels.n_levels, self._levels.scale_factor)
+                xy, attrs = self._levels.detect(built[0])
+            else:
+                built, (xy, attrs) = None, keypoint_rows(self._detector.detect(work, None))
+            packed = self._pack_described(xy, attrs, scale, gray.shape, work, built)
+            if packed is not None:
+                return packed
+        kps, desc = self._detector.detectAndCompute(work, None)
+        return self._pack(kps, desc, scale, gray.shape, work)
+
+    def keypoint_patches(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The kept ORB keypoints of an image as the learned descriptor reads them (its training):
+        keypoints (N, 2) float32 in the image's pixels, octave (N,) int32 and (N, SAMPLES) uint8
+        patches (features/learned_description.py). Raises InputError as `extract` does, and
+        ConfigError for a kind other than ORB or an OpenCV that cannot detect by level."""
+        levels_detector = self._levels or (OrbLevelDetector.for_detector(self._detector) if self.kind.name == "orb" else None)
+        if levels_detector is None:
+            raise ConfigError("keypoint patches need ORB detected by pyramid level")
+        gray, scale, work = self._work_image(image)
+        levels, inv = pyramid(work, levels_detector.n_levels, levels_detector.scale_factor)
+        xy, attrs = levels_detector.detect(levels)
+        order = self._kept(xy, attrs[:, 0], work.shape)
+        xy, attrs = xy[order], attrs[order]
+        octave = attrs[:, 3].astype(np.int32)
+        return xy / scale, octave, sample_patches(blurred(levels), inv, xy, attrs[:, 2], octave)
+
+    def _work_image(self, image: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """(gray, scale, work): the grey image, and the detection image `work` (resized by `scale`,
+        contrast stretched or equalised as configured). Raises InputError (see `extract`)."""
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
             raise InputError(f"image must be an (H, W) or (H, W, C) array, got {getattr(image, 'shape', type(image))}")
         problem = image_shape_problem(image.shape[0], image.shape[1], self.config.long_side)
@@ -246,17 +301,7 @@ class FeatureExtractor:
             work = stretch_contrast(work)
         if self._clahe is not None:
             work = self._clahe.apply(work)
-        if self._describer is not None:
-            if self._levels is not None:
-                built = pyramid(work, self._levels.n_levels, self._levels.scale_factor)
-                xy, attrs = self._levels.detect(built[0])
-            else:
-                built, (xy, attrs) = None, keypoint_rows(self._detector.detect(work, None))
-            packed = self._pack_described(xy, attrs, scale, gray.shape, work, built)
-            if packed is not None:
-                return packed
-        kps, desc = self._detector.detectAndCompute(work, None)
-        return self._pack(kps, desc, scale, gray.shape, work)
+        return gray, scale, work
 
     def _kept(self, pts: np.ndarray, response: np.ndarray, shape_hw: tuple[int, int]) -> np.ndarray:
         """Indices of the keypoints kept (pts (N, 2) on the detection image, response (N,)), in

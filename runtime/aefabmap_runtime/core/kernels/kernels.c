@@ -16,7 +16,7 @@
 #define API __attribute__((visibility("default")))
 
 /* Version of this library's functions and arguments: native.py refuses a library built from other sources. */
-API int64_t aefabmap_kernels_version(void) { return 4; }
+API int64_t aefabmap_kernels_version(void) { return 5; }
 
 /* ---- popcount: the CPU instruction where it has one (x86-64 without POPCNT gets libgcc's) ---- */
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -937,5 +937,122 @@ API int64_t resize_levels(const intptr_t *levels, const int64_t *steps, const in
         }
     }
     free(xw); free(yw); free(hor);
+    return 0;
+}
+
+
+/* ---- The learned ORB descriptor (features/learned_description.py) ---- */
+
+/* One sample's value (the module's arithmetic): position (px, py) in float32, times 32 rounded to
+ * nearest even, split into a pixel and 1/32 fractions, the bilinear mix rounded; clamp: indices
+ * clamped to the level (its edge repeats), else the four pixels are known to lie inside. */
+static inline int32_t learned_sample(const uint8_t *image, int64_t step, int64_t last_col, int64_t last_row,
+                                     float px, float py, int clamp) {
+    const int32_t ax = (int32_t)round_even(px * 32.0f), ay = (int32_t)round_even(py * 32.0f);
+    const int32_t fx = ax & 31, fy = ay & 31, gx = 32 - fx, gy = 32 - fy;
+    int64_t x0 = ax >> 5, y0 = ay >> 5, x1 = x0 + 1, y1 = y0 + 1;
+    if (clamp) {
+        x0 = x0 < 0 ? 0 : (x0 > last_col ? last_col : x0);
+        x1 = x1 < 0 ? 0 : (x1 > last_col ? last_col : x1);
+        y0 = y0 < 0 ? 0 : (y0 > last_row ? last_row : y0);
+        y1 = y1 < 0 ? 0 : (y1 > last_row ? last_row : y1);
+    }
+    const uint8_t *r0 = image + y0 * step, *r1 = image + y1 * step;
+    return (gx * gy * r0[x0] + fx * gy * r0[x1] + gx * fy * r1[x0] + fx * fy * r1[x1] + 512) >> 10;
+}
+
+/* dots (bits,) int32 = weights . patch, weights as pairs (samples / 2, bits, 2) int16 (pairs[k][b][t] =
+ * w[b][2k + t]) and the patch as (samples / 2) int32, two int16 values each (low: sample 2k). */
+static void learned_dots_plain(const int16_t *pairs, const int32_t *patch_pairs, int64_t half, int64_t bits,
+                               int32_t *dots) {
+    for (int64_t b = 0; b < bits; b++) dots[b] = 0;
+    for (int64_t k = 0; k < half; k++) {
+        const int32_t p0 = (int16_t)(patch_pairs[k] & 0xffff), p1 = (int16_t)(patch_pairs[k] >> 16);
+        const int16_t *w = pairs + k * bits * 2;
+        for (int64_t b = 0; b < bits; b++) dots[b] += (int32_t)w[2 * b] * p0 + (int32_t)w[2 * b + 1] * p1;
+    }
+}
+
+#if HAVE_DISPATCH
+/* As learned_dots_plain for bits a multiple of 64: 64 bits at a time in eight AVX2 accumulators. */
+__attribute__((target("avx2"))) static void learned_dots_avx2(const int16_t *pairs, const int32_t *patch_pairs,
+                                                              int64_t half, int64_t bits, int32_t *dots) {
+    for (int64_t b0 = 0; b0 < bits; b0 += 64) {
+        __m256i acc[8];
+        for (int j = 0; j < 8; j++) acc[j] = _mm256_setzero_si256();
+        for (int64_t k = 0; k < half; k++) {
+            const __m256i p = _mm256_set1_epi32(patch_pairs[k]);
+            const int16_t *w = pairs + (k * bits + b0) * 2;
+            for (int j = 0; j < 8; j++)
+                acc[j] = _mm256_add_epi32(acc[j], _mm256_madd_epi16(_mm256_loadu_si256((const __m256i *)(w + 16 * j)), p));
+        }
+        for (int j = 0; j < 8; j++) _mm256_storeu_si256((__m256i *)(dots + b0 + 8 * j), acc[j]);
+    }
+}
+#endif
+
+/* levels / steps / rows / cols / n_levels / inv_scale / x / y / octave: as orb_describe; cosines, sines
+ * (n,) float32: each keypoint's turn; grid_u, grid_v (samples,) float32: the patch's sample offsets in
+ * level pixels, samples even; pairs: the weights (bits, samples) as (samples / 2, bits, 2) int16;
+ * row_sums (bits,) int64; out (n, bits / 8) uint8. Sample k of keypoint i sits at (c u - s v + cx,
+ * s u + c v + cy) in float32, the operations in that order (learned_sample); bit b is set when
+ * samples * (w_b . patch) > sum(patch) * row_sums[b]. Returns 0, -1 when out of memory, -2 for an
+ * octave outside the levels, -3 for an odd number of samples. */
+API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
+                             int64_t n_levels, const float *inv_scale, const float *x, const float *y,
+                             const float *cosines, const float *sines, const int32_t *octave, int64_t n,
+                             const float *grid_u, const float *grid_v, int64_t samples, const int16_t *pairs,
+                             const int64_t *row_sums, int64_t bits, uint8_t *out) {
+    if (samples % 2) return -3;
+    const int64_t half = samples / 2, width = bits / 8;
+    int32_t *patch_pairs = (int32_t *)malloc((size_t)(half > 0 ? half : 1) * sizeof(int32_t));
+    int32_t *dots = (int32_t *)malloc((size_t)(bits > 0 ? bits : 1) * sizeof(int32_t));
+    if (!patch_pairs || !dots) {
+        free(patch_pairs); free(dots);
+        return -1;
+    }
+    float reach = 0.0f; /* every sample lies within max |u| + max |v| of the centre */
+    for (int64_t k = 0; k < samples; k++) {
+        const float r = fabsf(grid_u[k]) + fabsf(grid_v[k]);
+        reach = r > reach ? r : reach;
+    }
+    int use_avx2 = 0;
+#if HAVE_DISPATCH
+    use_avx2 = bits % 64 == 0 && __builtin_cpu_supports("avx2");
+#endif
+    for (int64_t i = 0; i < n; i++) {
+        const int32_t o = octave[i];
+        if (o < 0 || o >= n_levels) {
+            free(patch_pairs); free(dots);
+            return -2;
+        }
+        const uint8_t *image = (const uint8_t *)levels[o];
+        const int64_t step = steps[o], last_col = cols[o] - 1, last_row = rows[o] - 1;
+        const float cx = x[i] * inv_scale[o], cy = y[i] * inv_scale[o], c = cosines[i], s = sines[i];
+        /* Two pixels of margin beyond the reach: every sample's four pixels lie inside, no clamp. */
+        const int clamp = !(cx - reach - 2.0f >= 0.0f && cy - reach - 2.0f >= 0.0f
+                            && cx + reach + 2.0f <= (float)last_col && cy + reach + 2.0f <= (float)last_row);
+        int64_t sum = 0;
+        for (int64_t k = 0; k < half; k++) {
+            int32_t v[2];
+            for (int t = 0; t < 2; t++) {
+                const float u = grid_u[2 * k + t], w = grid_v[2 * k + t];
+                const float px = (c * u - s * w) + cx, py = (s * u + c * w) + cy;
+                v[t] = learned_sample(image, step, last_col, last_row, px, py, clamp);
+                sum += v[t];
+            }
+            patch_pairs[k] = (int32_t)((uint32_t)v[0] | ((uint32_t)v[1] << 16));
+        }
+#if HAVE_DISPATCH
+        if (use_avx2) learned_dots_avx2(pairs, patch_pairs, half, bits, dots);
+        else
+#endif
+            learned_dots_plain(pairs, patch_pairs, half, bits, dots);
+        uint8_t *d = out + i * width;
+        memset(d, 0, (size_t)width);
+        for (int64_t b = 0; b < bits; b++)
+            if ((int64_t)samples * (int64_t)dots[b] > sum * row_sums[b]) d[b >> 3] |= (uint8_t)(1u << (b & 7));
+    }
+    free(patch_pairs); free(dots);
     return 0;
 }

@@ -1,0 +1,148 @@
+"""The learned ORB descriptor: exact bits, patch sampling, the extractor's use of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aefabmap_runtime.core.features.features import FeatureConfig, FeatureExtractor
+from aefabmap_runtime.core.features.learned_description import (
+    BITS,
+    PATCH,
+    SAMPLES,
+    LearnedDescription,
+    sample_patches,
+)
+from aefabmap_runtime.core.kernels import native
+from aefabmap_runtime.errors import ConfigError, InputError
+
+
+def random_weights(seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(-127, 128, (BITS, SAMPLES)).astype(np.int8)
+
+
+def textured(seed: int = 1, shape=(240, 320)) -> np.ndarray:
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, (shape[0] // 8, shape[1] // 8), dtype=np.uint8)
+    return cv2.resize(small, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+
+
+def test_bits_are_the_signs_of_the_projection_of_the_centred_patch():
+    d = LearnedDescription(random_weights())
+    rng = np.random.default_rng(2)
+    patches = rng.integers(0, 256, (300, SAMPLES), dtype=np.uint8)
+    patches[:5] = 255  # flat patches: every projection is 0, no bit set
+    p = patches.astype(np.float64)
+    want = (p - p.mean(axis=1, keepdims=True)) @ d.weights.T.astype(np.float64) > 1e-9
+    got = np.unpackbits(d.bits(patches), axis=1, bitorder="little").astype(bool)
+    assert got.shape == (300, BITS) and np.array_equal(got, want)
+    assert not got[:5].any()
+
+
+def test_bits_are_exact_for_the_largest_sums():
+    # Every product at its extreme: the float32 sums stay below 2**24, so no bit can flip.
+    w = np.full((BITS, SAMPLES), 127, np.int8)
+    w[:, SAMPLES // 2:] = -127
+    d = LearnedDescription(w)
+    patch = np.zeros((1, SAMPLES), np.uint8)
+    patch[0, : SAMPLES // 2] = 255
+    patch[0, SAMPLES // 2] = 254  # one grey level less on the negative side: a sum of +127
+    assert np.unpackbits(d.bits(patch), bitorder="little").all()
+    patch[0, SAMPLES // 2] = 0
+    patch[0, 0] = 254  # and one less on the positive side: the sum is -127... then +0
+    assert not np.unpackbits(d.bits(np.roll(patch, SAMPLES // 2, axis=1)), bitorder="little").any()
+
+
+@pytest.mark.parametrize("weights", [
+    np.zeros((BITS, SAMPLES), np.int8),
+    np.ones((BITS, SAMPLES), np.float32),
+    np.ones((BITS, SAMPLES - 1), np.int8),
+    np.ones((BITS + 1, SAMPLES), np.int8),
+])
+def test_bad_weights_are_refused(weights):
+    with pytest.raises(InputError):
+        LearnedDescription(weights)
+
+
+def test_patches_read_the_window_on_the_keypoints_level_and_turn_with_it():
+    level0 = textured()
+    level1 = textured(seed=3, shape=(200, 267))
+    inv = np.array([1.0, 1 / 1.2], np.float32)
+    x, y = 100.0, 90.0
+    got = sample_patches([level0, level1], inv, np.array([[x, y]], np.float32), np.zeros(1, np.float32),
+                         np.zeros(1, np.int32))
+    offsets = (np.arange(PATCH) - (PATCH - 1) / 2) * 2  # -15, -13, .. 15: whole pixels
+    v, u = np.meshgrid(offsets, offsets, indexing="ij")
+    x0, y0 = int(x), int(y)
+    assert np.array_equal(got.reshape(PATCH, PATCH), level0[(y0 + v).astype(int), (x0 + u).astype(int)])
+    # Turned by 90 degrees: sample (u, v) sits at (x - v, y + u).
+    turned = sample_patches([level0, level1], inv, np.array([[x, y]], np.float32), np.full(1, 90.0, np.float32),
+                            np.zeros(1, np.int32)).reshape(PATCH, PATCH)
+    assert np.array_equal(turned, level0[(y0 + u).astype(int), (x0 - v).astype(int)])
+    # On level 1 at the level's own coordinates.
+    other = sample_patches([level0, level1], inv, np.array([[x, y]], np.float32), np.zeros(1, np.float32),
+                           np.ones(1, np.int32))
+    assert not np.array_equal(other, got)
+    with pytest.raises(InputError):
+        sample_patches([level0], inv[:1], np.array([[x, y]], np.float32), np.zeros(1, np.float32), np.ones(1, np.int32))
+
+
+def test_a_patch_that_leaves_the_image_repeats_its_edge():
+    level0 = textured()
+    got = sample_patches([level0], np.ones(1, np.float32), np.array([[0.0, 0.0]], np.float32),
+                         np.zeros(1, np.float32), np.zeros(1, np.int32)).reshape(PATCH, PATCH)
+    assert got.shape == (PATCH, PATCH) and (got[: PATCH // 2 - 1, 0] == got[0, 0]).all()
+
+
+def test_the_extractor_describes_with_the_learned_projection():
+    d = LearnedDescription(random_weights())
+    image = textured(seed=5, shape=(480, 640))
+    ex = FeatureExtractor(FeatureConfig(descriptor="learned", max_features=300), upright=True, learned=d)
+    f = ex.extract(image)
+    brief = FeatureExtractor(FeatureConfig(max_features=300), upright=True).extract(image)
+    assert len(f) == len(brief) > 100
+    np.testing.assert_array_equal(f.keypoints, brief.keypoints)  # the same ORB keypoints
+    assert f.descriptors.shape == (len(f), 32) and f.descriptors.dtype == np.uint8
+    assert not np.array_equal(f.descriptors, brief.descriptors)
+    assert not np.array_equal(f.descriptors, f.upright)
+    # The keypoints' own patches, projected, are the descriptors.
+    keypoints, octave, patches = ex.keypoint_patches(image)
+    np.testing.assert_array_equal(keypoints, f.keypoints)
+    np.testing.assert_array_equal(d.bits(patches), f.descriptors)
+    again = FeatureExtractor(FeatureConfig(descriptor="learned", max_features=300), upright=True, learned=d).extract(image)
+    np.testing.assert_array_equal(again.descriptors, f.descriptors)
+
+
+def test_the_learned_descriptor_needs_its_projection_and_orb():
+    d = LearnedDescription(random_weights())
+    with pytest.raises(ConfigError):
+        FeatureExtractor(FeatureConfig(descriptor="learned"))
+    with pytest.raises(ConfigError):
+        FeatureExtractor(FeatureConfig(), learned=d)
+    with pytest.raises(ConfigError):
+        FeatureConfig(kind="sift", descriptor="learned")
+    with pytest.raises(ConfigError):
+        FeatureConfig(descriptor="surf")
+    assert FeatureConfig.from_dict({"kind": "orb"}).descriptor == "brief"
+    assert FeatureConfig.from_dict(FeatureConfig(descriptor="learned").to_dict()).descriptor == "learned"
+
+
+@pytest.mark.skipif(not native.available(), reason="the compiled kernels are not built here")
+def test_the_compiled_kernel_gives_the_numpy_forms_bytes():
+    from aefabmap_runtime.core.features.orb_description import blurred, pyramid
+
+    d = LearnedDescription(random_weights(3))
+    levels, inv = pyramid(textured(seed=4, shape=(384, 512)), 8, 1.2)
+    levels = blurred(levels)
+    rng = np.random.default_rng(5)
+    n = 3000
+    octave = rng.integers(0, len(levels), n).astype(np.int32)
+    # Anywhere on level 0's frame and a little beyond it (edges repeat), at any angle; then upright.
+    xy = np.column_stack([rng.uniform(-30, 542, n), rng.uniform(-30, 414, n)]).astype(np.float32)
+    for angle in (rng.uniform(-720, 720, n).astype(np.float32), np.zeros(n, np.float32)):
+        np.testing.assert_array_equal(d.describe(levels, inv, xy, angle, octave, compiled=True),
+                                      d.describe(levels, inv, xy, angle, octave, compiled=False))
+    with pytest.raises(InputError):
+        d.describe(levels, inv, xy[:1], np.zeros(1, np.float32), np.array([len(levels)], np.int32), compiled=True)
