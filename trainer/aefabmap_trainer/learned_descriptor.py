@@ -38,7 +38,7 @@ from aefabmap_trainer.multiview import is_test_image, night, photometric
 #: partner, and the largest difference of their pyramid levels.
 MATCH_RADIUS = 2.5
 MAX_LEVEL_GAP = 1
-#: The objective's margin (share of bits), regularisers' weights, batch and learning rate.
+#: The objective's margin (share of bits), its regularisers' weights and the learning rate.
 MARGIN = 0.25
 QUANT_WEIGHT = 0.05
 BALANCE_WEIGHT = 0.1
@@ -51,7 +51,7 @@ CONTRAST_FLOOR = 4.0
 class DescriptorTraining:
     """images: training images drawn (each gives a night and a photometric pair);
     epochs: passes over the pairs; batch: pairs per step (each pair's negatives are the batch's
-    other patches); threads: torch's threads."""
+    other patches); seed: of the images drawn, the warps and the training; threads: torch's threads."""
 
     images: int = 2400
     epochs: int = 6

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aefabmap_runtime.core.features.orb_description import blurred, pyramid
 from aefabmap_runtime.core.kernels import native
 from aefabmap_runtime.errors import InputError
 
@@ -140,8 +141,6 @@ class LearnedDescriber:
                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(oriented, upright) (N, 32) uint8 descriptors (None where not asked) of keypoints on
         `image` (see OrbDescriber.describe); built: `pyramid(image)` when already built."""
-        from aefabmap_runtime.core.features.orb_description import blurred, pyramid
-
         levels, inv = built if built is not None else pyramid(image, self.n_levels, self.scale_factor)
         levels = blurred(levels)
         d = self.description

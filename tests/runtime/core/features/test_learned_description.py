@@ -41,18 +41,24 @@ def test_bits_are_the_signs_of_the_projection_of_the_centred_patch():
     assert not got[:5].any()
 
 
-def test_bits_are_exact_for_the_largest_sums():
-    # Every product at its extreme: the float32 sums stay below 2**24, so no bit can flip.
+def test_bits_are_exact_at_the_largest_sums_and_the_closest_ties():
+    # +127 on the first half of the samples, -127 on the second.
     w = np.full((BITS, SAMPLES), 127, np.int8)
     w[:, SAMPLES // 2:] = -127
     d = LearnedDescription(w)
-    patch = np.zeros((1, SAMPLES), np.uint8)
-    patch[0, : SAMPLES // 2] = 255
-    patch[0, SAMPLES // 2] = 254  # one grey level less on the negative side: a sum of +127
-    assert np.unpackbits(d.bits(patch), bitorder="little").all()
-    patch[0, SAMPLES // 2] = 0
-    patch[0, 0] = 254  # and one less on the positive side: the sum is -127... then +0
-    assert not np.unpackbits(d.bits(np.roll(patch, SAMPLES // 2, axis=1)), bitorder="little").any()
+
+    def bits(patch):
+        return np.unpackbits(d.bits(patch[None, :].astype(np.uint8)), bitorder="little")
+
+    half = np.r_[np.full(SAMPLES // 2, 255), np.zeros(SAMPLES // 2)]  # the largest products: 4 145 280
+    assert bits(half).all() and not bits(half[::-1]).any()
+    # A bright flat patch one grey level off on one side: the projection is +-127 out of 8 290 560.
+    near = np.full(SAMPLES, 255)
+    near[SAMPLES - 1] = 254
+    assert bits(near).all()
+    near = np.full(SAMPLES, 255)
+    near[0] = 254
+    assert not bits(near).any()
 
 
 @pytest.mark.parametrize("weights", [
