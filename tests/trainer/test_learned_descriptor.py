@@ -10,18 +10,9 @@ from aefabmap_runtime.adapters.bundle_reader import load_bundle, load_detector
 from aefabmap_runtime.core.features.features import FeatureConfig
 from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES
 from aefabmap_runtime.errors import ConfigError
-from aefabmap_runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
 from aefabmap_trainer import train as train_mod
 from aefabmap_trainer.learned_descriptor import DescriptorTraining, _pairs, to_int8, train_projection
 from aefabmap_trainer.train import TrainConfig, train_bundle
-
-
-@pytest.fixture(scope="module")
-def image_dir(tmp_path_factory):
-    d = tmp_path_factory.mktemp("imgs")
-    make_demo_sequence(d, n_frames=16, seed=7, size=(320, 240), config=SyntheticConfig(laps=1))
-    (d / "gt.npy").unlink()
-    return d
 
 
 def test_pairs_are_mutual_nearest_within_the_radius_on_near_levels():

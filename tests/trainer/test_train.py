@@ -7,17 +7,8 @@ import pytest
 
 from aefabmap_runtime.adapters.bundle_reader import load_bundle
 from aefabmap_runtime.core.features.features import FeatureConfig
-from aefabmap_runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
 from aefabmap_trainer import train as train_mod
 from aefabmap_trainer.train import TrainConfig, train_bundle
-
-
-@pytest.fixture(scope="module")
-def image_dir(tmp_path_factory):
-    d = tmp_path_factory.mktemp("imgs")
-    make_demo_sequence(d, n_frames=16, seed=7, size=(320, 240), config=SyntheticConfig(laps=1))
-    (d / "gt.npy").unlink()
-    return d
 
 
 def config(image_dir, out, **kw):

@@ -269,7 +269,6 @@ def _learned_description(path: Path, manifest: dict, features: FeatureConfig) ->
         return None
     if not isinstance(name, str) or name not in manifest["files"]:
         raise BundleError(f"{path}: a learned descriptor needs 'descriptor_weights' naming a checksummed file")
-    _check_file_name(path, name)
     weights = _load_array(path, name, kinds="i", shape=(BITS, SAMPLES))
     if weights.dtype != np.int8:
         raise BundleError(f"{path}: {name} must hold int8, got {weights.dtype}")

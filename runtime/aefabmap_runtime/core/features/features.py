@@ -224,14 +224,15 @@ class FeatureExtractor:
         # pyramid, OpenCV's bytes (features/orb_description.py); None: OpenCV describes. With the
         # describer, the pyramid is built once for both: OpenCV detects on each of its levels
         # (features/orb_levels.py; None: cv2.ORB builds its own).
-        self._describer = OrbDescriber.for_detector(self._detector)
-        self._levels = OrbLevelDetector.for_detector(self._detector) if self._describer is not None else None
         if learned is not None:
             # Detected on the pyramid the projection reads (compiled or per-level OpenCV).
             self._levels = OrbLevelDetector.for_detector(self._detector)
             if self._levels is None:
                 raise ConfigError("this OpenCV's ORB cannot detect by pyramid level: no learned descriptor here")
             self._describer = LearnedDescriber(self._levels.n_levels, self._levels.scale_factor, learned)
+        else:
+            self._describer = OrbDescriber.for_detector(self._detector)
+            self._levels = OrbLevelDetector.for_detector(self._detector) if self._describer is not None else None
 
     def replace_detector(self, detector) -> None:
         """Detect (and describe) with another OpenCV Feature2D from now on (benchmarks of other

@@ -43,6 +43,14 @@ def turns(angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.cos(rad), np.sin(rad)
 
 
+def _checked_octaves(octave: np.ndarray, n_levels: int) -> np.ndarray:
+    """octave (N,) as C-contiguous int32; InputError for one outside [0, n_levels)."""
+    octave = np.asarray(octave)
+    if octave.size and (octave.min() < 0 or octave.max() >= n_levels):
+        raise InputError(f"keypoint octaves must lie in [0, {n_levels}), got {octave.min()}..{octave.max()}")
+    return np.ascontiguousarray(octave, np.int32)
+
+
 def sample_patches(levels: list[np.ndarray], inv: np.ndarray, xy: np.ndarray, angle: np.ndarray,
                    octave: np.ndarray) -> np.ndarray:
     """(N, SAMPLES) uint8 patches (module docstring) of keypoints xy (N, 2) (level-0 pixels), angle
@@ -51,9 +59,7 @@ def sample_patches(levels: list[np.ndarray], inv: np.ndarray, xy: np.ndarray, an
     out = np.zeros((n, SAMPLES), np.uint8)
     if n == 0:
         return out
-    octave = np.asarray(octave, np.int64)
-    if octave.min() < 0 or octave.max() >= len(levels):
-        raise InputError(f"keypoint octaves must lie in [0, {len(levels)}), got {octave.min()}..{octave.max()}")
+    octave = _checked_octaves(octave, len(levels)).astype(np.int64)
     cos, sin = (t[:, None] for t in turns(angle))
     for level in np.unique(octave).tolist():
         rows = np.nonzero(octave == level)[0]
@@ -102,9 +108,7 @@ class LearnedDescription:
             compiled = native.available()
         if not compiled:
             return self.bits(sample_patches(levels, inv, xy, angle, octave))
-        octave = np.ascontiguousarray(octave, np.int32)
-        if octave.size and (octave.min() < 0 or octave.max() >= len(levels)):
-            raise InputError(f"keypoint octaves must lie in [0, {len(levels)}), got {octave.min()}..{octave.max()}")
+        octave = _checked_octaves(octave, len(levels))
         cos, sin = turns(angle)
         out = np.empty((xy.shape[0], BITS // 8), np.uint8)
         native.learned_describe(levels, np.ascontiguousarray(inv, np.float32),
