@@ -94,16 +94,19 @@ class LearnedDescription:
         self.weights = np.array(w, np.int8)
         self.weights.setflags(write=False)
         # float32 copies of integers: exact products (module docstring); row sums over SAMPLES for
-        # the mean; int16 weight pairs (SAMPLES / 2, BITS, 2) and int64 sums for the compiled kernel.
+        # the mean; for the compiled kernel, int64 sums and the weights in its two layouts: int16
+        # pairs (SAMPLES / 2, BITS, 2) and int8 quads (SAMPLES / 4, BITS, 4) (native.learned_describe).
         self._w = np.ascontiguousarray(self.weights.T, np.float32)
         self._row_sums = self.weights.sum(axis=1, dtype=np.int64)
         self._row_means = self._row_sums.astype(np.float64) / SAMPLES
         self._pairs = np.ascontiguousarray(self.weights.astype(np.int16).reshape(BITS, SAMPLES // 2, 2).transpose(1, 0, 2))
+        self._quads = np.ascontiguousarray(self.weights.reshape(BITS, SAMPLES // 4, 4).transpose(1, 0, 2))
 
     def describe(self, levels: list[np.ndarray], inv: np.ndarray, xy: np.ndarray, angle: np.ndarray,
-                 octave: np.ndarray, compiled: bool | None = None) -> np.ndarray:
+                 octave: np.ndarray, compiled: bool | None = None, form: str = native.LEARNED_FORMS[0]) -> np.ndarray:
         """(N, BITS // 8) uint8 descriptors of keypoints (as `sample_patches`): by the compiled
-        kernel where it is built (compiled None), else, or with compiled False, by numpy (the same bytes)."""
+        kernel where it is built (compiled None), else, or with compiled False, by numpy (the same
+        bytes). form: the most specialised compiled form used (native.LEARNED_FORMS; the same bytes)."""
         if compiled is None:
             compiled = native.available()
         if not compiled:
@@ -114,7 +117,7 @@ class LearnedDescription:
         native.learned_describe(levels, np.ascontiguousarray(inv, np.float32),
                                 np.ascontiguousarray(xy[:, 0], np.float32), np.ascontiguousarray(xy[:, 1], np.float32),
                                 np.ascontiguousarray(cos), np.ascontiguousarray(sin), octave, _GRID_U, _GRID_V,
-                                self._pairs, self._row_sums, out)
+                                self._pairs, self._quads, self._row_sums, out, form)
         return out
 
     def bits(self, patches: np.ndarray) -> np.ndarray:

@@ -16,7 +16,7 @@
 #define API __attribute__((visibility("default")))
 
 /* Version of this library's functions and arguments: native.py refuses a library built from other sources. */
-API int64_t aefabmap_kernels_version(void) { return 5; }
+API int64_t aefabmap_kernels_version(void) { return 6; }
 
 /* ---- popcount: the CPU instruction where it has one (x86-64 without POPCNT gets libgcc's) ---- */
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -991,68 +991,237 @@ __attribute__((target("avx2"))) static void learned_dots_avx2(const int16_t *pai
 }
 #endif
 
+/* The patch (samples,) uint8 of a keypoint at (cx, cy) on its level, turned by (c, s); returns its
+ * sum. Sample k sits at (c u - s v + cx, s u + c v + cy) in float32, the operations in that order. */
+static int64_t learned_patch(const uint8_t *image, int64_t step, int64_t last_col, int64_t last_row, float cx,
+                             float cy, float c, float s, const float *grid_u, const float *grid_v, int64_t samples,
+                             int clamp, uint8_t *patch) {
+    int64_t sum = 0;
+    for (int64_t k = 0; k < samples; k++) {
+        const float u = grid_u[k], w = grid_v[k];
+        const float px = (c * u - s * w) + cx, py = (s * u + c * w) + cy;
+        const int32_t v = learned_sample(image, step, last_col, last_row, px, py, clamp);
+        patch[k] = (uint8_t)v;
+        sum += v;
+    }
+    return sum;
+}
+
+#if HAVE_DISPATCH
+#define LEARNED_VNNI_TARGET __attribute__((target("avx512f,avx512bw,avx512dq,avx512vnni,avx2")))
+
+/* learned_patch for samples a multiple of 16 and a keypoint whose every sample's four pixels and
+ * the two bytes after them lie inside the level (no clamp; offsets fit int32): 16 samples at a time,
+ * the same float32 operations (no fused multiply-add: -ffp-contract=off), rounding to nearest even
+ * (as round_even below 2^22), and the same integer bilinear mix; each row's two pixels come from
+ * one 4-byte gather. */
+static LEARNED_VNNI_TARGET int64_t learned_patch_avx512(const uint8_t *image, int64_t step, float cx, float cy,
+                                                        float c, float s, const float *grid_u, const float *grid_v,
+                                                        int64_t samples, uint8_t *patch) {
+    const __m512 vc = _mm512_set1_ps(c), vs = _mm512_set1_ps(s), vx = _mm512_set1_ps(cx), vy = _mm512_set1_ps(cy);
+    const __m512 v32 = _mm512_set1_ps(32.0f);
+    const __m512i vstep = _mm512_set1_epi32((int32_t)step), m31 = _mm512_set1_epi32(31), m255 = _mm512_set1_epi32(255);
+    const __m512i full = _mm512_set1_epi32(32), half = _mm512_set1_epi32(512);
+    __m512i total = _mm512_setzero_si512();
+    for (int64_t k = 0; k < samples; k += 16) {
+        const __m512 u = _mm512_loadu_ps(grid_u + k), w = _mm512_loadu_ps(grid_v + k);
+        const __m512 px = _mm512_add_ps(_mm512_sub_ps(_mm512_mul_ps(vc, u), _mm512_mul_ps(vs, w)), vx);
+        const __m512 py = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(vs, u), _mm512_mul_ps(vc, w)), vy);
+        const __m512i ax = _mm512_cvt_roundps_epi32(_mm512_mul_ps(px, v32), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+        const __m512i ay = _mm512_cvt_roundps_epi32(_mm512_mul_ps(py, v32), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+        const __m512i fx = _mm512_and_si512(ax, m31), fy = _mm512_and_si512(ay, m31);
+        const __m512i gx = _mm512_sub_epi32(full, fx), gy = _mm512_sub_epi32(full, fy);
+        const __m512i at = _mm512_add_epi32(_mm512_mullo_epi32(_mm512_srai_epi32(ay, 5), vstep), _mm512_srai_epi32(ax, 5));
+        const __m512i r0 = _mm512_i32gather_epi32(at, (const void *)image, 1);
+        const __m512i r1 = _mm512_i32gather_epi32(_mm512_add_epi32(at, vstep), (const void *)image, 1);
+        const __m512i top = _mm512_add_epi32(_mm512_mullo_epi32(gx, _mm512_and_si512(r0, m255)),
+                                             _mm512_mullo_epi32(fx, _mm512_and_si512(_mm512_srli_epi32(r0, 8), m255)));
+        const __m512i bottom = _mm512_add_epi32(_mm512_mullo_epi32(gx, _mm512_and_si512(r1, m255)),
+                                                _mm512_mullo_epi32(fx, _mm512_and_si512(_mm512_srli_epi32(r1, 8), m255)));
+        const __m512i v = _mm512_srai_epi32(_mm512_add_epi32(_mm512_add_epi32(_mm512_mullo_epi32(gy, top),
+                                                                              _mm512_mullo_epi32(fy, bottom)), half), 10);
+        total = _mm512_add_epi32(total, v);
+        _mm_storeu_si128((__m128i *)(patch + k), _mm512_cvtepi32_epi8(v));
+    }
+    return (int64_t)_mm512_reduce_add_epi32(total);
+}
+
+/* dots (4, bits) int32 of four patches (4, samples) uint8 with the weights as quads (samples / 4,
+ * bits, 4) int8 (quads[k][b][t] = w[b][4k + t]), for bits a multiple of 64: 64 bits of all four at a
+ * time in sixteen accumulators, each weight load used four times. Exact: each instruction adds four
+ * uint8 x int8 products to an int32 without saturation. */
+static LEARNED_VNNI_TARGET void learned_dots_vnni4(const int8_t *quads, const uint8_t *patches, int64_t samples,
+                                                   int64_t bits, int32_t *dots) {
+    for (int64_t b0 = 0; b0 < bits; b0 += 64) {
+        __m512i acc[4][4];
+        for (int i = 0; i < 4; i++)
+            for (int j = 0; j < 4; j++) acc[i][j] = _mm512_setzero_si512();
+        for (int64_t k = 0; k < samples / 4; k++) {
+            const int8_t *w = quads + (k * bits + b0) * 4;
+            __m512i wq[4];
+            for (int j = 0; j < 4; j++) wq[j] = _mm512_loadu_si512((const void *)(w + 64 * j));
+            for (int i = 0; i < 4; i++) {
+                int32_t four;
+                memcpy(&four, patches + i * samples + 4 * k, 4);
+                const __m512i p = _mm512_set1_epi32(four);
+                for (int j = 0; j < 4; j++) acc[i][j] = _mm512_dpbusd_epi32(acc[i][j], p, wq[j]);
+            }
+        }
+        for (int i = 0; i < 4; i++)
+            for (int j = 0; j < 4; j++) _mm512_storeu_si512((void *)(dots + i * bits + b0 + 16 * j), acc[i][j]);
+    }
+}
+
+/* learned_bits (below) for bits a multiple of 8: eight comparisons in int64 give one byte. */
+static LEARNED_VNNI_TARGET void learned_bits_avx512(const int32_t *dots, int64_t sum, const int64_t *row_sums,
+                                                    int64_t samples, int64_t bits, uint8_t *d) {
+    const __m512i vs = _mm512_set1_epi64(samples), vsum = _mm512_set1_epi64(sum);
+    for (int64_t b = 0; b < bits; b += 8) {
+        const __m512i left = _mm512_mullo_epi64(vs, _mm512_cvtepi32_epi64(_mm256_loadu_si256((const __m256i *)(dots + b))));
+        const __m512i right = _mm512_mullo_epi64(vsum, _mm512_loadu_si512((const void *)(row_sums + b)));
+        d[b >> 3] = (uint8_t)_mm512_cmpgt_epi64_mask(left, right);
+    }
+}
+#endif
+
+/* Bits (bits / 8,) of one keypoint, bits a multiple of 8: bit b set when samples * dots[b] > sum * row_sums[b]. */
+static void learned_bits(const int32_t *dots, int64_t sum, const int64_t *row_sums, int64_t samples, int64_t bits,
+                         uint8_t *d) {
+    for (int64_t b = 0; b < bits; b += 8) {
+        uint32_t byte = 0;
+        for (int t = 0; t < 8; t++) byte |= (uint32_t)(samples * (int64_t)dots[b + t] > sum * row_sums[b + t]) << t;
+        d[b >> 3] = (uint8_t)byte;
+    }
+}
+
+/* The keypoint's level and centre on it; 0, or -2 for an octave outside the levels. */
+static int learned_level(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
+                         int64_t n_levels, const float *inv_scale, float x, float y, int32_t o,
+                         const uint8_t **image, int64_t *step, int64_t *last_col, int64_t *last_row, float *cx,
+                         float *cy) {
+    if (o < 0 || o >= n_levels) return -2;
+    *image = (const uint8_t *)levels[o];
+    *step = steps[o], *last_col = cols[o] - 1, *last_row = rows[o] - 1;
+    *cx = x * inv_scale[o], *cy = y * inv_scale[o];
+    return 0;
+}
+
+/* True when every sample of a keypoint at (cx, cy) within `reach` of it lies `margin` pixels inside. */
+static inline int learned_inside(float cx, float cy, float reach, float margin, int64_t last_col, int64_t last_row) {
+    return cx - reach - margin >= 0.0f && cy - reach - margin >= 0.0f
+           && cx + reach + margin <= (float)last_col && cy + reach + margin <= (float)last_row;
+}
+
+#if HAVE_DISPATCH
+/* learned_describe on a CPU with AVX-512 VNNI, for bits a multiple of 64 and samples of 16:
+ * four keypoints at a time; the same bytes. */
+static LEARNED_VNNI_TARGET int64_t learned_describe_vnni(
+        const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols, int64_t n_levels,
+        const float *inv_scale, const float *x, const float *y, const float *cosines, const float *sines,
+        const int32_t *octave, int64_t n, const float *grid_u, const float *grid_v, int64_t samples,
+        const int8_t *quads, const int64_t *row_sums, int64_t bits, float reach, uint8_t *out) {
+    uint8_t *patches = (uint8_t *)calloc((size_t)(4 * samples), 1);
+    int32_t *dots = (int32_t *)malloc((size_t)(4 * bits) * sizeof(int32_t));
+    if (!patches || !dots) {
+        free(patches); free(dots);
+        return -1;
+    }
+    int64_t status = 0;
+    for (int64_t i0 = 0; i0 < n && status == 0; i0 += 4) {
+        int64_t sums[4] = {0, 0, 0, 0};
+        const int64_t m = n - i0 < 4 ? n - i0 : 4;
+        for (int64_t j = 0; j < m; j++) {
+            const uint8_t *image;
+            int64_t step, last_col, last_row;
+            float cx, cy;
+            if (learned_level(levels, steps, rows, cols, n_levels, inv_scale, x[i0 + j], y[i0 + j], octave[i0 + j],
+                              &image, &step, &last_col, &last_row, &cx, &cy)) {
+                status = -2;
+                break;
+            }
+            uint8_t *patch = patches + j * samples;
+            const float c = cosines[i0 + j], s = sines[i0 + j];
+            /* Three pixels of margin: the gathers' four bytes from each sample's left pixel lie in its row. */
+            if (learned_inside(cx, cy, reach, 3.0f, last_col, last_row) && (last_row + 1) * step < INT32_MAX)
+                sums[j] = learned_patch_avx512(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
+            else
+                sums[j] = learned_patch(image, step, last_col, last_row, cx, cy, c, s, grid_u, grid_v, samples,
+                                        !learned_inside(cx, cy, reach, 2.0f, last_col, last_row), patch);
+        }
+        if (status) break;
+        learned_dots_vnni4(quads, patches, samples, bits, dots);
+        for (int64_t j = 0; j < m; j++)
+            learned_bits_avx512(dots + j * bits, sums[j], row_sums, samples, bits, out + (i0 + j) * (bits / 8));
+    }
+    free(patches); free(dots);
+    return status;
+}
+#endif
+
 /* levels / steps / rows / cols / n_levels / inv_scale / x / y / octave: as orb_describe; cosines, sines
  * (n,) float32: each keypoint's turn; grid_u, grid_v (samples,) float32: the patch's sample offsets in
- * level pixels, samples even; pairs: the weights (bits, samples) as (samples / 2, bits, 2) int16;
- * row_sums (bits,) int64; out (n, bits / 8) uint8. Sample k of keypoint i sits at (c u - s v + cx,
+ * level pixels, samples even; pairs and quads: the weights (bits, samples) as (samples / 2, bits, 2)
+ * int16 and as (samples / 4, bits, 4) int8 (quads: when samples is a multiple of 4, else unread);
+ * row_sums (bits,) int64; out (n, bits / 8) uint8, bits a multiple of 8; ceiling: the most
+ * specialised form used, where the CPU runs it: 0 AVX-512 VNNI, 1 AVX2, 2 plain C (tests compare them). Sample k of keypoint i sits at (c u - s v + cx,
  * s u + c v + cy) in float32, the operations in that order (learned_sample); bit b is set when
  * samples * (w_b . patch) > sum(patch) * row_sums[b]. Returns 0, -1 when out of memory, -2 for an
- * octave outside the levels, -3 for an odd number of samples. */
+ * octave outside the levels, -3 for an odd number of samples or bits not a multiple of 8. */
 API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
                              int64_t n_levels, const float *inv_scale, const float *x, const float *y,
                              const float *cosines, const float *sines, const int32_t *octave, int64_t n,
                              const float *grid_u, const float *grid_v, int64_t samples, const int16_t *pairs,
-                             const int64_t *row_sums, int64_t bits, uint8_t *out) {
-    if (samples % 2) return -3;
-    const int64_t half = samples / 2, width = bits / 8;
-    int32_t *patch_pairs = (int32_t *)malloc((size_t)(half > 0 ? half : 1) * sizeof(int32_t));
-    int32_t *dots = (int32_t *)malloc((size_t)(bits > 0 ? bits : 1) * sizeof(int32_t));
-    if (!patch_pairs || !dots) {
-        free(patch_pairs); free(dots);
-        return -1;
-    }
-    float reach = 0.0f; /* every sample lies within max |u| + max |v| of the centre */
+                             const int8_t *quads, const int64_t *row_sums, int64_t bits, uint8_t *out,
+                             int64_t ceiling) {
+    if (samples % 2 || bits % 8) return -3;
+    /* Every sample lies within the largest offset's length of the centre (a turn keeps lengths; the
+     * float32 rounding of a turned offset is far below the margins added to it). */
+    float reach = 0.0f;
     for (int64_t k = 0; k < samples; k++) {
-        const float r = fabsf(grid_u[k]) + fabsf(grid_v[k]);
+        const float r = sqrtf(grid_u[k] * grid_u[k] + grid_v[k] * grid_v[k]);
         reach = r > reach ? r : reach;
     }
     int use_avx2 = 0;
 #if HAVE_DISPATCH
-    use_avx2 = bits % 64 == 0 && __builtin_cpu_supports("avx2");
+    if (ceiling == 0 && bits % 64 == 0 && samples % 16 == 0 && __builtin_cpu_supports("avx512f")
+            && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq")
+            && __builtin_cpu_supports("avx512vnni"))
+        return learned_describe_vnni(levels, steps, rows, cols, n_levels, inv_scale, x, y, cosines, sines, octave, n,
+                                     grid_u, grid_v, samples, quads, row_sums, bits, reach, out);
+    use_avx2 = ceiling <= 1 && bits % 64 == 0 && __builtin_cpu_supports("avx2");
+#else
+    (void)ceiling;
 #endif
+    const int64_t half = samples / 2;
+    uint8_t *patch = (uint8_t *)malloc((size_t)(samples > 0 ? samples : 1));
+    int32_t *patch_pairs = (int32_t *)malloc((size_t)(half > 0 ? half : 1) * sizeof(int32_t));
+    int32_t *dots = (int32_t *)malloc((size_t)(bits > 0 ? bits : 1) * sizeof(int32_t));
+    if (!patch || !patch_pairs || !dots) {
+        free(patch); free(patch_pairs); free(dots);
+        return -1;
+    }
     for (int64_t i = 0; i < n; i++) {
-        const int32_t o = octave[i];
-        if (o < 0 || o >= n_levels) {
-            free(patch_pairs); free(dots);
+        const uint8_t *image;
+        int64_t step, last_col, last_row;
+        float cx, cy;
+        if (learned_level(levels, steps, rows, cols, n_levels, inv_scale, x[i], y[i], octave[i], &image, &step,
+                          &last_col, &last_row, &cx, &cy)) {
+            free(patch); free(patch_pairs); free(dots);
             return -2;
         }
-        const uint8_t *image = (const uint8_t *)levels[o];
-        const int64_t step = steps[o], last_col = cols[o] - 1, last_row = rows[o] - 1;
-        const float cx = x[i] * inv_scale[o], cy = y[i] * inv_scale[o], c = cosines[i], s = sines[i];
         /* Two pixels of margin beyond the reach: every sample's four pixels lie inside, no clamp. */
-        const int clamp = !(cx - reach - 2.0f >= 0.0f && cy - reach - 2.0f >= 0.0f
-                            && cx + reach + 2.0f <= (float)last_col && cy + reach + 2.0f <= (float)last_row);
-        int64_t sum = 0;
-        for (int64_t k = 0; k < half; k++) {
-            int32_t v[2];
-            for (int t = 0; t < 2; t++) {
-                const float u = grid_u[2 * k + t], w = grid_v[2 * k + t];
-                const float px = (c * u - s * w) + cx, py = (s * u + c * w) + cy;
-                v[t] = learned_sample(image, step, last_col, last_row, px, py, clamp);
-                sum += v[t];
-            }
-            patch_pairs[k] = (int32_t)((uint32_t)v[0] | ((uint32_t)v[1] << 16));
-        }
+        const int64_t sum = learned_patch(image, step, last_col, last_row, cx, cy, cosines[i], sines[i], grid_u,
+                                          grid_v, samples, !learned_inside(cx, cy, reach, 2.0f, last_col, last_row),
+                                          patch);
+        for (int64_t k = 0; k < half; k++)
+            patch_pairs[k] = (int32_t)((uint32_t)patch[2 * k] | ((uint32_t)patch[2 * k + 1] << 16));
 #if HAVE_DISPATCH
         if (use_avx2) learned_dots_avx2(pairs, patch_pairs, half, bits, dots);
         else
 #endif
             learned_dots_plain(pairs, patch_pairs, half, bits, dots);
-        uint8_t *d = out + i * width;
-        memset(d, 0, (size_t)width);
-        for (int64_t b = 0; b < bits; b++)
-            if ((int64_t)samples * (int64_t)dots[b] > sum * row_sums[b]) d[b >> 3] |= (uint8_t)(1u << (b & 7));
+        learned_bits(dots, sum, row_sums, samples, bits, out + i * (bits / 8));
     }
-    free(patch_pairs); free(dots);
+    free(patch); free(patch_pairs); free(dots);
     return 0;
 }

@@ -22,7 +22,7 @@ from aefabmap_runtime.errors import ConfigError
 
 #: The interface version kernels.c reports (aefabmap_kernels_version): a library built from other
 #: sources is not used.
-VERSION = 5
+VERSION = 6
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -39,7 +39,8 @@ _SIGNATURES = {
     "orb_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _I64, _P, _I64, _P, _P]),
     "orb_keypoints": (_I64, [_P, _P, _P, _P, _I64, _I64, _I64, _I64, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I64]),
     "resize_levels": (_I64, [_P, _P, _P, _P, _I64]),
-    "learned_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _I64, _P, _P, _I64, _P]),
+    "learned_describe": (_I64, [_P, _P, _P, _P, _I64, _P, _P, _P, _P, _P, _P, _I64, _P, _P, _I64, _P, _P, _P, _I64, _P,
+                                _I64]),
 }
 
 
@@ -217,28 +218,40 @@ def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upri
     return int(status)
 
 
-def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, grid_v, pairs, row_sums, out) -> None:
+#: learned_describe's forms, most specialised first: each runs where the CPU has its instructions.
+LEARNED_FORMS = ("avx512-vnni", "avx2", "plain")
+
+
+def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, grid_v, pairs, quads, row_sums,
+                     out, ceiling: str = "avx512-vnni") -> None:
     """The learned descriptor of keypoints on a blurred pyramid (features/learned_description.py,
     whose numpy form computes the same bytes).
 
     levels: list of (rows, cols) uint8 arrays (rows may be strided); inv_scale (L,) float32; x, y,
     cosines, sines (N,) float32; octave (N,) int32 in [0, L); grid_u, grid_v (S,) float32 sample
-    offsets, S even; pairs: the weights (B, S) int16 as (S / 2, B, 2) (pairs[k, b, t] = w[b, 2 k + t]);
-    row_sums (B,) int64; out (N, B / 8) uint8."""
+    offsets, S a multiple of 4; the weights (B, S) int8 twice: pairs (S / 2, B, 2) int16 (pairs[k, b, t]
+    = w[b, 2 k + t]) and quads (S / 4, B, 4) int8 (quads[k, b, t] = w[b, 4 k + t]); row_sums (B,)
+    int64; out (N, B / 8) uint8. ceiling: the most specialised of LEARNED_FORMS used where the CPU
+    runs it (every form gives the same bytes; tests compare them)."""
+    if ceiling not in LEARNED_FORMS:
+        raise ConfigError(f"learned_describe: form {ceiling!r} is not one of {LEARNED_FORMS}")
     n, n_levels = x.size, len(levels)
     _same(n, y.size, cosines.size, sines.size, octave.size)
     _same(n_levels, inv_scale.size)
     samples, bits = grid_u.size, row_sums.size
     _same(samples, grid_v.size)
-    if samples % 2 or pairs.shape != (samples // 2, bits, 2) or bits % 8 or out.shape != (n, bits // 8):
-        raise ConfigError(f"learned_describe: weights {pairs.shape} / output {out.shape} do not fit {bits} bits, {samples} samples")
+    if samples % 4 or pairs.shape != (samples // 2, bits, 2) or quads.shape != (samples // 4, bits, 4) \
+            or bits % 8 or out.shape != (n, bits // 8):
+        raise ConfigError(f"learned_describe: weights {pairs.shape}, {quads.shape} / output {out.shape} do not fit "
+                          f"{bits} bits, {samples} samples")
     addresses, steps, rows, cols = _level_arrays(levels)
     status = _lib.learned_describe(
         _arg(addresses, np.intp, 1), _arg(steps, np.int64, 1), _arg(rows, np.int64, 1), _arg(cols, np.int64, 1),
         n_levels, _arg(inv_scale, np.float32, 1), _arg(x, np.float32, 1), _arg(y, np.float32, 1),
         _arg(cosines, np.float32, 1), _arg(sines, np.float32, 1), _arg(octave, np.int32, 1), n,
         _arg(grid_u, np.float32, 1), _arg(grid_v, np.float32, 1), samples, _arg(pairs, np.int16, 3),
-        _arg(row_sums, np.int64, 1), bits, _writable(out, np.uint8, 2))
+        _arg(quads, np.int8, 3), _arg(row_sums, np.int64, 1), bits, _writable(out, np.uint8, 2),
+        LEARNED_FORMS.index(ceiling))
     if status == -2:
         raise ConfigError("learned_describe: a keypoint's octave lies outside the pyramid")
     _memory(status)

@@ -136,7 +136,10 @@ def test_the_learned_descriptor_needs_its_projection_and_orb():
 
 
 @pytest.mark.skipif(not native.available(), reason="the compiled kernels are not built here")
-def test_the_compiled_kernel_gives_the_numpy_forms_bytes():
+@pytest.mark.parametrize("form", native.LEARNED_FORMS)
+def test_the_compiled_kernel_gives_the_numpy_forms_bytes(form):
+    # Each compiled form (AVX-512 VNNI, AVX2, plain C) runs where the CPU has its instructions, else
+    # the next one does: all give numpy's bytes.
     from aefabmap_runtime.core.features.orb_description import blurred, pyramid
 
     d = LearnedDescription(random_weights(3))
@@ -148,7 +151,17 @@ def test_the_compiled_kernel_gives_the_numpy_forms_bytes():
     # Anywhere on level 0's frame and a little beyond it (edges repeat), at any angle; then upright.
     xy = np.column_stack([rng.uniform(-30, 542, n), rng.uniform(-30, 414, n)]).astype(np.float32)
     for angle in (rng.uniform(-720, 720, n).astype(np.float32), np.zeros(n, np.float32)):
-        np.testing.assert_array_equal(d.describe(levels, inv, xy, angle, octave, compiled=True),
+        np.testing.assert_array_equal(d.describe(levels, inv, xy, angle, octave, compiled=True, form=form),
                                       d.describe(levels, inv, xy, angle, octave, compiled=False))
     with pytest.raises(InputError):
-        d.describe(levels, inv, xy[:1], np.zeros(1, np.float32), np.array([len(levels)], np.int32), compiled=True)
+        d.describe(levels, inv, xy[:1], np.zeros(1, np.float32), np.array([len(levels)], np.int32), compiled=True,
+                   form=form)
+
+
+@pytest.mark.skipif(not native.available(), reason="the compiled kernels are not built here")
+def test_an_unknown_compiled_form_is_refused():
+    d = LearnedDescription(random_weights(3))
+    levels = [textured(shape=(64, 64))]
+    with pytest.raises(ConfigError, match="form"):
+        d.describe(levels, np.ones(1, np.float32), np.full((1, 2), 32, np.float32), np.zeros(1, np.float32),
+                   np.zeros(1, np.int32), compiled=True, form="avx9000")
