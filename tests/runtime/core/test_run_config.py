@@ -1,6 +1,7 @@
 """Reading back the run configuration a log recorded, older logs' included (core/run_config.py)."""
 
 import dataclasses
+import math
 
 import pytest
 
@@ -36,6 +37,13 @@ def test_logs_written_before_the_retry_alone_replay_with_same_word_checks_first(
     del doc["detector"]["candidates"]["retry_alone"]
     assert not logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.retry_alone
     assert not logged_run_config({"max_places": 5}).detector.candidates.retry_alone
+
+
+def test_logs_written_before_the_chains_margin_replay_without_it():
+    doc = RunConfig().to_dict()
+    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.margin_log10_nfa == pytest.approx(math.log10(2))
+    del doc["detector"]["sequence"]["margin_log10_nfa"]
+    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.margin_log10_nfa == 0.0
 
 
 def test_logs_written_before_chains_replay_without_them():

@@ -17,10 +17,18 @@ two frames (-4, minus log10 of a handful of checked places x 7 alignments, minus
 1 - ln s at s = 1e-7). Consecutive frames are not independent under the null (repetitive
 structure repeats), which is why the bound is checked against chains between different drives
 of the training set (scripts/calibrate_sequence.py).
+
+The bound says a revisit is there, not which stored frame it is. Stored frames of one stretch of
+road share their far scene, so a query may have links of like evidence to two of them that are not
+neighbours, and the choice between them would be a coin toss (docs/results.md, "A tie between two
+stored frames"). A chain is therefore accepted only when every chain ending at a stored frame more
+than one frame from its own is at least `margin_log10_nfa` less significant: by default log10 2,
+so the accepted chain is at least twice as unlikely by chance as any such rival; closer is a tie.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -41,20 +49,26 @@ class SequenceConfig:
     tolerance: largest difference, in stored frames, between the links of consecutive queries.
     link_log10_nfa: a checked place is a link when its best model's log10 NFA is below this.
     max_log10_nfa: a chain is accepted when the sum of its links' log10 NFA is below this.
+    margin_log10_nfa: ... and when every chain ending at a stored frame more than one frame from
+        its last link's sums at least this much more (0: no such check).
     """
 
     frames: int = 2
     tolerance: int = 3
     link_log10_nfa: float = 0.0
     max_log10_nfa: float = -7.0
+    margin_log10_nfa: float = math.log10(2.0)  # a factor of two (module docstring)
 
     def __post_init__(self) -> None:
         if self.frames < 0 or self.frames == 1 or self.frames > 16:
             raise ConfigError(f"sequence frames must be 0 (off) or in [2, 16], got {self.frames}")
         if self.tolerance < 0:
             raise ConfigError(f"sequence tolerance must be >= 0 frames, got {self.tolerance}")
-        if not (np.isfinite(self.link_log10_nfa) and np.isfinite(self.max_log10_nfa)):
-            raise ConfigError("sequence link_log10_nfa and max_log10_nfa must be finite")
+        if not (np.isfinite(self.link_log10_nfa) and np.isfinite(self.max_log10_nfa)
+                and np.isfinite(self.margin_log10_nfa)):
+            raise ConfigError("sequence link_log10_nfa, max_log10_nfa and margin_log10_nfa must be finite")
+        if self.margin_log10_nfa < 0.0:
+            raise ConfigError(f"sequence margin_log10_nfa must be >= 0, got {self.margin_log10_nfa}")
         if self.link_log10_nfa > 0.0 or self.max_log10_nfa > self.link_log10_nfa:
             raise ConfigError("sequence needs max_log10_nfa <= link_log10_nfa <= 0")
 
@@ -78,7 +92,8 @@ class SequenceEvidence:
 
     def update(self, links: list[Link]) -> tuple[Link, float] | None:
         """Record this query's links; return the link ending the most significant accepted chain
-        and the chain's summed log10 NFA, or None (no chain of `frames` queries passes)."""
+        and the chain's summed log10 NFA, or None (no chain of `frames` queries passes, or one
+        ending at a stored frame that is not a neighbour of its own comes within the margin)."""
         c = self.config
         links = sorted((x for x in links if x.log10_nfa < c.link_log10_nfa), key=lambda x: x.log10_nfa)[:MAX_LINKS]
         frames = np.array([x.frame for x in links], np.int64)
@@ -87,7 +102,8 @@ class SequenceEvidence:
         if links and len(self._history) == c.frames - 1:
             total = self._chain_sums(frames, nfa)
             i = int(np.argmin(total))
-            if total[i] < c.max_log10_nfa:
+            rivals = total[np.abs(frames - frames[i]) > 1]
+            if total[i] < c.max_log10_nfa and not np.any(rivals < total[i] + c.margin_log10_nfa):
                 best = (links[i], float(total[i]))
         self._history.append((frames, nfa))
         return best

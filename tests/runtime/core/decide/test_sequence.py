@@ -31,6 +31,27 @@ def test_no_chain_when_stored_frames_jump_or_a_link_is_not_significant():
     assert chain.update([]) is None
 
 
+def test_a_chain_is_withheld_when_a_stored_frame_that_is_not_its_neighbour_has_like_evidence():
+    # Stored frames 40 and 42 share the far scene: chains of -9.33 and -9.24 cannot tell them apart.
+    c = SequenceConfig(frames=2, tolerance=3, max_log10_nfa=-7.0)  # the default margin: a factor of two
+    chain = SequenceEvidence(c)
+    chain.update([Link(4, 41, -5.4)])
+    assert chain.update([Link(3, 40, -3.93), Link(5, 42, -3.84)]) is None
+    # More than twice as unlikely by chance is far enough.
+    chain = SequenceEvidence(c)
+    chain.update([Link(4, 41, -5.4)])
+    link, total = chain.update([Link(3, 40, -3.93), Link(5, 42, -3.6)])
+    assert link.place == 3 and total == pytest.approx(-9.33)
+    # A neighbouring stored frame is the same place: no rival.
+    chain = SequenceEvidence(c)
+    chain.update([Link(4, 41, -5.4)])
+    assert chain.update([Link(3, 40, -3.93), Link(5, 41, -3.9)])[0].place == 3
+    # Margin 0: the most significant chain is taken, however close its rivals.
+    chain = SequenceEvidence(SequenceConfig(frames=2, tolerance=3, margin_log10_nfa=0.0))
+    chain.update([Link(4, 41, -5.4)])
+    assert chain.update([Link(3, 40, -3.93), Link(5, 42, -3.84)])[0].place == 3
+
+
 def test_a_query_without_links_breaks_the_chain():
     chain = SequenceEvidence(SequenceConfig(frames=3, tolerance=2))
     chain.update([Link(1, 10, -3.0)])
@@ -81,7 +102,8 @@ def test_hostile_states_are_refused(arrays):
 
 @pytest.mark.parametrize("kwargs", [dict(frames=1), dict(frames=-1), dict(frames=17), dict(tolerance=-1),
                                     dict(link_log10_nfa=0.5), dict(max_log10_nfa=1.0),
-                                    dict(max_log10_nfa=float("nan")), dict(link_log10_nfa=-8.0)])
+                                    dict(max_log10_nfa=float("nan")), dict(link_log10_nfa=-8.0),
+                                    dict(margin_log10_nfa=-0.5), dict(margin_log10_nfa=float("inf"))])
 def test_bad_settings_are_refused(kwargs):
     with pytest.raises(ConfigError):
         SequenceConfig(**kwargs)
