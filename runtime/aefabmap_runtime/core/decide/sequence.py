@@ -50,7 +50,7 @@ class SequenceConfig:
     link_log10_nfa: a checked place is a link when its best model's log10 NFA is below this.
     max_log10_nfa: a chain is accepted when the sum of its links' log10 NFA is below this.
     margin_log10_nfa: ... and when every chain ending at a stored frame more than one frame from
-        its last link's sums at least this much more (0: no such check).
+        the accepted chain's last stored frame sums at least this much more (0: no such check).
     """
 
     frames: int = 2

@@ -1162,17 +1162,18 @@ static LEARNED_VNNI_TARGET int64_t learned_describe_vnni(
  * (n,) float32: each keypoint's turn; grid_u, grid_v (samples,) float32: the patch's sample offsets in
  * level pixels, samples even; pairs and quads: the weights (bits, samples) as (samples / 2, bits, 2)
  * int16 and as (samples / 4, bits, 4) int8 (quads: when samples is a multiple of 4, else unread);
- * row_sums (bits,) int64; out (n, bits / 8) uint8, bits a multiple of 8; ceiling: the most
- * specialised form used, where the CPU runs it: 0 AVX-512 VNNI, 1 AVX2, 2 plain C (tests compare them). Sample k of keypoint i sits at (c u - s v + cx,
- * s u + c v + cy) in float32, the operations in that order (learned_sample); bit b is set when
- * samples * (w_b . patch) > sum(patch) * row_sums[b]. Returns 0, -1 when out of memory, -2 for an
- * octave outside the levels, -3 for an odd number of samples or bits not a multiple of 8. */
+ * row_sums (bits,) int64; out (n, bits / 8) uint8, bits a multiple of 8; form: the most
+ * specialised form used, where the CPU runs it: 0 AVX-512 VNNI, 1 AVX2, 2 plain C (the same bytes;
+ * tests compare them). Sample k of keypoint i sits at (c u - s v + cx, s u + c v + cy) in float32,
+ * the operations in that order (learned_sample); bit b is set when samples * (w_b . patch) >
+ * sum(patch) * row_sums[b]. Returns 0, -1 when out of memory, -2 for an octave outside the levels,
+ * -3 for an odd number of samples or bits not a multiple of 8. */
 API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
                              int64_t n_levels, const float *inv_scale, const float *x, const float *y,
                              const float *cosines, const float *sines, const int32_t *octave, int64_t n,
                              const float *grid_u, const float *grid_v, int64_t samples, const int16_t *pairs,
                              const int8_t *quads, const int64_t *row_sums, int64_t bits, uint8_t *out,
-                             int64_t ceiling) {
+                             int64_t form) {
     if (samples % 2 || bits % 8) return -3;
     /* Every sample lies within the largest offset's length of the centre (a turn keeps lengths; the
      * float32 rounding of a turned offset is far below the margins added to it). */
@@ -1183,14 +1184,14 @@ API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const
     }
     int use_avx2 = 0;
 #if HAVE_DISPATCH
-    if (ceiling == 0 && bits % 64 == 0 && samples % 16 == 0 && __builtin_cpu_supports("avx512f")
+    if (form == 0 && bits % 64 == 0 && samples % 16 == 0 && __builtin_cpu_supports("avx512f")
             && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq")
             && __builtin_cpu_supports("avx512vnni"))
         return learned_describe_vnni(levels, steps, rows, cols, n_levels, inv_scale, x, y, cosines, sines, octave, n,
                                      grid_u, grid_v, samples, quads, row_sums, bits, reach, out);
-    use_avx2 = ceiling <= 1 && bits % 64 == 0 && __builtin_cpu_supports("avx2");
+    use_avx2 = form <= 1 && bits % 64 == 0 && __builtin_cpu_supports("avx2");
 #else
-    (void)ceiling;
+    (void)form;
 #endif
     const int64_t half = samples / 2;
     uint8_t *patch = (uint8_t *)malloc((size_t)(samples > 0 ? samples : 1));

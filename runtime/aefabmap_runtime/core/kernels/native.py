@@ -223,7 +223,7 @@ LEARNED_FORMS = ("avx512-vnni", "avx2", "plain")
 
 
 def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, grid_v, pairs, quads, row_sums,
-                     out, ceiling: str = "avx512-vnni") -> None:
+                     out, form: str = "avx512-vnni") -> None:
     """The learned descriptor of keypoints on a blurred pyramid (features/learned_description.py,
     whose numpy form computes the same bytes).
 
@@ -231,10 +231,10 @@ def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, gr
     cosines, sines (N,) float32; octave (N,) int32 in [0, L); grid_u, grid_v (S,) float32 sample
     offsets, S a multiple of 4; the weights (B, S) int8 twice: pairs (S / 2, B, 2) int16 (pairs[k, b, t]
     = w[b, 2 k + t]) and quads (S / 4, B, 4) int8 (quads[k, b, t] = w[b, 4 k + t]); row_sums (B,)
-    int64; out (N, B / 8) uint8. ceiling: the most specialised of LEARNED_FORMS used where the CPU
+    int64; out (N, B / 8) uint8. form: the most specialised of LEARNED_FORMS used where the CPU
     runs it (every form gives the same bytes; tests compare them)."""
-    if ceiling not in LEARNED_FORMS:
-        raise ConfigError(f"learned_describe: form {ceiling!r} is not one of {LEARNED_FORMS}")
+    if form not in LEARNED_FORMS:
+        raise ConfigError(f"learned_describe: form {form!r} is not one of {LEARNED_FORMS}")
     n, n_levels = x.size, len(levels)
     _same(n, y.size, cosines.size, sines.size, octave.size)
     _same(n_levels, inv_scale.size)
@@ -251,7 +251,7 @@ def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, gr
         _arg(cosines, np.float32, 1), _arg(sines, np.float32, 1), _arg(octave, np.int32, 1), n,
         _arg(grid_u, np.float32, 1), _arg(grid_v, np.float32, 1), samples, _arg(pairs, np.int16, 3),
         _arg(quads, np.int8, 3), _arg(row_sums, np.int64, 1), bits, _writable(out, np.uint8, 2),
-        LEARNED_FORMS.index(ceiling))
+        LEARNED_FORMS.index(form))
     if status == -2:
         raise ConfigError("learned_describe: a keypoint's octave lies outside the pyramid")
     _memory(status)
