@@ -190,6 +190,10 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
     g.add_argument("--sequence-frames", type=int, default=None, metavar="N",
                    help="evidence over consecutive frames: N query frames whose checked places line up with "
                    f"stored frames may pass together when no single pair does (default {d.sequence.frames}; 0 = off)")
+    g.add_argument("--sequence-margin", type=float, default=None, metavar="LOG10",
+                   help="a chain is withheld unless it sums at least LOG10 below every chain ending at a stored frame "
+                   f"that is not a neighbour of its own (default {d.sequence.margin_log10_nfa:.3f}: twice as unlikely "
+                   "by chance; 0 = no such check, as maps journalled before it ran)")
     g.add_argument("--temporal-frames", type=int, default=None, metavar="N",
                    help=f"temporal consistency: N preceding frames must agree (default {d.temporal_frames} = off)")
     g.add_argument("--temporal-tolerance", type=int, default=None, metavar="F",
@@ -277,7 +281,8 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
         memory_mb=pick("memory_mb", d.memory_mb, prof.memory_mb if prof else None),
         verification=verification,
         candidates=candidates,
-        sequence=dataclasses.replace(d.sequence, frames=pick("sequence_frames", d.sequence.frames)),
+        sequence=dataclasses.replace(d.sequence, frames=pick("sequence_frames", d.sequence.frames),
+                                     margin_log10_nfa=pick("sequence_margin", d.sequence.margin_log10_nfa)),
         temporal_frames=pick("temporal_frames", d.temporal_frames) if verification.enabled else 0,
         temporal_tolerance=pick("temporal_tolerance", d.temporal_tolerance),
     )
