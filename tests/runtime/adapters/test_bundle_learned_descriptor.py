@@ -70,7 +70,7 @@ def test_a_brief_bundle_has_no_projection(synthetic_bundle):
     assert load_bundle(synthetic_bundle).learned_description is None
 
 
-@pytest.mark.parametrize("case", ["missing_key", "unlisted", "outside", "float", "shape", "zeros", "on_brief"])
+@pytest.mark.parametrize("case", ["missing_key", "unlisted", "outside", "float", "int16", "shape", "zeros", "on_brief"])
 def test_a_hostile_projection_is_refused(tmp_path, case):
     path, _ = learned_bundle(tmp_path / "b")
     m = _manifest(path)
@@ -84,7 +84,8 @@ def test_a_hostile_projection_is_refused(tmp_path, case):
     elif case == "on_brief":
         m["features"]["descriptor"] = "brief"
     else:
-        array = {"float": np.ones((BITS, SAMPLES), np.float32), "shape": np.ones((BITS, SAMPLES + 1), np.int8),
+        array = {"float": np.ones((BITS, SAMPLES), np.float32), "int16": np.ones((BITS, SAMPLES), np.int16),
+                 "shape": np.ones((BITS, SAMPLES + 1), np.int8),
                  "zeros": np.zeros((BITS, SAMPLES), np.int8)}[case]
         np.save(path / DESCRIPTOR_WEIGHTS, array, allow_pickle=False)
         m["files"][DESCRIPTOR_WEIGHTS] = sha256_file(path / DESCRIPTOR_WEIGHTS)
