@@ -16,7 +16,7 @@
 #define API __attribute__((visibility("default")))
 
 /* Version of this library's functions and arguments: native.py refuses a library built from other sources. */
-API int64_t aefabmap_kernels_version(void) { return 6; }
+API int64_t aefabmap_kernels_version(void) { return 7; }
 
 /* ---- popcount: the CPU instruction where it has one (x86-64 without POPCNT gets libgcc's) ---- */
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
@@ -29,6 +29,30 @@ API int64_t aefabmap_kernels_version(void) { return 6; }
 #define HAVE_DISPATCH 0
 #define POPCNT_TARGET
 #define AVX2_TARGET
+#endif
+
+/* aarch64: Advanced SIMD is in every core; the dot-product instructions (ARMv8.2's optional
+ * FEAT_DotProd, ARMv8.4 onwards) are asked of the kernel on Linux. */
+#if defined(__aarch64__) && (defined(__GNUC__) || defined(__clang__))
+#define HAVE_NEON 1
+#include <arm_neon.h>
+#if defined(__linux__)
+#define HAVE_NEON_DOTPROD 1
+#include <sys/auxv.h>
+#ifndef HWCAP_ASIMDDP
+#define HWCAP_ASIMDDP (1UL << 20)
+#endif
+#if defined(__clang__)
+#define DOTPROD_TARGET __attribute__((target("dotprod")))
+#else
+#define DOTPROD_TARGET __attribute__((target("arch=armv8.2-a+dotprod")))
+#endif
+#else
+#define HAVE_NEON_DOTPROD 0
+#endif
+#else
+#define HAVE_NEON 0
+#define HAVE_NEON_DOTPROD 0
 #endif
 
 /* ---- FAB-MAP scatter (scatter.py) ---- */
@@ -974,19 +998,26 @@ static void learned_dots_plain(const int16_t *pairs, const int32_t *patch_pairs,
 }
 
 #if HAVE_DISPATCH
-/* As learned_dots_plain for bits a multiple of 64: 64 bits at a time in eight AVX2 accumulators. */
-__attribute__((target("avx2"))) static void learned_dots_avx2(const int16_t *pairs, const int32_t *patch_pairs,
-                                                              int64_t half, int64_t bits, int32_t *dots) {
-    for (int64_t b0 = 0; b0 < bits; b0 += 64) {
-        __m256i acc[8];
-        for (int j = 0; j < 8; j++) acc[j] = _mm256_setzero_si256();
+/* dots (4, bits) int32 of four patches, each as (samples / 2) int32 pairs (learned_dots_plain), for
+ * bits a multiple of 16: sixteen bits of all four at a time, each weight load used four times. */
+__attribute__((target("avx2"))) static void learned_dots_avx2x4(const int16_t *pairs, const int32_t *patch_pairs,
+                                                                int64_t half, int64_t bits, int32_t *dots) {
+    for (int64_t b0 = 0; b0 < bits; b0 += 16) {
+        __m256i acc[4][2];
+        for (int i = 0; i < 4; i++) acc[i][0] = acc[i][1] = _mm256_setzero_si256();
         for (int64_t k = 0; k < half; k++) {
-            const __m256i p = _mm256_set1_epi32(patch_pairs[k]);
             const int16_t *w = pairs + (k * bits + b0) * 2;
-            for (int j = 0; j < 8; j++)
-                acc[j] = _mm256_add_epi32(acc[j], _mm256_madd_epi16(_mm256_loadu_si256((const __m256i *)(w + 16 * j)), p));
+            const __m256i w0 = _mm256_loadu_si256((const __m256i *)w), w1 = _mm256_loadu_si256((const __m256i *)(w + 16));
+            for (int i = 0; i < 4; i++) {
+                const __m256i p = _mm256_set1_epi32(patch_pairs[i * half + k]);
+                acc[i][0] = _mm256_add_epi32(acc[i][0], _mm256_madd_epi16(w0, p));
+                acc[i][1] = _mm256_add_epi32(acc[i][1], _mm256_madd_epi16(w1, p));
+            }
         }
-        for (int j = 0; j < 8; j++) _mm256_storeu_si256((__m256i *)(dots + b0 + 8 * j), acc[j]);
+        for (int i = 0; i < 4; i++) {
+            _mm256_storeu_si256((__m256i *)(dots + i * bits + b0), acc[i][0]);
+            _mm256_storeu_si256((__m256i *)(dots + i * bits + b0 + 8), acc[i][1]);
+        }
     }
 }
 #endif
@@ -1084,12 +1115,59 @@ static LEARNED_VNNI_TARGET void learned_bits_avx512(const int32_t *dots, int64_t
 }
 #endif
 
-/* Bits (bits / 8,) of one keypoint, bits a multiple of 8: bit b set when samples * dots[b] > sum * row_sums[b]. */
+#if HAVE_DISPATCH
+/* learned_patch_avx512 with AVX2 (8 samples at a time), for samples a multiple of 8; the same
+ * conditions and arithmetic (rounding to nearest even by the instruction, not the CPU's mode). */
+static __attribute__((target("avx2"))) int64_t learned_patch_avx2(const uint8_t *image, int64_t step, float cx,
+                                                                  float cy, float c, float s, const float *grid_u,
+                                                                  const float *grid_v, int64_t samples,
+                                                                  uint8_t *patch) {
+    const __m256 vc = _mm256_set1_ps(c), vs = _mm256_set1_ps(s), vx = _mm256_set1_ps(cx), vy = _mm256_set1_ps(cy);
+    const __m256 v32 = _mm256_set1_ps(32.0f);
+    const __m256i vstep = _mm256_set1_epi32((int32_t)step), m31 = _mm256_set1_epi32(31), m255 = _mm256_set1_epi32(255);
+    const __m256i full = _mm256_set1_epi32(32), half = _mm256_set1_epi32(512);
+    /* byte 0 of each 32-bit lane to the first four bytes of its 128-bit half */
+    const __m256i low_bytes = _mm256_setr_epi8(0, 4, 8, 12, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1,
+                                               0, 4, 8, 12, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1);
+    __m256i total = _mm256_setzero_si256();
+    for (int64_t k = 0; k < samples; k += 8) {
+        const __m256 u = _mm256_loadu_ps(grid_u + k), w = _mm256_loadu_ps(grid_v + k);
+        const __m256 px = _mm256_add_ps(_mm256_sub_ps(_mm256_mul_ps(vc, u), _mm256_mul_ps(vs, w)), vx);
+        const __m256 py = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(vs, u), _mm256_mul_ps(vc, w)), vy);
+        const __m256i ax = _mm256_cvttps_epi32(_mm256_round_ps(_mm256_mul_ps(px, v32), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+        const __m256i ay = _mm256_cvttps_epi32(_mm256_round_ps(_mm256_mul_ps(py, v32), _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC));
+        const __m256i fx = _mm256_and_si256(ax, m31), fy = _mm256_and_si256(ay, m31);
+        const __m256i gx = _mm256_sub_epi32(full, fx), gy = _mm256_sub_epi32(full, fy);
+        const __m256i at = _mm256_add_epi32(_mm256_mullo_epi32(_mm256_srai_epi32(ay, 5), vstep), _mm256_srai_epi32(ax, 5));
+        const __m256i r0 = _mm256_i32gather_epi32((const int *)image, at, 1);
+        const __m256i r1 = _mm256_i32gather_epi32((const int *)image, _mm256_add_epi32(at, vstep), 1);
+        const __m256i top = _mm256_add_epi32(_mm256_mullo_epi32(gx, _mm256_and_si256(r0, m255)),
+                                             _mm256_mullo_epi32(fx, _mm256_and_si256(_mm256_srli_epi32(r0, 8), m255)));
+        const __m256i bottom = _mm256_add_epi32(_mm256_mullo_epi32(gx, _mm256_and_si256(r1, m255)),
+                                                _mm256_mullo_epi32(fx, _mm256_and_si256(_mm256_srli_epi32(r1, 8), m255)));
+        const __m256i v = _mm256_srai_epi32(_mm256_add_epi32(_mm256_add_epi32(_mm256_mullo_epi32(gy, top),
+                                                                              _mm256_mullo_epi32(fy, bottom)), half), 10);
+        total = _mm256_add_epi32(total, v);
+        const __m256i packed = _mm256_shuffle_epi8(v, low_bytes);
+        const int32_t lo = _mm_cvtsi128_si32(_mm256_castsi256_si128(packed));
+        const int32_t hi = _mm_cvtsi128_si32(_mm256_extracti128_si256(packed, 1));
+        memcpy(patch + k, &lo, 4);
+        memcpy(patch + k + 4, &hi, 4);
+    }
+    const __m128i t = _mm_add_epi32(_mm256_castsi256_si128(total), _mm256_extracti128_si256(total, 1));
+    const __m128i t2 = _mm_add_epi32(t, _mm_shuffle_epi32(t, 0x4e));
+    return (int64_t)_mm_cvtsi128_si32(_mm_add_epi32(t2, _mm_shuffle_epi32(t2, 0xb1)));
+}
+#endif
+
+/* Bits (bits / 8,) of one keypoint, bits a multiple of 8: bit b set when samples * (dots[b] + shift *
+ * row_sums[b]) > sum * row_sums[b] (shift: what each sample's value was lowered by before its products). */
 static void learned_bits(const int32_t *dots, int64_t sum, const int64_t *row_sums, int64_t samples, int64_t bits,
-                         uint8_t *d) {
+                         int64_t shift, uint8_t *d) {
     for (int64_t b = 0; b < bits; b += 8) {
         uint32_t byte = 0;
-        for (int t = 0; t < 8; t++) byte |= (uint32_t)(samples * (int64_t)dots[b + t] > sum * row_sums[b + t]) << t;
+        for (int t = 0; t < 8; t++)
+            byte |= (uint32_t)(samples * ((int64_t)dots[b + t] + shift * row_sums[b + t]) > sum * row_sums[b + t]) << t;
         d[b >> 3] = (uint8_t)byte;
     }
 }
@@ -1112,20 +1190,89 @@ static inline int learned_inside(float cx, float cy, float reach, float margin, 
            && cx + reach + margin <= (float)last_col && cy + reach + margin <= (float)last_row;
 }
 
-#if HAVE_DISPATCH
-/* learned_describe on a CPU with AVX-512 VNNI, for bits a multiple of 64 and samples of 16:
- * four keypoints at a time; the same bytes. */
-static LEARNED_VNNI_TARGET int64_t learned_describe_vnni(
+#if HAVE_NEON
+/* dots (4, bits) int32 of four patches (4, samples) int8 (each byte the patch's uint8 value minus
+ * 128) with the weights as quads (learned_dots_vnni4), for bits a multiple of 8, less 128 times the
+ * weights' row sums: eight bits of all four at a time. Each multiply gives eight int8 x int8
+ * products in int16 (at most 128 x 128), each pairwise add two of them into int32: exact. */
+static void learned_dots_neon4(const int8_t *quads, const int8_t *patches, int64_t samples, int64_t bits,
+                               int32_t *dots) {
+    for (int64_t b0 = 0; b0 < bits; b0 += 8) {
+        int32x4_t acc[4][4];
+        for (int i = 0; i < 4; i++)
+            for (int j = 0; j < 4; j++) acc[i][j] = vdupq_n_s32(0);
+        for (int64_t k = 0; k < samples / 4; k++) {
+            const int8_t *w = quads + (k * bits + b0) * 4;
+            const int8x16_t w0 = vld1q_s8(w), w1 = vld1q_s8(w + 16);
+            for (int i = 0; i < 4; i++) {
+                int32_t four;
+                memcpy(&four, patches + i * samples + 4 * k, 4);
+                const int8x16_t p = vreinterpretq_s8_s32(vdupq_n_s32(four));
+                acc[i][0] = vpadalq_s16(acc[i][0], vmull_s8(vget_low_s8(w0), vget_low_s8(p)));
+                acc[i][1] = vpadalq_s16(acc[i][1], vmull_high_s8(w0, p));
+                acc[i][2] = vpadalq_s16(acc[i][2], vmull_s8(vget_low_s8(w1), vget_low_s8(p)));
+                acc[i][3] = vpadalq_s16(acc[i][3], vmull_high_s8(w1, p));
+            }
+        }
+        /* Each accumulator holds two bits' halves: bit b's are lanes 2 (b - b0) and 2 (b - b0) + 1. */
+        for (int i = 0; i < 4; i++) {
+            vst1q_s32(dots + i * bits + b0, vpaddq_s32(acc[i][0], acc[i][1]));
+            vst1q_s32(dots + i * bits + b0 + 4, vpaddq_s32(acc[i][2], acc[i][3]));
+        }
+    }
+}
+
+#if HAVE_NEON_DOTPROD
+/* learned_dots_neon4 with the dot-product instruction, for bits a multiple of 16: sixteen bits of
+ * all four patches at a time, each instruction adding four int8 x int8 products to an int32. */
+static DOTPROD_TARGET void learned_dots_neon_dot4(const int8_t *quads, const int8_t *patches, int64_t samples,
+                                                  int64_t bits, int32_t *dots) {
+    for (int64_t b0 = 0; b0 < bits; b0 += 16) {
+        int32x4_t acc[4][4];
+        for (int i = 0; i < 4; i++)
+            for (int j = 0; j < 4; j++) acc[i][j] = vdupq_n_s32(0);
+        for (int64_t k = 0; k < samples / 4; k++) {
+            const int8_t *w = quads + (k * bits + b0) * 4;
+            int8x16_t wq[4];
+            for (int j = 0; j < 4; j++) wq[j] = vld1q_s8(w + 16 * j);
+            for (int i = 0; i < 4; i++) {
+                int32_t four;
+                memcpy(&four, patches + i * samples + 4 * k, 4);
+                const int8x16_t p = vreinterpretq_s8_s32(vdupq_n_s32(four));
+                for (int j = 0; j < 4; j++) acc[i][j] = vdotq_s32(acc[i][j], wq[j], p);
+            }
+        }
+        for (int i = 0; i < 4; i++)
+            for (int j = 0; j < 4; j++) vst1q_s32(dots + i * bits + b0 + 4 * j, acc[i][j]);
+    }
+}
+#endif
+#endif
+
+enum { LEARNED_VNNI, LEARNED_AVX2, LEARNED_NEON_DOT, LEARNED_NEON, LEARNED_PLAIN };
+
+/* learned_describe's forms that take four keypoints at a time (form: one of the enum above but
+ * LEARNED_PLAIN, run where the CPU has it; the caller checks bits and samples fit it); the same
+ * bytes. Patches are sampled 16 (AVX-512) or 8 (AVX2) samples at a time where a keypoint lies three
+ * pixels inside its level (the gathers read four bytes from each sample's left pixel), else one
+ * at a time. On aarch64 the patches' products are taken as int8: each value lowered by 128, put
+ * back with 128 times the row's sum in learned_bits. */
+static int64_t learned_describe_blocks(
         const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols, int64_t n_levels,
         const float *inv_scale, const float *x, const float *y, const float *cosines, const float *sines,
         const int32_t *octave, int64_t n, const float *grid_u, const float *grid_v, int64_t samples,
-        const int8_t *quads, const int64_t *row_sums, int64_t bits, float reach, uint8_t *out) {
+        const int16_t *pairs, const int8_t *quads, const int64_t *row_sums, int64_t bits, float reach, int form,
+        uint8_t *out) {
+    const int64_t half = samples / 2;
     uint8_t *patches = (uint8_t *)calloc((size_t)(4 * samples), 1);
+    int8_t *lowered = (int8_t *)calloc((size_t)(4 * samples), 1);
+    int32_t *patch_pairs = (int32_t *)calloc((size_t)(4 * half), sizeof(int32_t));
     int32_t *dots = (int32_t *)malloc((size_t)(4 * bits) * sizeof(int32_t));
-    if (!patches || !dots) {
-        free(patches); free(dots);
+    if (!patches || !lowered || !patch_pairs || !dots) {
+        free(patches); free(lowered); free(patch_pairs); free(dots);
         return -1;
     }
+    const int64_t shift = form == LEARNED_NEON_DOT || form == LEARNED_NEON ? 128 : 0;
     int64_t status = 0;
     for (int64_t i0 = 0; i0 < n && status == 0; i0 += 4) {
         int64_t sums[4] = {0, 0, 0, 0};
@@ -1141,31 +1288,92 @@ static LEARNED_VNNI_TARGET int64_t learned_describe_vnni(
             }
             uint8_t *patch = patches + j * samples;
             const float c = cosines[i0 + j], s = sines[i0 + j];
-            /* Three pixels of margin: the gathers' four bytes from each sample's left pixel lie in its row. */
-            if (learned_inside(cx, cy, reach, 3.0f, last_col, last_row) && (last_row + 1) * step < INT32_MAX)
+            const int gather = learned_inside(cx, cy, reach, 3.0f, last_col, last_row) && (last_row + 1) * step < INT32_MAX;
+            (void)gather;
+#if HAVE_DISPATCH
+            if (gather && form == LEARNED_VNNI)
                 sums[j] = learned_patch_avx512(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
+            else if (gather && form == LEARNED_AVX2)
+                sums[j] = learned_patch_avx2(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
             else
+#endif
                 sums[j] = learned_patch(image, step, last_col, last_row, cx, cy, c, s, grid_u, grid_v, samples,
                                         !learned_inside(cx, cy, reach, 2.0f, last_col, last_row), patch);
+            if (form == LEARNED_AVX2)
+                for (int64_t k = 0; k < half; k++)
+                    patch_pairs[j * half + k] = (int32_t)((uint32_t)patch[2 * k] | ((uint32_t)patch[2 * k + 1] << 16));
+            else if (shift)
+                for (int64_t k = 0; k < samples; k++) lowered[j * samples + k] = (int8_t)(patch[k] ^ 0x80);
         }
         if (status) break;
-        learned_dots_vnni4(quads, patches, samples, bits, dots);
+        /* A block of fewer than four keypoints leaves the last block's patches in the unused slots:
+         * their dots are computed and never read. */
+        switch (form) {
+#if HAVE_DISPATCH
+        case LEARNED_VNNI:
+            learned_dots_vnni4(quads, patches, samples, bits, dots);
+            for (int64_t j = 0; j < m; j++)
+                learned_bits_avx512(dots + j * bits, sums[j], row_sums, samples, bits, out + (i0 + j) * (bits / 8));
+            continue;
+        case LEARNED_AVX2:
+            learned_dots_avx2x4(pairs, patch_pairs, half, bits, dots);
+            break;
+#endif
+#if HAVE_NEON_DOTPROD
+        case LEARNED_NEON_DOT:
+            learned_dots_neon_dot4(quads, lowered, samples, bits, dots);
+            break;
+#endif
+#if HAVE_NEON
+        case LEARNED_NEON:
+            learned_dots_neon4(quads, lowered, samples, bits, dots);
+            break;
+#endif
+        default:
+            status = -3;
+            continue;
+        }
         for (int64_t j = 0; j < m; j++)
-            learned_bits_avx512(dots + j * bits, sums[j], row_sums, samples, bits, out + (i0 + j) * (bits / 8));
+            learned_bits(dots + j * bits, sums[j], row_sums, samples, bits, shift, out + (i0 + j) * (bits / 8));
     }
-    free(patches); free(dots);
+    (void)pairs;
+    free(patches); free(lowered); free(patch_pairs); free(dots);
     return status;
 }
+
+/* The form learned_describe runs: the most specialised from `form` down (the enum above) that the
+ * CPU has and that fits bits and samples. */
+static int learned_form(int64_t form, int64_t samples, int64_t bits) {
+    if (samples <= 0 || bits <= 0) return LEARNED_PLAIN;
+#if HAVE_DISPATCH
+    __builtin_cpu_init();
+    if (form <= LEARNED_VNNI && bits % 64 == 0 && samples % 16 == 0 && __builtin_cpu_supports("avx512f")
+            && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq")
+            && __builtin_cpu_supports("avx512vnni"))
+        return LEARNED_VNNI;
+    if (form <= LEARNED_AVX2 && bits % 16 == 0 && samples % 8 == 0 && __builtin_cpu_supports("avx2"))
+        return LEARNED_AVX2;
 #endif
+#if HAVE_NEON_DOTPROD
+    if (form <= LEARNED_NEON_DOT && bits % 16 == 0 && samples % 4 == 0 && (getauxval(AT_HWCAP) & HWCAP_ASIMDDP))
+        return LEARNED_NEON_DOT;
+#endif
+#if HAVE_NEON
+    if (form <= LEARNED_NEON && samples % 4 == 0) return LEARNED_NEON;
+#endif
+    (void)form; (void)samples; (void)bits;
+    return LEARNED_PLAIN;
+}
 
 /* levels / steps / rows / cols / n_levels / inv_scale / x / y / octave: as orb_describe; cosines, sines
  * (n,) float32: each keypoint's turn; grid_u, grid_v (samples,) float32: the patch's sample offsets in
  * level pixels, samples even; pairs and quads: the weights (bits, samples) as (samples / 2, bits, 2)
  * int16 and as (samples / 4, bits, 4) int8 (quads: when samples is a multiple of 4, else unread);
- * row_sums (bits,) int64; out (n, bits / 8) uint8, bits a multiple of 8; form: the most
- * specialised form used, where the CPU runs it: 0 AVX-512 VNNI, 1 AVX2, 2 plain C (the same bytes;
- * tests compare them). Sample k of keypoint i sits at (c u - s v + cx, s u + c v + cy) in float32,
- * the operations in that order (learned_sample); bit b is set when samples * (w_b . patch) >
+ * row_sums (bits,) int64, each row's sum; out (n, bits / 8) uint8, bits a multiple of 8; form:
+ * the most specialised form used, where the CPU runs it, else the next it runs: 0 AVX-512 VNNI,
+ * 1 AVX2 (x86-64); 2 Advanced SIMD with dot products, 3 Advanced SIMD (aarch64); 4 plain C (the
+ * same bytes; tests compare them). Sample k of keypoint i sits at (c u - s v + cx, s u + c v + cy)
+ * in float32, the operations in that order (learned_sample); bit b is set when samples * (w_b . patch) >
  * sum(patch) * row_sums[b]. Returns 0, -1 when out of memory, -2 for an octave outside the levels,
  * -3 for an odd number of samples or bits not a multiple of 8. */
 API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols,
@@ -1182,17 +1390,10 @@ API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const
         const float r = sqrtf(grid_u[k] * grid_u[k] + grid_v[k] * grid_v[k]);
         reach = r > reach ? r : reach;
     }
-    int use_avx2 = 0;
-#if HAVE_DISPATCH
-    if (form == 0 && bits % 64 == 0 && samples % 16 == 0 && __builtin_cpu_supports("avx512f")
-            && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq")
-            && __builtin_cpu_supports("avx512vnni"))
-        return learned_describe_vnni(levels, steps, rows, cols, n_levels, inv_scale, x, y, cosines, sines, octave, n,
-                                     grid_u, grid_v, samples, quads, row_sums, bits, reach, out);
-    use_avx2 = form <= 1 && bits % 64 == 0 && __builtin_cpu_supports("avx2");
-#else
-    (void)form;
-#endif
+    const int run = learned_form(form, samples, bits);
+    if (run != LEARNED_PLAIN)
+        return learned_describe_blocks(levels, steps, rows, cols, n_levels, inv_scale, x, y, cosines, sines, octave, n,
+                                       grid_u, grid_v, samples, pairs, quads, row_sums, bits, reach, run, out);
     const int64_t half = samples / 2;
     uint8_t *patch = (uint8_t *)malloc((size_t)(samples > 0 ? samples : 1));
     int32_t *patch_pairs = (int32_t *)malloc((size_t)(half > 0 ? half : 1) * sizeof(int32_t));
@@ -1216,12 +1417,8 @@ API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const
                                           patch);
         for (int64_t k = 0; k < half; k++)
             patch_pairs[k] = (int32_t)((uint32_t)patch[2 * k] | ((uint32_t)patch[2 * k + 1] << 16));
-#if HAVE_DISPATCH
-        if (use_avx2) learned_dots_avx2(pairs, patch_pairs, half, bits, dots);
-        else
-#endif
-            learned_dots_plain(pairs, patch_pairs, half, bits, dots);
-        learned_bits(dots, sum, row_sums, samples, bits, out + i * (bits / 8));
+        learned_dots_plain(pairs, patch_pairs, half, bits, dots);
+        learned_bits(dots, sum, row_sums, samples, bits, 0, out + i * (bits / 8));
     }
     free(patch); free(patch_pairs); free(dots);
     return 0;

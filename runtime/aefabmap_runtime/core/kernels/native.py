@@ -22,7 +22,7 @@ from aefabmap_runtime.errors import ConfigError
 
 #: The interface version kernels.c reports (aefabmap_kernels_version): a library built from other
 #: sources is not used.
-VERSION = 6
+VERSION = 7
 
 _P = ctypes.c_void_p
 _I64 = ctypes.c_int64
@@ -218,8 +218,10 @@ def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upri
     return int(status)
 
 
-#: learned_describe's forms, most specialised first: each runs where the CPU has its instructions.
-LEARNED_FORMS = ("avx512-vnni", "avx2", "plain")
+#: learned_describe's forms, most specialised first: each runs where the CPU has its instructions
+#: (x86-64: AVX-512 VNNI, AVX2; aarch64: Advanced SIMD with and without its dot products), else the
+#: next one in this order that the CPU runs does.
+LEARNED_FORMS = ("avx512-vnni", "avx2", "neon-dotprod", "neon", "plain")
 
 
 def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, grid_v, pairs, quads, row_sums,

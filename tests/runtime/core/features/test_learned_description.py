@@ -138,8 +138,8 @@ def test_the_learned_descriptor_needs_its_projection_and_orb():
 @pytest.mark.skipif(not native.available(), reason="the compiled kernels are not built here")
 @pytest.mark.parametrize("form", native.LEARNED_FORMS)
 def test_the_compiled_kernel_gives_the_numpy_forms_bytes(form):
-    # Each compiled form (AVX-512 VNNI, AVX2, plain C) runs where the CPU has its instructions, else
-    # the next one does: all give numpy's bytes.
+    # Each compiled form (native.LEARNED_FORMS) runs where the CPU has its instructions, else the
+    # next one does: all give numpy's bytes.
     from aefabmap_runtime.core.features.orb_description import blurred, pyramid
 
     d = LearnedDescription(random_weights(3))
@@ -156,6 +156,31 @@ def test_the_compiled_kernel_gives_the_numpy_forms_bytes(form):
     with pytest.raises(InputError):
         d.describe(levels, inv, xy[:1], np.zeros(1, np.float32), np.array([len(levels)], np.int32), compiled=True,
                    form=form)
+
+
+@pytest.mark.skipif(not native.available(), reason="the compiled kernels are not built here")
+@pytest.mark.parametrize("form", native.LEARNED_FORMS)
+def test_the_compiled_kernel_is_exact_at_the_extreme_weights_and_grey_levels(form):
+    # Weights of -128 and +127 on black and white pixels: the largest products each form's
+    # arithmetic meets (int8 x int8 in int16 on aarch64, a patch lowered by 128 there).
+    from aefabmap_runtime.core.features.orb_description import blurred, pyramid
+
+    rng = np.random.default_rng(6)
+    weights = rng.choice(np.array([-128, -127, 127, 0, 1], np.int8), (BITS, SAMPLES))
+    weights[:8] = -128
+    weights[8:16] = 127
+    d = LearnedDescription(weights)
+    cells = rng.integers(0, 2, (24, 32), dtype=np.uint8) * 255
+    image = np.kron(cells, np.ones((16, 16), np.uint8))
+    image[:, :128] = 255  # flat white: every projection is zero
+    levels, inv = pyramid(image, 8, 1.2)
+    levels = blurred(levels)
+    n = 2000
+    octave = rng.integers(0, len(levels), n).astype(np.int32)
+    xy = np.column_stack([rng.uniform(-20, 532, n), rng.uniform(-20, 404, n)]).astype(np.float32)
+    angle = np.where(np.arange(n) % 2, rng.uniform(0, 360, n), 0).astype(np.float32)
+    np.testing.assert_array_equal(d.describe(levels, inv, xy, angle, octave, compiled=True, form=form),
+                                  d.describe(levels, inv, xy, angle, octave, compiled=False))
 
 
 @pytest.mark.skipif(not native.available(), reason="the compiled kernels are not built here")
