@@ -1160,6 +1160,34 @@ static __attribute__((target("avx2"))) int64_t learned_patch_avx2(const uint8_t 
 }
 #endif
 
+#if HAVE_DISPATCH
+/* learned_dots_vnni4 with AVX-VNNI (256 bits, no AVX-512), for bits a multiple of 16: sixteen bits
+ * of all four patches at a time in eight accumulators, each weight load used four times. */
+static __attribute__((target("avxvnni,avx2"))) void learned_dots_avx_vnni4(const int8_t *quads,
+                                                                            const uint8_t *patches, int64_t samples,
+                                                                            int64_t bits, int32_t *dots) {
+    for (int64_t b0 = 0; b0 < bits; b0 += 16) {
+        __m256i acc[4][2];
+        for (int i = 0; i < 4; i++) acc[i][0] = acc[i][1] = _mm256_setzero_si256();
+        for (int64_t k = 0; k < samples / 4; k++) {
+            const int8_t *w = quads + (k * bits + b0) * 4;
+            const __m256i w0 = _mm256_loadu_si256((const __m256i *)w), w1 = _mm256_loadu_si256((const __m256i *)(w + 32));
+            for (int i = 0; i < 4; i++) {
+                int32_t four;
+                memcpy(&four, patches + i * samples + 4 * k, 4);
+                const __m256i p = _mm256_set1_epi32(four);
+                acc[i][0] = _mm256_dpbusd_avx_epi32(acc[i][0], p, w0);
+                acc[i][1] = _mm256_dpbusd_avx_epi32(acc[i][1], p, w1);
+            }
+        }
+        for (int i = 0; i < 4; i++) {
+            _mm256_storeu_si256((__m256i *)(dots + i * bits + b0), acc[i][0]);
+            _mm256_storeu_si256((__m256i *)(dots + i * bits + b0 + 8), acc[i][1]);
+        }
+    }
+}
+#endif
+
 /* Bits (bits / 8,) of one keypoint, bits a multiple of 8: bit b set when samples * (dots[b] + shift *
  * row_sums[b]) > sum * row_sums[b] (shift: what each sample's value was lowered by before its products). */
 static void learned_bits(const int32_t *dots, int64_t sum, const int64_t *row_sums, int64_t samples, int64_t bits,
@@ -1249,11 +1277,11 @@ static DOTPROD_TARGET void learned_dots_neon_dot4(const int8_t *quads, const int
 #endif
 #endif
 
-enum { LEARNED_VNNI, LEARNED_AVX2, LEARNED_NEON_DOT, LEARNED_NEON, LEARNED_PLAIN };
+enum { LEARNED_VNNI, LEARNED_AVX_VNNI, LEARNED_AVX2, LEARNED_NEON_DOT, LEARNED_NEON, LEARNED_PLAIN };
 
 /* learned_describe's forms that take four keypoints at a time (form: one of the enum above but
  * LEARNED_PLAIN, run where the CPU has it; the caller checks bits and samples fit it); the same
- * bytes. Patches are sampled 16 (AVX-512) or 8 (AVX2) samples at a time where a keypoint lies three
+ * bytes. Patches are sampled 16 (AVX-512) or 8 (AVX-VNNI, AVX2) samples at a time where a keypoint lies three
  * pixels inside its level (the gathers read four bytes from each sample's left pixel), else one
  * at a time. On aarch64 the patches' products are taken as int8: each value lowered by 128, put
  * back with 128 times the row's sum in learned_bits. */
@@ -1293,7 +1321,7 @@ static int64_t learned_describe_blocks(
 #if HAVE_DISPATCH
             if (gather && form == LEARNED_VNNI)
                 sums[j] = learned_patch_avx512(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
-            else if (gather && form == LEARNED_AVX2)
+            else if (gather && (form == LEARNED_AVX_VNNI || form == LEARNED_AVX2))
                 sums[j] = learned_patch_avx2(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
             else
 #endif
@@ -1315,6 +1343,9 @@ static int64_t learned_describe_blocks(
             for (int64_t j = 0; j < m; j++)
                 learned_bits_avx512(dots + j * bits, sums[j], row_sums, samples, bits, out + (i0 + j) * (bits / 8));
             continue;
+        case LEARNED_AVX_VNNI:
+            learned_dots_avx_vnni4(quads, patches, samples, bits, dots);
+            break;
         case LEARNED_AVX2:
             learned_dots_avx2x4(pairs, patch_pairs, half, bits, dots);
             break;
@@ -1351,6 +1382,9 @@ static int learned_form(int64_t form, int64_t samples, int64_t bits) {
             && __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq")
             && __builtin_cpu_supports("avx512vnni"))
         return LEARNED_VNNI;
+    if (form <= LEARNED_AVX_VNNI && bits % 16 == 0 && samples % 8 == 0 && __builtin_cpu_supports("avx2")
+            && __builtin_cpu_supports("avxvnni"))
+        return LEARNED_AVX_VNNI;
     if (form <= LEARNED_AVX2 && bits % 16 == 0 && samples % 8 == 0 && __builtin_cpu_supports("avx2"))
         return LEARNED_AVX2;
 #endif
@@ -1371,8 +1405,8 @@ static int learned_form(int64_t form, int64_t samples, int64_t bits) {
  * int16 and as (samples / 4, bits, 4) int8 (quads: when samples is a multiple of 4, else unread);
  * row_sums (bits,) int64, each row's sum; out (n, bits / 8) uint8, bits a multiple of 8; form:
  * the most specialised form used, where the CPU runs it, else the next it runs: 0 AVX-512 VNNI,
- * 1 AVX2 (x86-64); 2 Advanced SIMD with dot products, 3 Advanced SIMD (aarch64); 4 plain C (the
- * same bytes; tests compare them). Sample k of keypoint i sits at (c u - s v + cx, s u + c v + cy)
+ * 1 AVX-VNNI, 2 AVX2 (x86-64); 3 Advanced SIMD with dot products, 4 Advanced SIMD (aarch64); 5
+ * plain C (the same bytes; tests compare them). Sample k of keypoint i sits at (c u - s v + cx, s u + c v + cy)
  * in float32, the operations in that order (learned_sample); bit b is set when samples * (w_b . patch) >
  * sum(patch) * row_sums[b]. Returns 0, -1 when out of memory, -2 for an octave outside the levels,
  * -3 for an odd number of samples or bits not a multiple of 8. */

@@ -219,9 +219,9 @@ def orb_describe(levels, inv_scale, x, y, angle, octave, pattern, oriented, upri
 
 
 #: learned_describe's forms, most specialised first: each runs where the CPU has its instructions
-#: (x86-64: AVX-512 VNNI, AVX2; aarch64: Advanced SIMD with and without its dot products), else the
-#: next one in this order that the CPU runs does.
-LEARNED_FORMS = ("avx512-vnni", "avx2", "neon-dotprod", "neon", "plain")
+#: (x86-64: AVX-512 VNNI, AVX-VNNI, AVX2; aarch64: Advanced SIMD with and without its dot products),
+#: else the next one in this order that the CPU runs does.
+LEARNED_FORMS = ("avx512-vnni", "avx-vnni", "avx2", "neon-dotprod", "neon", "plain")
 
 
 def learned_describe(levels, inv_scale, x, y, cosines, sines, octave, grid_u, grid_v, pairs, quads, row_sums,
