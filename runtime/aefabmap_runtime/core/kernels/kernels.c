@@ -1251,24 +1251,28 @@ static void learned_dots_neon4(const int8_t *quads, const int8_t *patches, int64
 }
 
 #if HAVE_NEON_DOTPROD
-/* learned_dots_neon4 with the dot-product instruction, for bits a multiple of 16: sixteen bits of
- * all four patches at a time, each instruction adding four int8 x int8 products to an int32. */
+/* learned_dots_neon4 with the dot-product instruction, for bits a multiple of 16 and samples of 16:
+ * sixteen bits of all four patches at a time, each instruction adding four int8 x int8 products to
+ * an int32; each patch load holds four steps' samples, taken by lane. */
 static DOTPROD_TARGET void learned_dots_neon_dot4(const int8_t *quads, const int8_t *patches, int64_t samples,
                                                   int64_t bits, int32_t *dots) {
     for (int64_t b0 = 0; b0 < bits; b0 += 16) {
         int32x4_t acc[4][4];
         for (int i = 0; i < 4; i++)
             for (int j = 0; j < 4; j++) acc[i][j] = vdupq_n_s32(0);
-        for (int64_t k = 0; k < samples / 4; k++) {
-            const int8_t *w = quads + (k * bits + b0) * 4;
-            int8x16_t wq[4];
-            for (int j = 0; j < 4; j++) wq[j] = vld1q_s8(w + 16 * j);
-            for (int i = 0; i < 4; i++) {
-                int32_t four;
-                memcpy(&four, patches + i * samples + 4 * k, 4);
-                const int8x16_t p = vreinterpretq_s8_s32(vdupq_n_s32(four));
-                for (int j = 0; j < 4; j++) acc[i][j] = vdotq_s32(acc[i][j], wq[j], p);
+        for (int64_t k0 = 0; k0 < samples / 4; k0 += 4) {
+            int8x16_t p[4];
+            for (int i = 0; i < 4; i++) p[i] = vld1q_s8(patches + i * samples + 4 * k0);
+#define DOT_STEP(t)                                                                                   \
+            {                                                                                         \
+                const int8_t *w = quads + ((k0 + (t)) * bits + b0) * 4;                               \
+                int8x16_t wq[4];                                                                      \
+                for (int j = 0; j < 4; j++) wq[j] = vld1q_s8(w + 16 * j);                             \
+                for (int i = 0; i < 4; i++)                                                           \
+                    for (int j = 0; j < 4; j++) acc[i][j] = vdotq_laneq_s32(acc[i][j], wq[j], p[i], (t)); \
             }
+            DOT_STEP(0) DOT_STEP(1) DOT_STEP(2) DOT_STEP(3)
+#undef DOT_STEP
         }
         for (int i = 0; i < 4; i++)
             for (int j = 0; j < 4; j++) vst1q_s32(dots + i * bits + b0 + 4 * j, acc[i][j]);
@@ -1277,14 +1281,59 @@ static DOTPROD_TARGET void learned_dots_neon_dot4(const int8_t *quads, const int
 #endif
 #endif
 
+#if HAVE_NEON
+/* learned_patch for samples a multiple of 4 and a keypoint whose every sample's four pixels lie
+ * inside the level (no clamp; offsets fit int32): 4 samples at a time, the same float32 operations
+ * (no fused multiply-add: -ffp-contract=off), rounding to nearest even by the conversion (as
+ * round_even below 2^22) and the same integer bilinear mix; each row's two pixels read as one
+ * 16-bit load. */
+static int64_t learned_patch_neon(const uint8_t *image, int64_t step, float cx, float cy, float c, float s,
+                                  const float *grid_u, const float *grid_v, int64_t samples, uint8_t *patch) {
+    const float32x4_t vc = vdupq_n_f32(c), vs = vdupq_n_f32(s), vx = vdupq_n_f32(cx), vy = vdupq_n_f32(cy);
+    const float32x4_t v32 = vdupq_n_f32(32.0f);
+    const int32x4_t m31 = vdupq_n_s32(31), full = vdupq_n_s32(32), vstep = vdupq_n_s32((int32_t)step);
+    uint32x4_t total = vdupq_n_u32(0);
+    for (int64_t k = 0; k < samples; k += 4) {
+        const float32x4_t u = vld1q_f32(grid_u + k), w = vld1q_f32(grid_v + k);
+        const float32x4_t px = vaddq_f32(vsubq_f32(vmulq_f32(vc, u), vmulq_f32(vs, w)), vx);
+        const float32x4_t py = vaddq_f32(vaddq_f32(vmulq_f32(vs, u), vmulq_f32(vc, w)), vy);
+        const int32x4_t ax = vcvtnq_s32_f32(vmulq_f32(px, v32)), ay = vcvtnq_s32_f32(vmulq_f32(py, v32));
+        const int32x4_t fx = vandq_s32(ax, m31), fy = vandq_s32(ay, m31);
+        const int32x4_t gx = vsubq_s32(full, fx), gy = vsubq_s32(full, fy);
+        int32_t at[4];
+        vst1q_s32(at, vmlaq_s32(vshrq_n_s32(ax, 5), vshrq_n_s32(ay, 5), vstep));
+        uint16_t top_pair[4], bottom_pair[4];
+        for (int l = 0; l < 4; l++) {
+            memcpy(top_pair + l, image + at[l], 2);
+            memcpy(bottom_pair + l, image + at[l] + step, 2);
+        }
+        const uint16x4_t r0 = vld1_u16(top_pair), r1 = vld1_u16(bottom_pair);
+        const uint16x4_t byte = vdup_n_u16(255);
+        const int32x4_t p00 = vreinterpretq_s32_u32(vmovl_u16(vand_u16(r0, byte)));
+        const int32x4_t p01 = vreinterpretq_s32_u32(vmovl_u16(vshr_n_u16(r0, 8)));
+        const int32x4_t p10 = vreinterpretq_s32_u32(vmovl_u16(vand_u16(r1, byte)));
+        const int32x4_t p11 = vreinterpretq_s32_u32(vmovl_u16(vshr_n_u16(r1, 8)));
+        const int32x4_t top = vmlaq_s32(vmulq_s32(gx, p00), fx, p01);
+        const int32x4_t bottom = vmlaq_s32(vmulq_s32(gx, p10), fx, p11);
+        const int32x4_t v = vshrq_n_s32(vaddq_s32(vmlaq_s32(vmulq_s32(gy, top), fy, bottom), vdupq_n_s32(512)), 10);
+        const uint32x4_t value = vreinterpretq_u32_s32(v);
+        total = vaddq_u32(total, value);
+        const uint8x8_t narrow = vmovn_u16(vcombine_u16(vmovn_u32(value), vdup_n_u16(0)));
+        vst1_lane_u32((uint32_t *)(void *)(patch + k), vreinterpret_u32_u8(narrow), 0);
+    }
+    return (int64_t)vaddvq_u32(total);
+}
+#endif
+
 enum { LEARNED_VNNI, LEARNED_AVX_VNNI, LEARNED_AVX2, LEARNED_NEON_DOT, LEARNED_NEON, LEARNED_PLAIN };
 
 /* learned_describe's forms that take four keypoints at a time (form: one of the enum above but
  * LEARNED_PLAIN, run where the CPU has it; the caller checks bits and samples fit it); the same
- * bytes. Patches are sampled 16 (AVX-512) or 8 (AVX-VNNI, AVX2) samples at a time where a keypoint lies three
- * pixels inside its level (the gathers read four bytes from each sample's left pixel), else one
- * at a time. On aarch64 the patches' products are taken as int8: each value lowered by 128, put
- * back with 128 times the row's sum in learned_bits. */
+ * bytes. Patches are sampled 16 (AVX-512), 8 (AVX-VNNI, AVX2) or 4 (Advanced SIMD) samples at a
+ * time where a keypoint lies far enough inside its level (x86-64: three pixels, as the gathers read
+ * four bytes from each sample's left pixel; aarch64: two), else one at a time. On aarch64 the
+ * patches' products are taken as int8: each value lowered by 128, put back with 128 times the
+ * row's sum in learned_bits. */
 static int64_t learned_describe_blocks(
         const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols, int64_t n_levels,
         const float *inv_scale, const float *x, const float *y, const float *cosines, const float *sines,
@@ -1316,13 +1365,19 @@ static int64_t learned_describe_blocks(
             }
             uint8_t *patch = patches + j * samples;
             const float c = cosines[i0 + j], s = sines[i0 + j];
-            const int gather = learned_inside(cx, cy, reach, 3.0f, last_col, last_row) && (last_row + 1) * step < INT32_MAX;
-            (void)gather;
+            const int fits = (last_row + 1) * step < INT32_MAX;
+            (void)fits;
 #if HAVE_DISPATCH
+            const int gather = fits && learned_inside(cx, cy, reach, 3.0f, last_col, last_row);
             if (gather && form == LEARNED_VNNI)
                 sums[j] = learned_patch_avx512(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
             else if (gather && (form == LEARNED_AVX_VNNI || form == LEARNED_AVX2))
                 sums[j] = learned_patch_avx2(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
+            else
+#endif
+#if HAVE_NEON
+            if (fits && learned_inside(cx, cy, reach, 2.0f, last_col, last_row))
+                sums[j] = learned_patch_neon(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
             else
 #endif
                 sums[j] = learned_patch(image, step, last_col, last_row, cx, cy, c, s, grid_u, grid_v, samples,
@@ -1389,7 +1444,7 @@ static int learned_form(int64_t form, int64_t samples, int64_t bits) {
         return LEARNED_AVX2;
 #endif
 #if HAVE_NEON_DOTPROD
-    if (form <= LEARNED_NEON_DOT && bits % 16 == 0 && samples % 4 == 0 && (getauxval(AT_HWCAP) & HWCAP_ASIMDDP))
+    if (form <= LEARNED_NEON_DOT && bits % 16 == 0 && samples % 16 == 0 && (getauxval(AT_HWCAP) & HWCAP_ASIMDDP))
         return LEARNED_NEON_DOT;
 #endif
 #if HAVE_NEON

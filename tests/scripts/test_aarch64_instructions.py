@@ -1,0 +1,32 @@
+"""scripts/aarch64_instructions.py: executed instructions per keypoint on emulated aarch64 cores."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+import aarch64_instructions as ai  # noqa: E402
+
+TOOLS = all(shutil.which(t) for t in ("gcc", "aarch64-linux-gnu-gcc", "qemu-aarch64"))
+
+
+@pytest.mark.skipif(not TOOLS, reason="needs aarch64-linux-gnu-gcc and qemu-aarch64 (gcc-aarch64-linux-gnu, qemu-user)")
+def test_each_form_is_counted_and_the_dot_products_run_only_where_the_core_has_them(tmp_path):
+    result = ai.count(tmp_path)
+    a76, a53 = result["cpus"]["cortex-a76"], result["cpus"]["cortex-a53"]
+    for cpu in (a76, a53):
+        assert cpu["learned_forms_same_bytes"] and cpu["orb_per_orientation"] > 0
+    learned = a76["learned_per_orientation"]
+    assert learned["neon-dotprod"] < learned["neon"] < learned["plain"]
+    # A Cortex-A53 has no dot products: that form gives way to the next, instruction for instruction.
+    assert a53["learned_per_orientation"]["neon-dotprod"] == a53["learned_per_orientation"]["neon"]
+
+
+def test_a_missing_tool_is_one_line_and_a_failure(monkeypatch, capsys):
+    monkeypatch.setattr(ai.shutil, "which", lambda tool: None)
+    assert ai.main([]) == 1
+    assert capsys.readouterr().err.strip().count("\n") == 0
