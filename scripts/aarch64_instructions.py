@@ -9,6 +9,14 @@ time: a core's speed per instruction differs between these forms. Needs aarch64-
 a dynamically linked qemu-aarch64 (Debian: gcc-aarch64-linux-gnu, qemu-user).
 
     python scripts/aarch64_instructions.py --json instructions.json
+
+With --board WORKDIR (a deploy/check_aarch64.sh work folder that was run with a bundle: the
+board's Python and wheels, and the kernels built for aarch64 in this checkout) it also counts
+whole frames of `aefabmap eval` for each --model: the instructions between the first A and the
+first B frames of --images, over B - A.
+
+    python scripts/aarch64_instructions.py --board /tmp/aefabmap-aarch64 --model BRIEF_BUNDLE \
+        --model LEARNED_BUNDLE --images DATA/lip6_outdoor --gt DATA/lip6_outdoor/ground_truth.npy
 """
 
 from __future__ import annotations
@@ -23,7 +31,8 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent / "aarch64_instructions"
-KERNELS = HERE.parents[1] / "runtime" / "aefabmap_runtime" / "core" / "kernels" / "kernels.c"
+REPO = HERE.parents[1]
+KERNELS = REPO / "runtime" / "aefabmap_runtime" / "core" / "kernels" / "kernels.c"
 #: learned_describe's form numbers on aarch64 (kernels.c), named as native.LEARNED_FORMS names them.
 FORMS = {"neon-dotprod": 3, "neon": 4, "plain": 5}
 #: QEMU's CPU models: with the dot-product instructions (Raspberry Pi 5's core) and without (Pi 3's).
@@ -83,14 +92,75 @@ def count(work: Path) -> dict:
     return result
 
 
+def frame_subsets(images: Path, gt: Path, counts: tuple[int, int], work: Path) -> list[tuple[Path, Path]]:
+    """For each count n: a folder linking the first n frames of `images` and their (n, n) ground truth."""
+    import numpy as np
+
+    frames = sorted(p for p in images.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    truth = np.load(gt)
+    subsets = []
+    for n in counts:
+        if n > len(frames):
+            raise RuntimeError(f"{images} has {len(frames)} frames, fewer than {n}")
+        folder = work / f"first{n}"
+        (folder / "images").mkdir(parents=True)
+        for f in frames[:n]:
+            (folder / "images" / f.name).symlink_to(f.resolve())
+        np.save(folder / "gt.npy", truth[:n, :n])
+        subsets.append((folder / "images", folder / "gt.npy"))
+    return subsets
+
+
+def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str) -> int:
+    """Instructions of one emulated `aefabmap eval` (one thread; Python writes its bytecode caches)."""
+    python = [str(board / "sysroot" / "usr" / "bin" / "python3.11")]
+    env = {"PYTHONPATH": f"{board / 'site'}:{REPO}:{REPO / 'runtime'}", "OMP_NUM_THREADS": "1",
+           "OPENBLAS_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1", "PATH": "/usr/bin:/bin"}
+    probe = "from aefabmap_runtime.core.kernels import native; raise SystemExit(0 if native.available() else 1)"
+    qemu = ["qemu-aarch64", "-cpu", cpu, "-L", str(board / "sysroot")]
+    if subprocess.run([*qemu, *python, "-c", probe], env=env, check=False, timeout=600).returncode != 0:
+        raise RuntimeError("the kernels built for aarch64 are missing or stale: run deploy/check_aarch64.sh")
+    run = subprocess.run([*qemu, "-plugin", str(plugin), *python, "-m", "aefabmap", "eval", "--model", str(model),
+                          "--images", str(images), "--gt", str(gt), "--exclude", "50", "--fabmap-score", "llr",
+                          "--no-progress"], env=env, capture_output=True, text=True, check=False, timeout=3600)
+    found = re.search(r"instructions (\d+)", run.stderr)
+    if run.returncode != 0 or found is None:
+        raise RuntimeError(f"emulated eval of {model} failed: {run.stderr.strip()[-300:]}")
+    return int(found.group(1))
+
+
+def eval_per_frame(plugin: Path, board: Path, model: Path, subsets: list[tuple[Path, Path]], cpu: str) -> int:
+    """Instructions per frame of emulated `aefabmap eval` between the two subsets (after a run over
+    the longer one has compiled every module it imports: neither count pays for compiling)."""
+    emulated_eval(plugin, board, model, *subsets[1], cpu)
+    first, last = (emulated_eval(plugin, board, model, images, gt, cpu) for images, gt in subsets)
+    frames_first, frames_last = (len(list(images.iterdir())) for images, _ in subsets)
+    return round((last - first) / (frames_last - frames_first))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the counts here")
+    ap.add_argument("--board", type=Path, help="a deploy/check_aarch64.sh work folder: also count eval's frames")
+    ap.add_argument("--model", type=Path, action="append", default=[], help="a bundle (repeat: one count each)")
+    ap.add_argument("--images", type=Path, help="frames for eval, sorted by name")
+    ap.add_argument("--gt", type=Path, help="their ground truth (N x N)")
+    ap.add_argument("--frames", type=int, nargs=2, default=(30, 70), metavar=("A", "B"))
     args = ap.parse_args(argv)
+    if args.board and not (args.model and args.images and args.gt and 0 < args.frames[0] < args.frames[1]):
+        print("aarch64_instructions: --board needs --model, --images, --gt and frames 0 < A < B", file=sys.stderr)
+        return 2
     try:
         with tempfile.TemporaryDirectory() as work:
             result = count(Path(work))
-    except (Unavailable, RuntimeError, subprocess.CalledProcessError) as e:
+            if args.board:
+                subsets = frame_subsets(args.images, args.gt, tuple(args.frames), Path(work))
+                plugin = Path(work) / "libinsn.so"
+                result["eval_frames"] = {"images": str(args.images), "frames": list(args.frames), "per_frame": {
+                    cpu: {str(m): eval_per_frame(plugin, args.board, m, subsets, cpu) for m in args.model}
+                    for cpu in CPUS}}
+    except (Unavailable, RuntimeError, OSError, ValueError, subprocess.CalledProcessError,
+            subprocess.TimeoutExpired) as e:
         print(f"aarch64_instructions: {e}", file=sys.stderr)
         return 1
     for cpu, figures in result["cpus"].items():
@@ -100,6 +170,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{cpu}: learned, {name:>12}: {n:6d} ({n / orb:.1f}x ORB's)")
         if not figures["learned_forms_same_bytes"]:
             print(f"{cpu}: the learned forms gave different descriptors!", file=sys.stderr)
+    for cpu, per_model in result.get("eval_frames", {}).get("per_frame", {}).items():
+        for model, n in per_model.items():
+            print(f"{cpu}: eval, {model}: {n / 1e6:.1f} million instructions per frame")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     return 0 if all(f["learned_forms_same_bytes"] for f in result["cpus"].values()) else 1

@@ -30,3 +30,26 @@ def test_a_missing_tool_is_one_line_and_a_failure(monkeypatch, capsys):
     monkeypatch.setattr(ai.shutil, "which", lambda tool: None)
     assert ai.main([]) == 1
     assert capsys.readouterr().err.strip().count("\n") == 0
+
+
+def test_board_frames_need_a_model_a_sequence_and_two_counts(tmp_path, capsys):
+    assert ai.main(["--board", str(tmp_path)]) == 2
+    assert ai.main(["--board", str(tmp_path), "--model", "m", "--images", "i", "--gt", "g", "--frames", "5", "5"]) == 2
+    assert "--board needs" in capsys.readouterr().err
+
+
+def test_frame_subsets_link_the_first_frames_and_slice_the_truth(tmp_path):
+    import numpy as np
+
+    images = tmp_path / "seq"
+    images.mkdir()
+    for i in range(6):
+        (images / f"{i:03d}.png").write_bytes(b"x")
+    np.save(tmp_path / "gt.npy", np.eye(6, dtype=bool))
+    work = tmp_path / "work"
+    work.mkdir()
+    (a, ga), (b, gb) = ai.frame_subsets(images, tmp_path / "gt.npy", (2, 5), work)
+    assert sorted(p.name for p in a.iterdir()) == ["000.png", "001.png"] and len(list(b.iterdir())) == 5
+    assert np.load(ga).shape == (2, 2) and np.load(gb).shape == (5, 5)
+    with pytest.raises(RuntimeError, match="fewer than 9"):
+        ai.frame_subsets(images, tmp_path / "gt.npy", (9, 10), tmp_path / "other")
