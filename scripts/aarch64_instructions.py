@@ -30,11 +30,13 @@ import sys
 import tempfile
 from pathlib import Path
 
+from aefabmap_runtime.core.kernels.native import LEARNED_FORMS
+
 HERE = Path(__file__).resolve().parent / "aarch64_instructions"
 REPO = HERE.parents[1]
 KERNELS = REPO / "runtime" / "aefabmap_runtime" / "core" / "kernels" / "kernels.c"
-#: learned_describe's form numbers on aarch64 (kernels.c), named as native.LEARNED_FORMS names them.
-FORMS = {"neon-dotprod": 3, "neon": 4, "plain": 5}
+#: learned_describe's forms an aarch64 core runs, by their numbers in kernels.c (their order in LEARNED_FORMS).
+FORMS = {name: LEARNED_FORMS.index(name) for name in ("neon-dotprod", "neon", "plain")}
 #: QEMU's CPU models: with the dot-product instructions (Raspberry Pi 5's core) and without (Pi 3's).
 CPUS = ("cortex-a76", "cortex-a53")
 KEYPOINTS = 1000
@@ -111,7 +113,7 @@ def frame_subsets(images: Path, gt: Path, counts: tuple[int, int], work: Path) -
     return subsets
 
 
-def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str) -> int:
+def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str, exclude: int) -> int:
     """Instructions of one emulated `aefabmap eval` (one thread; Python writes its bytecode caches)."""
     python = [str(board / "sysroot" / "usr" / "bin" / "python3.11")]
     env = {"PYTHONPATH": f"{board / 'site'}:{REPO}:{REPO / 'runtime'}", "OMP_NUM_THREADS": "1",
@@ -121,7 +123,7 @@ def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path
     if subprocess.run([*qemu, *python, "-c", probe], env=env, check=False, timeout=600).returncode != 0:
         raise RuntimeError("the kernels built for aarch64 are missing or stale: run deploy/check_aarch64.sh")
     run = subprocess.run([*qemu, "-plugin", str(plugin), *python, "-m", "aefabmap", "eval", "--model", str(model),
-                          "--images", str(images), "--gt", str(gt), "--exclude", "50", "--fabmap-score", "llr",
+                          "--images", str(images), "--gt", str(gt), "--exclude", str(exclude), "--fabmap-score", "llr",
                           "--no-progress"], env=env, capture_output=True, text=True, check=False, timeout=3600)
     found = re.search(r"instructions (\d+)", run.stderr)
     if run.returncode != 0 or found is None:
@@ -129,11 +131,12 @@ def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path
     return int(found.group(1))
 
 
-def eval_per_frame(plugin: Path, board: Path, model: Path, subsets: list[tuple[Path, Path]], cpu: str) -> int:
+def eval_per_frame(plugin: Path, board: Path, model: Path, subsets: list[tuple[Path, Path]], cpu: str,
+                   exclude: int) -> int:
     """Instructions per frame of emulated `aefabmap eval` between the two subsets (after a run over
     the longer one has compiled every module it imports: neither count pays for compiling)."""
-    emulated_eval(plugin, board, model, *subsets[1], cpu)
-    first, last = (emulated_eval(plugin, board, model, images, gt, cpu) for images, gt in subsets)
+    emulated_eval(plugin, board, model, *subsets[1], cpu, exclude)
+    first, last = (emulated_eval(plugin, board, model, images, gt, cpu, exclude) for images, gt in subsets)
     frames_first, frames_last = (len(list(images.iterdir())) for images, _ in subsets)
     return round((last - first) / (frames_last - frames_first))
 
@@ -146,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--images", type=Path, help="frames for eval, sorted by name")
     ap.add_argument("--gt", type=Path, help="their ground truth (N x N)")
     ap.add_argument("--frames", type=int, nargs=2, default=(30, 70), metavar=("A", "B"))
+    ap.add_argument("--exclude", type=int, default=50, help="eval's exclusion window (frames)")
     args = ap.parse_args(argv)
     if args.board and not (args.model and args.images and args.gt and 0 < args.frames[0] < args.frames[1]):
         print("aarch64_instructions: --board needs --model, --images, --gt and frames 0 < A < B", file=sys.stderr)
@@ -157,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                 subsets = frame_subsets(args.images, args.gt, tuple(args.frames), Path(work))
                 plugin = Path(work) / "libinsn.so"
                 result["eval_frames"] = {"images": str(args.images), "frames": list(args.frames), "per_frame": {
-                    cpu: {str(m): eval_per_frame(plugin, args.board, m, subsets, cpu) for m in args.model}
+                    cpu: {str(m): eval_per_frame(plugin, args.board, m, subsets, cpu, args.exclude)
+                          for m in args.model}
                     for cpu in CPUS}}
     except (Unavailable, RuntimeError, OSError, ValueError, subprocess.CalledProcessError,
             subprocess.TimeoutExpired) as e:
