@@ -113,16 +113,27 @@ def frame_subsets(images: Path, gt: Path, counts: tuple[int, int], work: Path) -
     return subsets
 
 
-def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str, exclude: int) -> int:
-    """Instructions of one emulated `aefabmap eval` (one thread; Python writes its bytecode caches)."""
-    python = [str(board / "sysroot" / "usr" / "bin" / "python3.11")]
+def _board_python(board: Path, cpu: str, plugin: Path | None = None) -> tuple[list[str], dict]:
+    """The command (QEMU, with the counting plugin if given, then the board's Python) and the
+    environment that run Python as the board would, on one thread."""
     env = {"PYTHONPATH": f"{board / 'site'}:{REPO}:{REPO / 'runtime'}", "OMP_NUM_THREADS": "1",
            "OPENBLAS_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1", "PATH": "/usr/bin:/bin"}
+    return ["qemu-aarch64", "-cpu", cpu, "-L", str(board / "sysroot"), *(["-plugin", str(plugin)] if plugin else []),
+            str(board / "sysroot" / "usr" / "bin" / "python3.11")], env
+
+
+def check_board(board: Path) -> None:
+    """Raises unless the board's Python loads this checkout's kernels built for aarch64."""
+    command, env = _board_python(board, CPUS[0])
     probe = "from aefabmap_runtime.core.kernels import native; raise SystemExit(0 if native.available() else 1)"
-    qemu = ["qemu-aarch64", "-cpu", cpu, "-L", str(board / "sysroot")]
-    if subprocess.run([*qemu, *python, "-c", probe], env=env, check=False, timeout=600).returncode != 0:
+    if subprocess.run([*command, "-c", probe], env=env, check=False, timeout=600).returncode != 0:
         raise RuntimeError("the kernels built for aarch64 are missing or stale: run deploy/check_aarch64.sh")
-    run = subprocess.run([*qemu, "-plugin", str(plugin), *python, "-m", "aefabmap", "eval", "--model", str(model),
+
+
+def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str, exclude: int) -> int:
+    """Instructions of one emulated `aefabmap eval` (one thread; Python writes its bytecode caches)."""
+    command, env = _board_python(board, cpu, plugin)
+    run = subprocess.run([*command, "-m", "aefabmap", "eval", "--model", str(model),
                           "--images", str(images), "--gt", str(gt), "--exclude", str(exclude), "--fabmap-score", "llr",
                           "--no-progress"], env=env, capture_output=True, text=True, check=False, timeout=3600)
     found = re.search(r"instructions (\d+)", run.stderr)
@@ -158,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory() as work:
             result = count(Path(work))
             if args.board:
+                check_board(args.board)
                 subsets = frame_subsets(args.images, args.gt, tuple(args.frames), Path(work))
                 plugin = Path(work) / "libinsn.so"
                 result["eval_frames"] = {"images": str(args.images), "frames": list(args.frames), "per_frame": {
