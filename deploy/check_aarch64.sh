@@ -73,7 +73,7 @@ PATH=$WORK/bin:$PATH PYTHONPATH=$WORK/site:$REPO/runtime AEFABMAP_DATA=/nonexist
     -m pytest -p no:cacheprovider -q -rs tests/runtime/core/kernels/test_{native,bits}.py \
     tests/runtime/core/rank/test_{scatter,postings,fabmap}.py tests/runtime/core/decide/test_candidate_policy.py \
     tests/runtime/core/verify/test_{model_errors,word_matches,nearest,geometry_acceptance}.py \
-    tests/runtime/core/features/test_learned_description.py
+    tests/runtime/core/features/test_{learned_description,orb_description}.py
 #    The learned descriptor's kernel again on a Cortex-A76 (Raspberry Pi 5, ARMv8.2 with dot products).
 PYTHONPATH=$WORK/site:$REPO/runtime AEFABMAP_DATA=/nonexistent QEMU_CPU=cortex-a76 "${PY[@]}" \
     -m pytest -p no:cacheprovider -q -rs tests/runtime/core/features/test_learned_description.py -k compiled

@@ -231,6 +231,65 @@ static POPCNT_TARGET int nearest_two_popcnt(const uint64_t *a, const uint64_t *b
 }
 #endif
 
+#if HAVE_NEON
+/* Bits set in each 64-bit lane of the four rows' XOR with a query (Advanced SIMD counts bits per
+ * byte; a byte's sum over the four words is at most 32, the lane's at most 256). */
+static inline uint64x2_t lane_distances(const uint8x16_t *q, const uint64_t *b0, const uint64_t *b1,
+                                        const uint64_t *b2, const uint64_t *b3) {
+    uint8x16_t c = vcntq_u8(veorq_u8(q[0], vld1q_u8((const uint8_t *)b0)));
+    c = vaddq_u8(c, vcntq_u8(veorq_u8(q[1], vld1q_u8((const uint8_t *)b1))));
+    c = vaddq_u8(c, vcntq_u8(veorq_u8(q[2], vld1q_u8((const uint8_t *)b2))));
+    c = vaddq_u8(c, vcntq_u8(veorq_u8(q[3], vld1q_u8((const uint8_t *)b3))));
+    return vpaddlq_u32(vpaddlq_u16(vpaddlq_u8(c)));
+}
+
+/* nearest_two_avx2_256 with Advanced SIMD (aarch64 boards): four searched rows per step, two per
+ * vector; each lane keeps its two lowest keys, so the two lowest of all are among those eight and
+ * the tail's. */
+static int nearest_two_neon_256(const uint64_t *a, const uint64_t *bt, int32_t *dist, int32_t *index, int64_t n,
+                                int64_t m) {
+    const int64_t none = (int64_t)1 << 62;
+    const uint64_t *b0 = bt, *b1 = bt + m, *b2 = bt + 2 * m, *b3 = bt + 3 * m;
+    const int64_t m4 = m - m % 4;
+    const int64_t first_rows[4] = {0, 1, 2, 3};
+    for (int64_t i = 0; i < n; i++) {
+        const uint64_t *ai = a + i * 4;
+        uint8x16_t q[4];
+        for (int w = 0; w < 4; w++) q[w] = vreinterpretq_u8_u64(vdupq_n_u64(ai[w]));
+        int64x2_t lowest[2], next[2], rows[2];
+        for (int h = 0; h < 2; h++) {
+            lowest[h] = next[h] = vdupq_n_s64(none);
+            rows[h] = vld1q_s64(first_rows + 2 * h);
+        }
+        const int64x2_t four = vdupq_n_s64(4);
+        for (int64_t j = 0; j < m4; j += 4) {
+            for (int h = 0; h < 2; h++) {
+                const int64_t at = j + 2 * h;
+                const uint64x2_t d = lane_distances(q, b0 + at, b1 + at, b2 + at, b3 + at);
+                const int64x2_t k = vorrq_s64(vreinterpretq_s64_u64(vshlq_n_u64(d, 32)), rows[h]);
+                const uint64x2_t below_lowest = vcgtq_s64(lowest[h], k), below_next = vcgtq_s64(next[h], k);
+                next[h] = vbslq_s64(below_lowest, lowest[h], vbslq_s64(below_next, k, next[h]));
+                lowest[h] = vbslq_s64(below_lowest, k, lowest[h]);
+                rows[h] = vaddq_s64(rows[h], four);
+            }
+        }
+        int64_t keys[8], best = none, second = none;
+        for (int h = 0; h < 2; h++) {
+            vst1q_s64(keys + 4 * h, lowest[h]);
+            vst1q_s64(keys + 4 * h + 2, next[h]);
+        }
+        for (int t = 0; t < 8; t++) keep_two(keys[t], &best, &second);
+        for (int64_t j = m4; j < m; j++) {
+            const int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
+                            + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
+            keep_two((d << 32) | j, &best, &second);
+        }
+        write_two(best, second, none, dist + 2 * i, index + 2 * i);
+    }
+    return 0;
+}
+#endif
+
 /* a (n, w) query rows; bt (w, m) the searched rows transposed; dist, index (n, 2) pre-filled by the
  * caller for a missing second neighbour. Returns 0, or -1 when out of memory. */
 API int nearest_two(const uint64_t *a, const uint64_t *bt, int32_t *dist, int32_t *index, int64_t n, int64_t w,
@@ -242,6 +301,9 @@ API int nearest_two(const uint64_t *a, const uint64_t *bt, int32_t *dist, int32_
     if (w == 4 && __builtin_cpu_supports("avx2") && __builtin_cpu_supports("popcnt"))
         return nearest_two_avx2_256(a, bt, dist, index, n, m);
     if (__builtin_cpu_supports("popcnt")) return nearest_two_popcnt(a, bt, dist, index, n, w, m);
+#endif
+#if HAVE_NEON
+    if (w == 4) return nearest_two_neon_256(a, bt, dist, index, n, m);
 #endif
     return nearest_two_generic(a, bt, dist, index, n, w, m);
 }
@@ -1222,24 +1284,48 @@ static inline int learned_inside(float cx, float cy, float reach, float margin, 
 /* dots (4, bits) int32 of four patches (4, samples) int8 (each byte the patch's uint8 value minus
  * 128) with the weights as quads (learned_dots_vnni4), for bits a multiple of 8, less 128 times the
  * weights' row sums: eight bits of all four at a time. Each multiply gives eight int8 x int8
- * products in int16 (at most 128 x 128), each pairwise add two of them into int32: exact. */
-static void learned_dots_neon4(const int8_t *quads, const int8_t *patches, int64_t samples, int64_t bits,
-                               int32_t *dots) {
+ * products in int16 (at most 128 x 128), each pairwise add two of them into int32: exact. With
+ * `paired` (samples a multiple of 8, no weight -128) two steps' products are summed in int16
+ * before the pairwise add, a quarter fewer instructions: two products of at most 127 x 128 fit.
+ * Not inlined: inside the driver GCC lays the loop out less well. */
+static __attribute__((noinline)) void learned_dots_neon4(const int8_t *quads, const int8_t *patches, int64_t samples,
+                                                         int64_t bits, int paired, int32_t *dots) {
     for (int64_t b0 = 0; b0 < bits; b0 += 8) {
         int32x4_t acc[4][4];
         for (int i = 0; i < 4; i++)
             for (int j = 0; j < 4; j++) acc[i][j] = vdupq_n_s32(0);
-        for (int64_t k = 0; k < samples / 4; k++) {
-            const int8_t *w = quads + (k * bits + b0) * 4;
-            const int8x16_t w0 = vld1q_s8(w), w1 = vld1q_s8(w + 16);
-            for (int i = 0; i < 4; i++) {
-                int32_t four;
-                memcpy(&four, patches + i * samples + 4 * k, 4);
-                const int8x16_t p = vreinterpretq_s8_s32(vdupq_n_s32(four));
-                acc[i][0] = vpadalq_s16(acc[i][0], vmull_s8(vget_low_s8(w0), vget_low_s8(p)));
-                acc[i][1] = vpadalq_s16(acc[i][1], vmull_high_s8(w0, p));
-                acc[i][2] = vpadalq_s16(acc[i][2], vmull_s8(vget_low_s8(w1), vget_low_s8(p)));
-                acc[i][3] = vpadalq_s16(acc[i][3], vmull_high_s8(w1, p));
+        if (paired) {
+            for (int64_t k = 0; k < samples / 4; k += 2) {
+                const int8_t *w = quads + (k * bits + b0) * 4;
+                const int8x16_t w0 = vld1q_s8(w), w1 = vld1q_s8(w + 16);
+                const int8x16_t v0 = vld1q_s8(w + 4 * bits), v1 = vld1q_s8(w + 4 * bits + 16);
+                for (int i = 0; i < 4; i++) {
+                    int32_t four, next;
+                    memcpy(&four, patches + i * samples + 4 * k, 4);
+                    memcpy(&next, patches + i * samples + 4 * k + 4, 4);
+                    const int8x16_t p = vreinterpretq_s8_s32(vdupq_n_s32(four));
+                    const int8x16_t q = vreinterpretq_s8_s32(vdupq_n_s32(next));
+                    acc[i][0] = vpadalq_s16(acc[i][0], vmlal_s8(vmull_s8(vget_low_s8(w0), vget_low_s8(p)),
+                                                                vget_low_s8(v0), vget_low_s8(q)));
+                    acc[i][1] = vpadalq_s16(acc[i][1], vmlal_high_s8(vmull_high_s8(w0, p), v0, q));
+                    acc[i][2] = vpadalq_s16(acc[i][2], vmlal_s8(vmull_s8(vget_low_s8(w1), vget_low_s8(p)),
+                                                                vget_low_s8(v1), vget_low_s8(q)));
+                    acc[i][3] = vpadalq_s16(acc[i][3], vmlal_high_s8(vmull_high_s8(w1, p), v1, q));
+                }
+            }
+        } else {
+            for (int64_t k = 0; k < samples / 4; k++) {
+                const int8_t *w = quads + (k * bits + b0) * 4;
+                const int8x16_t w0 = vld1q_s8(w), w1 = vld1q_s8(w + 16);
+                for (int i = 0; i < 4; i++) {
+                    int32_t four;
+                    memcpy(&four, patches + i * samples + 4 * k, 4);
+                    const int8x16_t p = vreinterpretq_s8_s32(vdupq_n_s32(four));
+                    acc[i][0] = vpadalq_s16(acc[i][0], vmull_s8(vget_low_s8(w0), vget_low_s8(p)));
+                    acc[i][1] = vpadalq_s16(acc[i][1], vmull_high_s8(w0, p));
+                    acc[i][2] = vpadalq_s16(acc[i][2], vmull_s8(vget_low_s8(w1), vget_low_s8(p)));
+                    acc[i][3] = vpadalq_s16(acc[i][3], vmull_high_s8(w1, p));
+                }
             }
         }
         /* Each accumulator holds two bits' halves: bit b's are lanes 2 (b - b0) and 2 (b - b0) + 1. */
@@ -1248,6 +1334,16 @@ static void learned_dots_neon4(const int8_t *quads, const int8_t *patches, int64
             vst1q_s32(dots + i * bits + b0 + 4, vpaddq_s32(acc[i][2], acc[i][3]));
         }
     }
+}
+
+/* Whether none of the n int8 weights is -128 (learned_dots_neon4's paired steps). */
+static int learned_weights_above_min(const int8_t *weights, int64_t n) {
+    int8x16_t low = vdupq_n_s8(INT8_MAX);
+    int64_t k = 0;
+    for (; k + 16 <= n; k += 16) low = vminq_s8(low, vld1q_s8(weights + k));
+    int8_t least = vminvq_s8(low);
+    for (; k < n; k++) least = weights[k] < least ? weights[k] : least;
+    return least > INT8_MIN;
 }
 
 #if HAVE_NEON_DOTPROD
@@ -1327,13 +1423,13 @@ static int64_t learned_patch_neon(const uint8_t *image, int64_t step, float cx, 
 
 enum { LEARNED_VNNI, LEARNED_AVX_VNNI, LEARNED_AVX2, LEARNED_NEON_DOT, LEARNED_NEON, LEARNED_PLAIN };
 
-/* learned_describe's forms that take four keypoints at a time (form: one of the enum above but
- * LEARNED_PLAIN, run where the CPU has it; the caller checks bits and samples fit it); the same
- * bytes. Patches are sampled 16 (AVX-512), 8 (AVX-VNNI, AVX2) or 4 (Advanced SIMD) samples at a
- * time where a keypoint lies far enough inside its level (x86-64: three pixels, as the gathers read
- * four bytes from each sample's left pixel; aarch64: two), else one at a time. On aarch64 the
- * patches' products are taken as int8: each value lowered by 128, put back with 128 times the
- * row's sum in learned_bits. */
+/* learned_describe in blocks of four keypoints (form: one of the enum above, run where the CPU has
+ * it; the caller checks bits and samples fit it); the same bytes in every form. The SIMD forms take
+ * a block's four patches at once, plain C one at a time. Patches are sampled 16 (AVX-512), 8
+ * (AVX-VNNI, AVX2) or 4 (Advanced SIMD) samples at a time where a keypoint lies far enough inside
+ * its level (x86-64: three pixels, as the gathers read four bytes from each sample's left pixel;
+ * aarch64: two), else, and in plain C, one at a time. On aarch64 the patches' products are taken
+ * as int8: each value lowered by 128, put back with 128 times the row's sum in learned_bits. */
 static int64_t learned_describe_blocks(
         const intptr_t *levels, const int64_t *steps, const int64_t *rows, const int64_t *cols, int64_t n_levels,
         const float *inv_scale, const float *x, const float *y, const float *cosines, const float *sines,
@@ -1350,6 +1446,9 @@ static int64_t learned_describe_blocks(
         return -1;
     }
     const int64_t shift = form == LEARNED_NEON_DOT || form == LEARNED_NEON ? 128 : 0;
+#if HAVE_NEON
+    const int paired = form == LEARNED_NEON && samples % 8 == 0 && learned_weights_above_min(quads, samples * bits);
+#endif
     int64_t status = 0;
     for (int64_t i0 = 0; i0 < n && status == 0; i0 += 4) {
         int64_t sums[4] = {0, 0, 0, 0};
@@ -1376,13 +1475,13 @@ static int64_t learned_describe_blocks(
             else
 #endif
 #if HAVE_NEON
-            if (fits && learned_inside(cx, cy, reach, 2.0f, last_col, last_row))
+            if (form != LEARNED_PLAIN && fits && learned_inside(cx, cy, reach, 2.0f, last_col, last_row))
                 sums[j] = learned_patch_neon(image, step, cx, cy, c, s, grid_u, grid_v, samples, patch);
             else
 #endif
                 sums[j] = learned_patch(image, step, last_col, last_row, cx, cy, c, s, grid_u, grid_v, samples,
                                         !learned_inside(cx, cy, reach, 2.0f, last_col, last_row), patch);
-            if (form == LEARNED_AVX2)
+            if (form == LEARNED_AVX2 || form == LEARNED_PLAIN)
                 for (int64_t k = 0; k < half; k++)
                     patch_pairs[j * half + k] = (int32_t)((uint32_t)patch[2 * k] | ((uint32_t)patch[2 * k + 1] << 16));
             else if (shift)
@@ -1412,9 +1511,12 @@ static int64_t learned_describe_blocks(
 #endif
 #if HAVE_NEON
         case LEARNED_NEON:
-            learned_dots_neon4(quads, lowered, samples, bits, dots);
+            learned_dots_neon4(quads, lowered, samples, bits, paired, dots);
             break;
 #endif
+        case LEARNED_PLAIN:
+            for (int64_t j = 0; j < m; j++) learned_dots_plain(pairs, patch_pairs + j * half, half, bits, dots + j * bits);
+            break;
         default:
             status = -3;
             continue;
@@ -1422,7 +1524,6 @@ static int64_t learned_describe_blocks(
         for (int64_t j = 0; j < m; j++)
             learned_bits(dots + j * bits, sums[j], row_sums, samples, bits, shift, out + (i0 + j) * (bits / 8));
     }
-    (void)pairs;
     free(patches); free(lowered); free(patch_pairs); free(dots);
     return status;
 }
@@ -1479,36 +1580,7 @@ API int64_t learned_describe(const intptr_t *levels, const int64_t *steps, const
         const float r = sqrtf(grid_u[k] * grid_u[k] + grid_v[k] * grid_v[k]);
         reach = r > reach ? r : reach;
     }
-    const int run = learned_form(form, samples, bits);
-    if (run != LEARNED_PLAIN)
-        return learned_describe_blocks(levels, steps, rows, cols, n_levels, inv_scale, x, y, cosines, sines, octave, n,
-                                       grid_u, grid_v, samples, pairs, quads, row_sums, bits, reach, run, out);
-    const int64_t half = samples / 2;
-    uint8_t *patch = (uint8_t *)malloc((size_t)(samples > 0 ? samples : 1));
-    int32_t *patch_pairs = (int32_t *)malloc((size_t)(half > 0 ? half : 1) * sizeof(int32_t));
-    int32_t *dots = (int32_t *)malloc((size_t)(bits > 0 ? bits : 1) * sizeof(int32_t));
-    if (!patch || !patch_pairs || !dots) {
-        free(patch); free(patch_pairs); free(dots);
-        return -1;
-    }
-    for (int64_t i = 0; i < n; i++) {
-        const uint8_t *image;
-        int64_t step, last_col, last_row;
-        float cx, cy;
-        if (learned_level(levels, steps, rows, cols, n_levels, inv_scale, x[i], y[i], octave[i], &image, &step,
-                          &last_col, &last_row, &cx, &cy)) {
-            free(patch); free(patch_pairs); free(dots);
-            return -2;
-        }
-        /* Two pixels of margin beyond the reach: every sample's four pixels lie inside, no clamp. */
-        const int64_t sum = learned_patch(image, step, last_col, last_row, cx, cy, cosines[i], sines[i], grid_u,
-                                          grid_v, samples, !learned_inside(cx, cy, reach, 2.0f, last_col, last_row),
-                                          patch);
-        for (int64_t k = 0; k < half; k++)
-            patch_pairs[k] = (int32_t)((uint32_t)patch[2 * k] | ((uint32_t)patch[2 * k + 1] << 16));
-        learned_dots_plain(pairs, patch_pairs, half, bits, dots);
-        learned_bits(dots, sum, row_sums, samples, bits, 0, out + i * (bits / 8));
-    }
-    free(patch); free(patch_pairs); free(dots);
-    return 0;
+    return learned_describe_blocks(levels, steps, rows, cols, n_levels, inv_scale, x, y, cosines, sines, octave, n,
+                                   grid_u, grid_v, samples, pairs, quads, row_sums, bits, reach,
+                                   learned_form(form, samples, bits), out);
 }

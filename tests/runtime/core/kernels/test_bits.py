@@ -72,6 +72,7 @@ def test_nearest_two_of_orb_rows_for_every_count_of_searched_rows(rows, kernels)
     rng = np.random.default_rng(rows)
     a = rng.integers(0, 4, (40, 32), dtype=np.uint8)
     b = rng.integers(0, 4, (rows, 32), dtype=np.uint8)
+    a[0], b[-1] = 255, 0  # all 256 bits apart: the largest distance a vector lane sums
     dist, index = nearest_two(a, b)
     expect_d, expect_i = _nearest_two_by_unpacked_bits(a, b)
     assert np.array_equal(dist, expect_d) and np.array_equal(index, expect_i)
