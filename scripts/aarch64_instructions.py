@@ -13,7 +13,8 @@ a dynamically linked qemu-aarch64 (Debian: gcc-aarch64-linux-gnu, qemu-user).
 With --board WORKDIR (a deploy/check_aarch64.sh work folder that was run with a bundle: the
 board's Python and wheels, and the kernels built for aarch64 in this checkout) it also counts
 whole frames of `aefabmap eval` for each --model: the instructions between the first A and the
-first B frames of --images, over B - A.
+first B frames of --images, over B - A, in all and by the library they run in (onnxruntime: the
+words; the compiled kernels; OpenCV; numpy; Python; the C library).
 
     python scripts/aarch64_instructions.py --board /tmp/aefabmap-aarch64 --model BRIEF_BUNDLE \
         --model LEARNED_BUNDLE --images DATA/lip6_outdoor --gt DATA/lip6_outdoor/ground_truth.npy
@@ -22,6 +23,7 @@ first B frames of --images, over B - A.
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import re
 import shutil
@@ -40,6 +42,15 @@ FORMS = {name: LEARNED_FORMS.index(name) for name in ("neon-dotprod", "neon", "p
 #: QEMU's CPU models: with the dot-product instructions (Raspberry Pi 5's core) and without (Pi 3's).
 CPUS = ("cortex-a76", "cortex-a53")
 KEYPOINTS = 1000
+#: Where a frame's instructions run, by the file mapped at their address (the first pattern that
+#: matches its path; none: "other", e.g. code generated at run time).
+LIBRARIES = (("onnxruntime", r"onnxruntime"), ("aefabmap kernels", r"/_kernels\."), ("OpenCV", r"cv2|opencv"),
+             ("numpy", r"numpy|openblas"), ("Python", r"python3|libpython|lib-dynload"),
+             ("C library", r"/lib(c|m|stdc\+\+|gcc_s|pthread)[.-]|/ld-linux"))
+#: `aefabmap eval` on the board's Python, leaving the process's memory map in $MAPS_OUT at exit.
+EVAL_LEAVING_MAPS = ("import atexit, os, runpy; "
+                     "atexit.register(lambda: open(os.environ['MAPS_OUT'], 'w').write(open('/proc/self/maps').read())); "
+                     "runpy.run_module('aefabmap', run_name='__main__', alter_sys=True)")
 
 
 class Unavailable(RuntimeError):
@@ -113,13 +124,34 @@ def frame_subsets(images: Path, gt: Path, counts: tuple[int, int], work: Path) -
     return subsets
 
 
-def _board_python(board: Path, cpu: str, plugin: Path | None = None) -> tuple[list[str], dict]:
-    """The command (QEMU, with the counting plugin if given, then the board's Python) and the
-    environment that run Python as the board would, on one thread."""
+def _board_python(board: Path, cpu: str, plugin: str | None = None) -> tuple[list[str], dict]:
+    """The command (QEMU, with the counting plugin and its arguments if given, then the board's
+    Python) and the environment that run Python as the board would, on one thread."""
     env = {"PYTHONPATH": f"{board / 'site'}:{REPO}:{REPO / 'runtime'}", "OMP_NUM_THREADS": "1",
            "OPENBLAS_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1", "PATH": "/usr/bin:/bin"}
-    return ["qemu-aarch64", "-cpu", cpu, "-L", str(board / "sysroot"), *(["-plugin", str(plugin)] if plugin else []),
+    return ["qemu-aarch64", "-cpu", cpu, "-L", str(board / "sysroot"), *(["-plugin", plugin] if plugin else []),
             str(board / "sysroot" / "usr" / "bin" / "python3.11")], env
+
+
+def by_library(blocks: str, maps: str) -> dict[str, int]:
+    """Instructions by LIBRARIES of the plugin's per-block counts ("ADDRESS COUNT" lines, hexadecimal
+    address) under a /proc/self/maps listing of the same process."""
+    ranges = []
+    for line in maps.splitlines():
+        parts = line.split(maxsplit=5)
+        if len(parts) == 6 and "x" in parts[1]:
+            low, high = (int(v, 16) for v in parts[0].split("-"))
+            ranges.append((low, high, parts[5]))
+    ranges.sort()
+    starts = [low for low, _, _ in ranges]
+    totals = dict.fromkeys([name for name, _ in LIBRARIES] + ["other"], 0)
+    for line in blocks.splitlines():
+        address, n = line.split()
+        at = int(address, 16)
+        i = bisect.bisect_right(starts, at) - 1
+        path = ranges[i][2] if i >= 0 and at < ranges[i][1] else ""
+        totals[next((name for name, pattern in LIBRARIES if re.search(pattern, path)), "other")] += int(n)
+    return totals
 
 
 def check_board(board: Path) -> None:
@@ -130,26 +162,34 @@ def check_board(board: Path) -> None:
         raise RuntimeError("the kernels built for aarch64 are missing or stale: run deploy/check_aarch64.sh")
 
 
-def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str, exclude: int) -> int:
-    """Instructions of one emulated `aefabmap eval` (one thread; Python writes its bytecode caches)."""
-    command, env = _board_python(board, cpu, plugin)
-    run = subprocess.run([*command, "-m", "aefabmap", "eval", "--model", str(model),
-                          "--images", str(images), "--gt", str(gt), "--exclude", str(exclude), "--fabmap-score", "llr",
-                          "--no-progress"], env=env, capture_output=True, text=True, check=False, timeout=3600)
-    found = re.search(r"instructions (\d+)", run.stderr)
-    if run.returncode != 0 or found is None:
-        raise RuntimeError(f"emulated eval of {model} failed: {run.stderr.strip()[-300:]}")
-    return int(found.group(1))
+def emulated_eval(plugin: Path, board: Path, model: Path, images: Path, gt: Path, cpu: str,
+                  exclude: int) -> tuple[int, dict[str, int]]:
+    """Instructions of one emulated `aefabmap eval` (one thread; Python writes its bytecode caches),
+    in all and by_library."""
+    with tempfile.TemporaryDirectory() as scratch:
+        blocks, maps = Path(scratch) / "blocks.txt", Path(scratch) / "maps.txt"
+        command, env = _board_python(board, cpu, f"{plugin},blocks={blocks}")
+        run = subprocess.run([*command, "-c", EVAL_LEAVING_MAPS, "eval", "--model", str(model),
+                              "--images", str(images), "--gt", str(gt), "--exclude", str(exclude),
+                              "--fabmap-score", "llr", "--no-progress"], env={**env, "MAPS_OUT": str(maps)},
+                             capture_output=True, text=True, check=False, timeout=3600)
+        found = re.search(r"instructions (\d+)", run.stderr)
+        if run.returncode != 0 or found is None or not blocks.exists() or not maps.exists():
+            raise RuntimeError(f"emulated eval of {model} failed: {run.stderr.strip()[-300:]}")
+        return int(found.group(1)), by_library(blocks.read_text(), maps.read_text())
 
 
 def eval_per_frame(plugin: Path, board: Path, model: Path, subsets: list[tuple[Path, Path]], cpu: str,
-                   exclude: int) -> int:
+                   exclude: int) -> tuple[int, dict[str, int]]:
     """Instructions per frame of emulated `aefabmap eval` between the two subsets (after a run over
-    the longer one has compiled every module it imports: neither count pays for compiling)."""
+    the longer one has compiled every module it imports: neither count pays for compiling), in all
+    and by_library."""
     emulated_eval(plugin, board, model, *subsets[1], cpu, exclude)
-    first, last = (emulated_eval(plugin, board, model, images, gt, cpu, exclude) for images, gt in subsets)
-    frames_first, frames_last = (len(list(images.iterdir())) for images, _ in subsets)
-    return round((last - first) / (frames_last - frames_first))
+    (first, first_split), (last, last_split) = (emulated_eval(plugin, board, model, images, gt, cpu, exclude)
+                                                for images, gt in subsets)
+    frames = len(list(subsets[1][0].iterdir())) - len(list(subsets[0][0].iterdir()))
+    return round((last - first) / frames), {name: round((last_split[name] - first_split[name]) / frames)
+                                            for name in last_split}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -172,10 +212,13 @@ def main(argv: list[str] | None = None) -> int:
                 check_board(args.board)
                 subsets = frame_subsets(args.images, args.gt, tuple(args.frames), Path(work))
                 plugin = Path(work) / "libinsn.so"
-                result["eval_frames"] = {"images": str(args.images), "frames": list(args.frames), "per_frame": {
-                    cpu: {str(m): eval_per_frame(plugin, args.board, m, subsets, cpu, args.exclude)
-                          for m in args.model}
-                    for cpu in CPUS}}
+                counted = {cpu: {str(m): eval_per_frame(plugin, args.board, m, subsets, cpu, args.exclude)
+                                 for m in args.model} for cpu in CPUS}
+                result["eval_frames"] = {
+                    "images": str(args.images), "frames": list(args.frames),
+                    "per_frame": {cpu: {m: n for m, (n, _) in per.items()} for cpu, per in counted.items()},
+                    "per_frame_by_library": {cpu: {m: split for m, (_, split) in per.items()}
+                                             for cpu, per in counted.items()}}
     except (Unavailable, RuntimeError, OSError, ValueError, subprocess.CalledProcessError,
             subprocess.TimeoutExpired) as e:
         print(f"aarch64_instructions: {e}", file=sys.stderr)
@@ -187,9 +230,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{cpu}: learned, {name:>12}: {n:6d} ({n / orb:.1f}x ORB's)")
         if not figures["learned_forms_same_bytes"]:
             print(f"{cpu}: the learned forms gave different descriptors!", file=sys.stderr)
-    for cpu, per_model in result.get("eval_frames", {}).get("per_frame", {}).items():
+    frames = result.get("eval_frames", {})
+    for cpu, per_model in frames.get("per_frame", {}).items():
         for model, n in per_model.items():
-            print(f"{cpu}: eval, {model}: {n / 1e6:.1f} million instructions per frame")
+            split = ", ".join(f"{name} {k / 1e6:.1f}" for name, k in frames["per_frame_by_library"][cpu][model].items())
+            print(f"{cpu}: eval, {model}: {n / 1e6:.1f} million instructions per frame ({split})")
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     return 0 if all(f["learned_forms_same_bytes"] for f in result["cpus"].values()) else 1

@@ -53,3 +53,36 @@ def test_frame_subsets_link_the_first_frames_and_slice_the_truth(tmp_path):
     assert np.load(ga).shape == (2, 2) and np.load(gb).shape == (5, 5)
     with pytest.raises(RuntimeError, match="fewer than 9"):
         ai.frame_subsets(images, tmp_path / "gt.npy", (9, 10), tmp_path / "other")
+
+
+def test_instructions_are_attributed_to_the_file_mapped_at_their_address():
+    maps = "\n".join([
+        "400000-916000 r-xp 00000000 fe:00 1 /board/sysroot/usr/bin/python3.11",
+        "930000-a5f000 rw-p 00520000 fe:00 1 /board/sysroot/usr/bin/python3.11",
+        "5500000000-5500100000 r-xp 00000000 fe:00 2 /board/site/onnxruntime/capi/libonnxruntime.so.1.20.1",
+        "5500200000-5500300000 r-xp 00000000 fe:00 3 /repo/runtime/aefabmap_runtime/core/kernels/_kernels.so",
+        "5500400000-5500500000 r-xp 00000000 fe:00 4 /board/site/numpy/_core/_multiarray_umath.so",
+        "5500600000-5500700000 r-xp 00000000 00:00 0",
+        "5500800000-5500900000 r-xp 00000000 fe:00 5 /board/sysroot/lib/aarch64-linux-gnu/libc.so.6",
+    ])
+    blocks = "\n".join(["400010 7", "5500000400 100", "5500000800 1", "5500200000 20", "5500400000 3",
+                        "5500600000 4", "5500800010 5", "a00000 9", "6000000000 2"])
+    split = ai.by_library(blocks, maps)
+    assert split["Python"] == 7 and split["onnxruntime"] == 101 and split["aefabmap kernels"] == 20
+    assert split["numpy"] == 3 and split["C library"] == 5 and split["OpenCV"] == 0
+    # Anonymous code, a block in a mapping that is not executable, and one outside every mapping.
+    assert split["other"] == 4 + 9 + 2 and sum(split.values()) == 151
+
+
+@pytest.mark.skipif(not TOOLS, reason="needs aarch64-linux-gnu-gcc and qemu-aarch64 (gcc-aarch64-linux-gnu, qemu-user)")
+def test_the_plugins_blocks_add_up_to_its_total(tmp_path):
+    import re
+    import subprocess
+
+    plugin, program = ai.build(tmp_path)
+    blocks = tmp_path / "blocks.txt"
+    run = subprocess.run(["qemu-aarch64", "-cpu", "cortex-a53", "-L", "/usr/aarch64-linux-gnu", "-plugin",
+                          f"{plugin},blocks={blocks}", str(program), "orb", "1"],
+                         capture_output=True, text=True, timeout=600, check=True)
+    total = int(re.search(r"instructions (\d+)", run.stderr).group(1))
+    assert total > 0 and sum(int(line.split()[1]) for line in blocks.read_text().splitlines()) == total
