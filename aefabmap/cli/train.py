@@ -36,8 +36,9 @@ def register(sub) -> None:
                     help="equalise contrast locally (CLAHE) before detection, in training and at run time (FeatureConfig)")
     fe.add_argument("--descriptor", choices=("brief", "learned"), default="brief",
                     help="ORB's descriptor: its own tests (brief, default) or a projection learned first from the "
-                    "training images under homographies and synthetic night (learned; stored in the bundle; "
-                    "docs/results.md \"A learned descriptor\")")
+                    "training images under homographies and synthetic night (learned, experimental: more revisits, "
+                    "but some trainings publish wrong loops, so check the bundle on your own sequences; stored in "
+                    "the bundle; docs/results.md \"A learned descriptor\")")
     fe.add_argument("--descriptor-images", type=int, default=2400,
                     help="--descriptor learned: training images that give keypoint pairs (default 2400)")
     fe.add_argument("--descriptor-epochs", type=int, default=6,
