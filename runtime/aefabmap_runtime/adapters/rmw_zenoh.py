@@ -593,8 +593,11 @@ class RosResultPublisher:
 
     def publish_result(self, result: dict | bytes) -> None:
         self.plain.publish_result(result)
+        # Learn the distribution before counting the result: a status read from another thread in
+        # between would otherwise warn that it is not learnt while the camera's sample has taught it.
+        ready = self._ready()
         self._results_sent += 1
-        if self._ready():
+        if ready:
             self.ros_results.put(json_text(result))
         self._log_warnings()
 

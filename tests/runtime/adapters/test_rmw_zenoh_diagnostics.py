@@ -223,6 +223,33 @@ def test_a_result_before_the_distro_is_known_is_warned():
         router.close()
 
 
+def test_a_status_read_while_the_camera_teaches_the_distro_has_no_warning(monkeypatch):
+    # The node's status thread may read warnings() while the frame thread publishes the first
+    # result and adopts the camera's distribution: the result the camera's sample already taught
+    # must not be warned about in between.
+    router = Router()
+    try:
+        with zenoh.open(build_zenoh_config(router.ros_peer())) as session:
+            pub = RosResultPublisher(session, "camera/lcd", RosOptions(topic=TOPIC),
+                                     wire_distro=lambda: ("jazzy", "sensor_msgs/msg/Image"))
+            read_meanwhile = []
+            adopt = pub._adopt
+
+            def adopt_while_read(*args):
+                read_meanwhile.append(pub.warnings())
+                adopt(*args)
+                read_meanwhile.append(pub.warnings())
+
+            monkeypatch.setattr(pub, "_adopt", adopt_while_read)
+            try:
+                pub.publish_result({"sequence": 0})
+                assert read_meanwhile == [[], []] and pub.distro == "jazzy" and pub.warnings() == []
+            finally:
+                pub.close()
+    finally:
+        router.close()
+
+
 def test_diagnostic_level_follows_drops_refusals_and_the_log():
     base = {"dropped": 2, "bad_total": 1, "log_state": "ok"}
     assert diagnostic_level(base, None)[0] == DIAG_WARN  # drops since the start
