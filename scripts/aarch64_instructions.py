@@ -70,8 +70,9 @@ def build(work: Path) -> tuple[Path, Path]:
     return plugin, program
 
 
-def executed(plugin: Path, program: Path, cpu: str, args: list[str]) -> tuple[int, str]:
-    """Instructions the program executes on the CPU model, and its output (the descriptors' digest)."""
+def executed(plugin: Path | str, program: Path, cpu: str, args: list[str]) -> tuple[int, str]:
+    """Instructions the program executes on the CPU model, and its output (the descriptors' digest).
+    plugin: the counting plugin, with its arguments if any ("PATH,blocks=FILE")."""
     run = subprocess.run(["qemu-aarch64", "-cpu", cpu, "-L", "/usr/aarch64-linux-gnu", "-plugin", str(plugin),
                           str(program), *args], capture_output=True, text=True, timeout=600, check=False)
     found = re.search(r"instructions (\d+)", run.stderr)

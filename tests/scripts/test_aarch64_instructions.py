@@ -76,13 +76,7 @@ def test_instructions_are_attributed_to_the_file_mapped_at_their_address():
 
 @pytest.mark.skipif(not TOOLS, reason="needs aarch64-linux-gnu-gcc and qemu-aarch64 (gcc-aarch64-linux-gnu, qemu-user)")
 def test_the_plugins_blocks_add_up_to_its_total(tmp_path):
-    import re
-    import subprocess
-
     plugin, program = ai.build(tmp_path)
     blocks = tmp_path / "blocks.txt"
-    run = subprocess.run(["qemu-aarch64", "-cpu", "cortex-a53", "-L", "/usr/aarch64-linux-gnu", "-plugin",
-                          f"{plugin},blocks={blocks}", str(program), "orb", "1"],
-                         capture_output=True, text=True, timeout=600, check=True)
-    total = int(re.search(r"instructions (\d+)", run.stderr).group(1))
+    total, _ = ai.executed(f"{plugin},blocks={blocks}", program, "cortex-a53", ["orb", "1"])
     assert total > 0 and sum(int(line.split()[1]) for line in blocks.read_text().splitlines()) == total

@@ -134,16 +134,6 @@ static int nearest_two_generic(const uint64_t *a, const uint64_t *bt, int32_t *d
     NEAREST_TWO_BODY
 }
 
-#if HAVE_DISPATCH
-/* Bits set in each byte of v (the nibble-table popcount: AVX2 has no vector popcount instruction). */
-static AVX2_TARGET inline __m256i byte_counts(__m256i v) {
-    const __m256i table = _mm256_setr_epi8(0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4,
-                                           0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4);
-    const __m256i nibble = _mm256_set1_epi8(0x0f);
-    __m256i lo = _mm256_and_si256(v, nibble), hi = _mm256_and_si256(_mm256_srli_epi16(v, 4), nibble);
-    return _mm256_add_epi8(_mm256_shuffle_epi8(table, lo), _mm256_shuffle_epi8(table, hi));
-}
-
 /* The vector forms' tail: searched rows j in [from, m) of a 256-bit query row ai, into best / second. */
 static POPCNT_TARGET inline void keep_tail_256(const uint64_t *ai, const uint64_t *bt, int64_t m, int64_t from,
                                                int64_t *best, int64_t *second) {
@@ -152,6 +142,16 @@ static POPCNT_TARGET inline void keep_tail_256(const uint64_t *ai, const uint64_
                   + __builtin_popcountll(ai[2] ^ bt[2 * m + j]) + __builtin_popcountll(ai[3] ^ bt[3 * m + j]);
         keep_two((d << 32) | j, best, second);
     }
+}
+
+#if HAVE_DISPATCH
+/* Bits set in each byte of v (the nibble-table popcount: AVX2 has no vector popcount instruction). */
+static AVX2_TARGET inline __m256i byte_counts(__m256i v) {
+    const __m256i table = _mm256_setr_epi8(0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4,
+                                           0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4);
+    const __m256i nibble = _mm256_set1_epi8(0x0f);
+    __m256i lo = _mm256_and_si256(v, nibble), hi = _mm256_and_si256(_mm256_srli_epi16(v, 4), nibble);
+    return _mm256_add_epi8(_mm256_shuffle_epi8(table, lo), _mm256_shuffle_epi8(table, hi));
 }
 
 /* 256-bit rows (w == 4), four searched rows per step: the same keys d * 2^32 + j and minima as
@@ -279,11 +279,7 @@ static int nearest_two_neon_256(const uint64_t *a, const uint64_t *bt, int32_t *
             vst1q_s64(keys + 4 * h + 2, next[h]);
         }
         for (int t = 0; t < 8; t++) keep_two(keys[t], &best, &second);
-        for (int64_t j = m4; j < m; j++) {
-            const int64_t d = __builtin_popcountll(ai[0] ^ b0[j]) + __builtin_popcountll(ai[1] ^ b1[j])
-                            + __builtin_popcountll(ai[2] ^ b2[j]) + __builtin_popcountll(ai[3] ^ b3[j]);
-            keep_two((d << 32) | j, &best, &second);
-        }
+        keep_tail_256(ai, bt, m, m4, &best, &second);
         write_two(best, second, none, dist + 2 * i, index + 2 * i);
     }
     return 0;
