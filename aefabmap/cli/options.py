@@ -194,6 +194,11 @@ def add_detector_options(p: argparse.ArgumentParser, *, scorers: tuple[str, ...]
                    help="a chain is withheld unless it sums at least LOG10 below every chain ending at a stored frame "
                    f"that is not a neighbour of its own (default {d.sequence.margin_log10_nfa:.3f}: twice as unlikely "
                    "by chance; 0 = no such check, as maps journalled before it ran)")
+    g.add_argument("--pair-margin", type=float, default=None, metavar="LOG10",
+                   help="a passing pair is withheld unless its log10 NFA lies at least LOG10 below that of every other "
+                   "place checked whose stored frame is not a neighbour of its own (default "
+                   f"{d.candidates.margin_log10_nfa:.3f}: twice as unlikely by chance; 0 = no such check, as maps "
+                   "journalled before it ran)")
     g.add_argument("--temporal-frames", type=int, default=None, metavar="N",
                    help=f"temporal consistency: N preceding frames must agree (default {d.temporal_frames} = off)")
     g.add_argument("--temporal-tolerance", type=int, default=None, metavar="F",
@@ -267,7 +272,8 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
     )
     candidates = CandidateConfig(top_k=pick("verify_top_k", c.top_k),
                                  bruteforce_fallback=pick("verify_bruteforce", c.bruteforce_fallback),
-                                 track_memory=pick("verify_track_memory", c.track_memory))
+                                 track_memory=pick("verify_track_memory", c.track_memory),
+                                 margin_log10_nfa=pick("pair_margin", c.margin_log10_nfa))
     scorer = pick("scorer", d.scorer)
     detector = DetectorConfig(
         scorer=scorer if scorer in SCORERS else d.scorer,  # eval's "both" picks per run

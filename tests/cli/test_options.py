@@ -42,6 +42,23 @@ def test_sequence_margin_option_lets_a_map_journalled_before_it_replay():
         _run("--sequence-margin", "-1")
 
 
+def test_pair_margin_option_lets_a_map_journalled_before_it_replay():
+    import json
+    import math
+
+    from aefabmap_runtime.core.run_config import recorded_settings_differences
+
+    assert _run().detector.candidates.margin_log10_nfa == pytest.approx(math.log10(2))
+    before = _run("--pair-margin", "0").detector
+    assert before.candidates.margin_log10_nfa == 0.0
+    recorded = before.to_dict()
+    del recorded["candidates"]["margin_log10_nfa"]
+    assert recorded_settings_differences(json.dumps(recorded), before) == []
+    assert recorded_settings_differences(json.dumps(recorded), _run().detector) == ["candidates.margin_log10_nfa"]
+    with pytest.raises(ConfigError, match="margin"):
+        _run("--pair-margin", "-1")
+
+
 def test_verify_bruteforce_option_sets_the_retried_candidates_and_is_logged_whole():
     assert _run().detector.candidates.bruteforce_fallback == 5  # every FAB-MAP candidate of the top 5
     cfg = _run("--verify-bruteforce", "1", "--verify-top-k", "4")

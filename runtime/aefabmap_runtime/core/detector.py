@@ -22,7 +22,7 @@ from aefabmap_runtime.core.kernels import compiled
 from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
 from aefabmap_runtime.core.kernels.bits import nearest_two_kernel
 from aefabmap_runtime.core.rank.bow import BowIndex
-from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, Search, top_places
+from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, Search, tied_rival, top_places
 from aefabmap_runtime.core.fleet.fleet_map import Fetch, FleetMap, RemoteMatch
 from aefabmap_runtime.core.rank.fabmap import FabMap2, distinct_sorted
 from aefabmap_runtime.core.features.feature_kinds import FeatureKind
@@ -496,6 +496,8 @@ class LoopClosureDetector:
                                                 self._pair_check(features, words))
         best = verdict.search.best
         verdict.geometry_ok = best is not None and bool(best.verified)
+        if verdict.geometry_ok and tied_rival(verdict.search, frames, self.policy.config.margin_log10_nfa):
+            verdict.geometry_ok, verdict.reason = False, "tie"  # which stored frame is a coin toss
         if self.chain is not None:
             self._chain_step(verdict, frames)
         verdict.verified = verdict.geometry_ok
@@ -714,7 +716,7 @@ def _verdict_fields(verdict: _Verdict, place_frame: np.ndarray) -> dict:
     if best is not None:
         out.update(inliers=int(best.inliers), matches=int(best.matches), geometry_model=best.model,
                    nfa=float(best.nfa) if np.isfinite(best.nfa) else None,
-                   geometry_reason="" if verdict.verified else (
+                   geometry_reason="" if verdict.verified else verdict.reason or (
                        "temporal" if best.verified or verdict.sequence_nfa is not None else best.reason))
     if verdict.verified and verdict.place is not None:
         out.update(verified_place=int(verdict.place), verified_frame=int(place_frame[verdict.place]),

@@ -175,8 +175,9 @@ def settings_as_they_ran(detector: object) -> object:
     whose verification settings have no `upright` was written before upright descriptors
     existed and ran without them; one whose candidate settings have no `retry_alone` checked
     FAB-MAP's retried candidates by same-word matching first; one whose chain settings have no
-    `margin_log10_nfa` accepted chains without a margin over rival stored frames. Anything else
-    comes back as it is."""
+    `margin_log10_nfa` accepted chains without a margin over rival stored frames, and one whose
+    candidate settings have none took a passing pair without one. Anything else comes back as
+    it is."""
     if not isinstance(detector, dict):
         return detector
     verification, candidates = detector.get("verification"), detector.get("candidates")
@@ -184,7 +185,10 @@ def settings_as_they_ran(detector: object) -> object:
     if isinstance(verification, dict) and "upright" not in verification:
         detector = {**detector, "verification": {**verification, "upright": False}}
     if isinstance(candidates, dict) and "retry_alone" not in candidates:
-        detector = {**detector, "candidates": {**candidates, "retry_alone": False}}
+        candidates = {**candidates, "retry_alone": False}
+        detector = {**detector, "candidates": candidates}
+    if isinstance(candidates, dict) and "margin_log10_nfa" not in candidates:
+        detector = {**detector, "candidates": {**candidates, "margin_log10_nfa": 0.0}}
     if isinstance(sequence, dict) and "margin_log10_nfa" not in sequence:
         detector = {**detector, "sequence": {**sequence, "margin_log10_nfa": 0.0}}
     return detector

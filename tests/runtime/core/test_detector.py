@@ -152,6 +152,48 @@ def test_a_chain_of_weak_pairs_verifies_the_last_frame_and_survives_a_restart(mo
     assert not [off.process(im) for im in images[:5]][-1].verified
 
 
+def test_a_pair_that_ties_with_another_stored_frame_is_withheld(monkeypatch):
+    """Query 6 passes stored frame 4 (log10 NFA -5.99) after stored frame 2 fell short at -6.0:
+    the evidence does not say which of the two it is, so nothing is published and the track is not
+    confirmed; with a clear margin, or the margin off, the pair is taken."""
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap_runtime.core.decide import candidates as C
+    from aefabmap_runtime.core.verify.verification import GeometryResult
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
+
+    images, _ = generate_loop_sequence(7, seed=0, size=(640, 480))
+    rival_nfa = [-6.0]
+
+    def search(policy, seq, top, ranking, place_frames, stored, check):
+        out = C.Search(tried=2)
+        if seq == 6:
+            pid = {f: int(np.flatnonzero(place_frames == f)[0]) for f in (2, 4)}
+            rival = GeometryResult(verified=False, model="H", matrix=np.eye(3), inliers=7, matches=30,
+                                   nfa=rival_nfa[0], reason="chance")
+            passed = GeometryResult(verified=True, model="H", matrix=np.eye(3), inliers=10, matches=31, nfa=-5.99,
+                                    reason="")
+            out.attempts = [C.Attempt(pid[2], "track", rival), C.Attempt(pid[4], "track", passed)]
+            out.best, out.best_place = passed, pid[4]
+        return out
+
+    monkeypatch.setattr(C.CandidatePolicy, "search", search)
+
+    def last(**candidates):
+        config = DetectorConfig(exclude=1, sequence=SequenceConfig(frames=0),
+                                candidates=C.CandidateConfig(**candidates))
+        det = load_detector(default_bundle(), config)
+        return [det.process(im) for im in images][-1], det
+
+    r, det = last()
+    assert not r.verified and not r.geometry_ok and r.geometry_reason == "tie" and r.verified_frame is None
+    assert r.nfa == pytest.approx(-5.99) and det.policy.track.frame == -1
+    r, det = last(margin_log10_nfa=0.0)
+    assert r.verified and r.verified_frame == 4 and r.geometry_reason == "" and det.policy.track.frame == 4
+    rival_nfa[0] = -5.6  # twice as likely by chance as the pair taken: no tie
+    r, _ = last()
+    assert r.verified and r.verified_frame == 4
+
+
 def test_locate_finds_the_place_of_an_image_and_changes_nothing():
     from aefabmap.cli.demo import default_bundle
     from aefabmap_runtime.adapters.bundle_reader import load_detector

@@ -46,6 +46,14 @@ def test_logs_written_before_the_chains_margin_replay_without_it():
     assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.margin_log10_nfa == 0.0
 
 
+def test_logs_written_before_the_pairs_margin_replay_without_it():
+    doc = RunConfig().to_dict()
+    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.margin_log10_nfa == pytest.approx(math.log10(2))
+    del doc["detector"]["candidates"]["margin_log10_nfa"]
+    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.margin_log10_nfa == 0.0
+    assert logged_run_config({"max_places": 5}).detector.candidates.margin_log10_nfa == 0.0
+
+
 def test_logs_written_before_chains_replay_without_them():
     doc = RunConfig(detector=DetectorConfig(sequence=dataclasses.replace(DetectorConfig().sequence, frames=2))).to_dict()
     assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.frames == 2

@@ -10,6 +10,7 @@ docs/results.md, "Candidate policy".
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
@@ -60,6 +61,15 @@ class CandidateConfig:
     island_candidates: how many FAB-MAP candidates (best first) get island neighbours.
     max_trials: cap on places verified per frame (None: no cap), bounding the worst-case cost.
     max_bruteforce: cap on places per frame given the brute-force retry (None: no cap).
+    margin_log10_nfa: a pair that passes is taken only when every other place checked for the
+        query whose stored frame is more than one frame from its own has a log10 NFA at least
+        this much higher (`tied_rival`; 0: no such check). The single-pair bound says that a
+        revisit is there, not which stored frame it is: stored frames of one street share their
+        far scene, and a query can have like evidence for two of them, of which the one that
+        passes may be the wrong one (the other failed an inlier floor, say). By default log10 2,
+        as for chains (runtime/aefabmap_runtime/core/decide/sequence.py): the pair taken is at
+        least twice as unlikely by chance as any such rival; closer is a tie, and the query is
+        left unpublished (docs/results.md, "A tie between two stored frames").
     """
 
     top_k: int = 5
@@ -73,6 +83,7 @@ class CandidateConfig:
     island_candidates: int = 1
     max_trials: int | None = None
     max_bruteforce: int | None = None
+    margin_log10_nfa: float = math.log10(2.0)  # a factor of two, as for chains
 
     def __post_init__(self) -> None:
         if self.top_k < 1:
@@ -89,6 +100,8 @@ class CandidateConfig:
             raise ConfigError(f"candidates max_trials must be None or >= 1, got {self.max_trials}")
         if self.max_bruteforce is not None and self.max_bruteforce < 0:
             raise ConfigError(f"candidates max_bruteforce must be None or >= 0, got {self.max_bruteforce}")
+        if not (np.isfinite(self.margin_log10_nfa) and self.margin_log10_nfa >= 0.0):
+            raise ConfigError(f"candidates margin_log10_nfa must be finite and >= 0, got {self.margin_log10_nfa}")
 
 
 #: check(place id, bruteforce, retry_only, upright) -> the pair's GeometryResult, or None when the
@@ -242,6 +255,22 @@ class CandidatePolicy:
             tracked(sorted(range(expect - c.track_reach, expect + c.track_reach + 1),
                            key=lambda f: (abs(f - expect), f < expect)))
         return q.search
+
+
+def tied_rival(search: Search, place_frames: np.ndarray, margin_log10_nfa: float) -> Attempt | None:
+    """The most significant check of `search` that ties with its passing pair, or None.
+
+    A tie: a place whose stored frame (place_frames: (n_places,) frame of each place id) lies
+    more than one frame from the passing place's, with a finite log10 NFA below the passing
+    pair's plus `margin_log10_nfa` (CandidateConfig.margin_log10_nfa), whether it passed or not.
+    None as well when nothing passed or the margin is 0.
+    """
+    if not search.verified or search.best_place is None or margin_log10_nfa <= 0.0:
+        return None
+    frame, bar = int(place_frames[search.best_place]), float(search.best.nfa) + margin_log10_nfa
+    rivals = [a for a in search.attempts if abs(int(place_frames[a.place]) - frame) > 1
+              and np.isfinite(a.result.nfa) and a.result.nfa < bar]
+    return min(rivals, key=lambda a: a.result.nfa) if rivals else None
 
 
 def _places_of_frame(place_frames: np.ndarray, frame: int, stored: Callable[[int], bool]) -> list[int]:

@@ -245,7 +245,8 @@ class FrameResult(_Message):
         "null: no geometry fitted"), since="1.3")
     geometry_reason: str | None = _f(None, (
         "why verification failed: '' when verified, else no_evidence (too few keypoints or matches to fit a "
-        "model), chance, degenerate, collinear, clustered, cheirality, temporal, ...; null: nothing verified"),
+        "model), chance, degenerate, collinear, clustered, cheirality, temporal, tie (another stored frame that "
+        "is not a neighbour had like evidence), ...; null: nothing verified"),
         since="1.3")
     sequence_nfa: float | None = _f(None, (
         "verified by evidence over consecutive frames (DetectorConfig.sequence): the summed log10 NFA of the chain "

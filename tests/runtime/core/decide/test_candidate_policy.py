@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from aefabmap_runtime.errors import ConfigError
-from aefabmap_runtime.core.decide.candidates import CandidateConfig, CandidatePolicy, top_places
+from aefabmap_runtime.core.decide.candidates import Attempt, CandidateConfig, CandidatePolicy, Search, tied_rival, top_places
 from aefabmap_runtime.core.verify.verification import GeometryResult
 
 
@@ -108,10 +108,45 @@ def test_islands_follow_a_failed_candidate():
 
 @pytest.mark.parametrize("kw", [{"top_k": 0}, {"track": -1}, {"island": -1}, {"max_trials": 0},
                                 {"max_bruteforce": -1}, {"track_memory": 0}, {"island_candidates": -1},
-                                {"track_reach": 101}, {"bruteforce_fallback": -1}])
+                                {"track_reach": 101}, {"bruteforce_fallback": -1}, {"margin_log10_nfa": -0.1},
+                                {"margin_log10_nfa": float("nan")}, {"margin_log10_nfa": float("inf")}])
 def test_config_is_validated(kw):
     with pytest.raises(ConfigError):
         CandidateConfig(**kw)
+
+
+def _checked(*places):
+    """A search over (place, log10 NFA, passed) checks, the passing one taken (as the policy does)."""
+    s = Search()
+    for pid, nfa, ok in places:
+        g = GeometryResult(verified=ok, model="H", inliers=10 if ok else 7, nfa=nfa, reason="" if ok else "chance")
+        s.attempts.append(Attempt(pid, "track", g))
+        if ok:
+            s.best, s.best_place = g, pid
+    return s
+
+
+def test_a_passing_pair_ties_with_a_stored_frame_that_is_not_its_neighbour():
+    frames = np.arange(40)
+    # A night query of a street: stored frame 33 passes at -5.99, but 31 (7 inliers, under the
+    # floor) had -6.0 and 30 had -5.6: which stored frame it is, the evidence does not say.
+    s = _checked((29, -3.0, False), (30, -5.6, False), (31, -6.0, False), (33, -5.99, True))
+    rival = tied_rival(s, frames, np.log10(2))
+    assert rival is not None and rival.place == 31  # the most significant of the ties
+    # More than twice as unlikely by chance as every rival: taken.
+    s = _checked((29, -3.0, False), (31, -5.6, False), (33, -5.99, True))
+    assert tied_rival(s, frames, np.log10(2)) is None
+    # A neighbouring stored frame is the same place; a check without a model is no evidence.
+    s = _checked((32, -8.0, False), (34, -7.0, False), (20, np.inf, False), (33, -5.99, True))
+    assert tied_rival(s, frames, np.log10(2)) is None
+    # Place ids are not frames: the rival's stored frame decides.
+    s = _checked((1, -6.0, False), (2, -5.99, True))
+    assert tied_rival(s, np.array([0, 10, 11]), np.log10(2)) is None
+    assert tied_rival(s, np.array([0, 10, 12]), np.log10(2)).place == 1
+    # Margin 0 (maps journalled before it) or nothing passed: no tie.
+    s = _checked((31, -6.0, False), (33, -5.99, True))
+    assert tied_rival(s, frames, 0.0) is None
+    assert tied_rival(_checked((31, -6.0, False)), frames, np.log10(2)) is None
 
 
 @pytest.mark.parametrize("ranking, k, want", [
