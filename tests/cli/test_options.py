@@ -24,39 +24,23 @@ def test_sequence_frames_option():
         _run("--sequence-frames", "1")
 
 
-def test_sequence_margin_option_lets_a_map_journalled_before_it_replay():
+@pytest.mark.parametrize("option, section", [("--sequence-margin", "sequence"), ("--pair-margin", "candidates")])
+def test_margin_options_let_a_map_journalled_before_them_replay(option, section):
     import json
     import math
 
     from aefabmap_runtime.core.run_config import recorded_settings_differences
 
-    assert _run().detector.sequence.margin_log10_nfa == pytest.approx(math.log10(2))
-    before = _run("--sequence-margin", "0").detector
-    assert before.sequence.margin_log10_nfa == 0.0
+    assert getattr(_run().detector, section).margin_log10_nfa == pytest.approx(math.log10(2))
+    before = _run(option, "0").detector
+    assert getattr(before, section).margin_log10_nfa == 0.0
     # A map state or journal written before the margin existed records no margin.
     recorded = before.to_dict()
-    del recorded["sequence"]["margin_log10_nfa"]
+    del recorded[section]["margin_log10_nfa"]
     assert recorded_settings_differences(json.dumps(recorded), before) == []
-    assert recorded_settings_differences(json.dumps(recorded), _run().detector) == ["sequence.margin_log10_nfa"]
+    assert recorded_settings_differences(json.dumps(recorded), _run().detector) == [f"{section}.margin_log10_nfa"]
     with pytest.raises(ConfigError, match="margin"):
-        _run("--sequence-margin", "-1")
-
-
-def test_pair_margin_option_lets_a_map_journalled_before_it_replay():
-    import json
-    import math
-
-    from aefabmap_runtime.core.run_config import recorded_settings_differences
-
-    assert _run().detector.candidates.margin_log10_nfa == pytest.approx(math.log10(2))
-    before = _run("--pair-margin", "0").detector
-    assert before.candidates.margin_log10_nfa == 0.0
-    recorded = before.to_dict()
-    del recorded["candidates"]["margin_log10_nfa"]
-    assert recorded_settings_differences(json.dumps(recorded), before) == []
-    assert recorded_settings_differences(json.dumps(recorded), _run().detector) == ["candidates.margin_log10_nfa"]
-    with pytest.raises(ConfigError, match="margin"):
-        _run("--pair-margin", "-1")
+        _run(option, "-1")
 
 
 def test_verify_bruteforce_option_sets_the_retried_candidates_and_is_logged_whole():

@@ -170,27 +170,25 @@ def settings_differences(stored: object, current: object, prefix: str = "") -> l
     return [] if stored == current else [prefix.rstrip(".")]
 
 
+#: Settings added after logs and maps were first recorded: (section, key, the value a record
+#: without the key ran with). Verification without `upright`: before upright descriptors; candidates
+#: without `retry_alone`: FAB-MAP's retried candidates were checked by same-word matching first;
+#: chains or candidates without `margin_log10_nfa`: a chain or a passing pair was taken without a
+#: margin over rival stored frames.
+_ADDED_LATER = (("verification", "upright", False), ("candidates", "retry_alone", False),
+                ("candidates", "margin_log10_nfa", 0.0), ("sequence", "margin_log10_nfa", 0.0))
+
+
 def settings_as_they_ran(detector: object) -> object:
-    """Recorded detector settings (DetectorConfig.to_dict, or part of it) as they ran: a record
-    whose verification settings have no `upright` was written before upright descriptors
-    existed and ran without them; one whose candidate settings have no `retry_alone` checked
-    FAB-MAP's retried candidates by same-word matching first; one whose chain settings have no
-    `margin_log10_nfa` accepted chains without a margin over rival stored frames, and one whose
-    candidate settings have none took a passing pair without one. Anything else comes back as
-    it is."""
+    """Recorded detector settings (DetectorConfig.to_dict, or part of it) as they ran: a section
+    recorded without a setting added later gets the value it ran with (`_ADDED_LATER`).
+    Anything else comes back as it is."""
     if not isinstance(detector, dict):
         return detector
-    verification, candidates = detector.get("verification"), detector.get("candidates")
-    sequence = detector.get("sequence")
-    if isinstance(verification, dict) and "upright" not in verification:
-        detector = {**detector, "verification": {**verification, "upright": False}}
-    if isinstance(candidates, dict) and "retry_alone" not in candidates:
-        candidates = {**candidates, "retry_alone": False}
-        detector = {**detector, "candidates": candidates}
-    if isinstance(candidates, dict) and "margin_log10_nfa" not in candidates:
-        detector = {**detector, "candidates": {**candidates, "margin_log10_nfa": 0.0}}
-    if isinstance(sequence, dict) and "margin_log10_nfa" not in sequence:
-        detector = {**detector, "sequence": {**sequence, "margin_log10_nfa": 0.0}}
+    for section, key, ran_with in _ADDED_LATER:
+        settings = detector.get(section)
+        if isinstance(settings, dict) and key not in settings:
+            detector = {**detector, section: {**settings, key: ran_with}}
     return detector
 
 

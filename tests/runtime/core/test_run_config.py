@@ -39,19 +39,14 @@ def test_logs_written_before_the_retry_alone_replay_with_same_word_checks_first(
     assert not logged_run_config({"max_places": 5}).detector.candidates.retry_alone
 
 
-def test_logs_written_before_the_chains_margin_replay_without_it():
+@pytest.mark.parametrize("section", ["sequence", "candidates"])
+def test_logs_written_before_a_margin_replay_without_it(section):
     doc = RunConfig().to_dict()
-    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.margin_log10_nfa == pytest.approx(math.log10(2))
-    del doc["detector"]["sequence"]["margin_log10_nfa"]
-    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.sequence.margin_log10_nfa == 0.0
-
-
-def test_logs_written_before_the_pairs_margin_replay_without_it():
-    doc = RunConfig().to_dict()
-    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.margin_log10_nfa == pytest.approx(math.log10(2))
-    del doc["detector"]["candidates"]["margin_log10_nfa"]
-    assert logged_run_config({RUN_CONFIG_KEY: doc}).detector.candidates.margin_log10_nfa == 0.0
-    assert logged_run_config({"max_places": 5}).detector.candidates.margin_log10_nfa == 0.0
+    assert getattr(logged_run_config({RUN_CONFIG_KEY: doc}).detector, section).margin_log10_nfa == \
+        pytest.approx(math.log10(2))
+    del doc["detector"][section]["margin_log10_nfa"]
+    assert getattr(logged_run_config({RUN_CONFIG_KEY: doc}).detector, section).margin_log10_nfa == 0.0
+    assert getattr(logged_run_config({"max_places": 5}).detector, section).margin_log10_nfa == 0.0
 
 
 def test_logs_written_before_chains_replay_without_them():
