@@ -3,7 +3,7 @@
 A profile fixes what the model must be (keypoints per frame, vocabulary size K, quantiser
 variant) and how the node runs (threads, map memory cap, frame queue). `aefabmap run --profile
 NAME` applies the run settings (explicit options still win) and refuses a bundle that is not
-the profile's model, since the measured cost (README, "Board profile") holds for that model only.
+the profile's model, since the measured cost (deploy/README.md, "Board profile") holds for that model only.
 """
 
 from __future__ import annotations
