@@ -1,4 +1,4 @@
-"""scripts/locate_eval.py: every frame after the map located alone, per pairs' margin."""
+"""scripts/locate_eval.py: every frame after the map located alone, scored by the ground truth."""
 
 from __future__ import annotations
 
@@ -6,32 +6,27 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
-from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
+from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence, write_sequence
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import locate_eval as le  # noqa: E402
 
 
-def _sequence(root: Path, n: int = 40) -> tuple[Path, Path, np.ndarray]:
+def _sequence(root: Path, n: int = 40) -> tuple[Path, np.ndarray]:
     images, gt = generate_loop_sequence(n, seed=3, size=(640, 480))
-    folder = root / "images"
-    folder.mkdir(parents=True)
-    for i, im in enumerate(images):
-        cv2.imwrite(str(folder / f"{i:05d}.png"), im)
-    np.save(root / "gt.npy", gt)
-    return folder, root / "gt.npy", gt
+    write_sequence(root, images, gt)
+    return root, gt
 
 
 def test_every_frame_after_the_map_gets_one_answer(tmp_path, capsys):
     from aefabmap.cli.demo import default_bundle
 
-    folder, gt_path, gt = _sequence(tmp_path)
+    folder, gt = _sequence(tmp_path / "seq")
     out = tmp_path / "locate.json"
-    assert le.main(["--model", str(default_bundle()), "--images", str(folder), "--gt", str(gt_path),
+    assert le.main(["--model", str(default_bundle()), "--images", str(folder), "--gt", str(folder / "gt.npy"),
                     "--exclude", "2", "--tolerance", "1", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     split = le.first_revisit(gt)
@@ -42,7 +37,7 @@ def test_every_frame_after_the_map_gets_one_answer(tmp_path, capsys):
     assert sums["with_a_true_frame"] == int(gt[split:, :split].any(axis=1).sum())
     for r in doc["answers"]:  # a true frame among the map's places: not one of the two held back
         truth = np.flatnonzero(gt[r["query"], :split])
-        assert r["truth_in_map"] == bool((truth < split - 2).any())
+        assert r["has_truth"] == bool(truth.size) and r["truth_in_map"] == bool((truth < split - 2).any())
         assert (r["frame"] is None) == (r["answer"] == "none") and (r["frame"] is None or r["frame"] < split - 2)
     assert sums["right"] > 0 and sums["wrong_true_frame_a_place"] <= sums["wrong"]
     assert " right, " in capsys.readouterr().out
