@@ -48,7 +48,9 @@ def scored(results, gt: np.ndarray, tolerance: int) -> dict:
 
 
 def locate_queries(robot: Robot, paths: list[Path], gt: np.ndarray, args) -> dict:
-    """Send 20 frames of the second part, evenly spaced, to the running node's locate queryable
+    """Send 20 frames of the second part, evenly spaced from its frame `--exclude` on (the map holds
+    its run's last frames, which the ground truth does not pair with the frames just after them),
+    to the running node's locate queryable
     (at its rate: a "busy" answer is asked again after a pause); each answer right or wrong by
     the ground truth (tolerant)."""
     import threading
@@ -57,7 +59,7 @@ def locate_queries(robot: Robot, paths: list[Path], gt: np.ndarray, args) -> dic
     from aefabmap_runtime.core.records.messages import LocateAnswer
 
     key, pause = locate_key_for(result_key_for(robot.key)), threading.Event()
-    picks = np.linspace(args.split, len(paths) - 1, 20).round().astype(int)
+    picks = np.linspace(args.split + args.exclude, len(paths) - 1, 20).round().astype(int)
     rows = []
     for i in picks:
         data = paths[i].read_bytes()

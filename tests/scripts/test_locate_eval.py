@@ -27,7 +27,7 @@ def test_every_frame_after_the_map_gets_one_answer(tmp_path, capsys):
     folder, gt = _sequence(tmp_path / "seq")
     out = tmp_path / "locate.json"
     assert le.main(["--model", str(default_bundle()), "--images", str(folder), "--gt", str(folder / "gt.npy"),
-                    "--exclude", "2", "--tolerance", "1", "--json", str(out)]) == 0
+                    "--exclude", "2", "--tolerance", "1", "--stream", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     split = le.first_revisit(gt)
     assert doc["split"] == split and 0 < split < len(gt) and doc["map_places"] == split - 2  # 2 held back
@@ -40,7 +40,15 @@ def test_every_frame_after_the_map_gets_one_answer(tmp_path, capsys):
         assert r["has_truth"] == bool(truth.size) and r["truth_in_map"] == bool((truth < split - 2).any())
         assert (r["frame"] is None) == (r["answer"] == "none") and (r["frame"] is None or r["frame"] < split - 2)
     assert sums["right"] > 0 and sums["wrong_true_frame_a_place"] <= sums["wrong"]
-    assert " right, " in capsys.readouterr().out
+    # streamed as a localizing node: every later frame once, answered with frames of the map's run
+    # (its two held-back frames too, once their delay has passed)
+    stream = doc["streamed"]
+    assert [a["query"] for a in stream["answers"]] == list(range(split, len(gt)))
+    assert stream["right"] + stream["wrong"] + stream["none"] == sums["queries"] and stream["right"] > 0
+    assert all((a["frame"] is None) == (a["answer"] == "none") for a in stream["answers"])
+    assert all(a["frame"] < split for a in stream["answers"] if a["frame"] is not None)
+    printed = capsys.readouterr().out
+    assert " right, " in printed and "streamed: " in printed
 
 
 def test_a_ground_truth_without_revisits_needs_a_split(tmp_path):

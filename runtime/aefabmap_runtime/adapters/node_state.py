@@ -40,16 +40,18 @@ def open_state(path: str | Path, detector, logger: logging.Logger, read_only: bo
 def open_frozen_map(path: str | Path, detector, logger: logging.Logger) -> MapStateDir:
     """Localization (--localize): load the map of the state directory DIR read-only into
     ``detector`` and make its map read-only (core/map/place_map.py): frames are ranked and verified
-    against it, nothing is inserted, evicted or written back, and DIR is never written. Returns
-    the open directory (close it after the run). StateError when DIR holds no map."""
+    against it, none is inserted (only the frames the building run still held back enter, on its
+    schedule), nothing is evicted or written back, and DIR is never written. Returns the open
+    directory (close it after the run). StateError when DIR holds no map."""
     directory = open_state(path, detector, logger, read_only=True)
     if detector.n_places == 0:
         directory.close()
         raise StateError(f"--localize needs a map: state directory {path} holds no places (build one with "
                          "`run --state DIR` first)")
     detector.map.read_only = True
-    logger.info("localizing against the map in %s: %d places, read-only (nothing is inserted or written)",
-                path, detector.n_places)
+    logger.info("localizing against the map in %s: %d places and %d held back for the insertion delay, "
+                "read-only (no frame of this run is inserted, nothing is written)",
+                path, detector.n_places, len(detector.map.queued()))
     return directory
 
 

@@ -11,8 +11,11 @@ accounts the map's memory (`map_bytes`), and saves / loads all of it as a MapSta
 eviction and load.
 
 A map can be made read-only (`read_only`, localization against a map built once): frames are
-still numbered, ranked and verified against it, but none is queued or inserted, no place is
-evicted and no use is recorded, so the map and its memory stay as loaded however long it runs.
+still numbered, ranked and verified against it, but none is queued, no place is evicted and no
+use is recorded. The frames its building run still had queued enter on their schedule, as they
+would have in that run: the insertion delay keeps the frames just after the map's own from
+matching them, and the map ends with every frame that built it (its memory grows by that queue,
+already held, and no more however long it runs).
 """
 
 from __future__ import annotations
@@ -137,9 +140,9 @@ class PlaceMap:
         seq = self._sequence
         self._sequence += 1
         done = Insertion()
-        while not self.read_only and self._pending and self._pending[0][0] <= seq - self.exclude:
+        while self._pending and self._pending[0][0] <= seq - self.exclude:
             frame, words, keypoints = self._pending.popleft()
-            done = Insertion(frame, *self.add_place(words, frame, keypoints))
+            done = Insertion(frame, *self._store_place(words, frame, keypoints))
         return seq, done
 
     def queue(self, frame: int, words: np.ndarray, keypoints: PlaceKeypoints | None) -> None:
@@ -162,7 +165,12 @@ class PlaceMap:
         queries (the frame must be below `next_sequence`). StateError on a read-only map."""
         if self.read_only:
             raise StateError("the map is read-only (localization): no place can be added")
-        evicted = self._make_room()
+        return self._store_place(words, frame, keypoints)
+
+    def _store_place(self, words: np.ndarray, frame: int, keypoints: PlaceKeypoints | None
+                     ) -> tuple[int, int | None]:
+        """add_place's work, and the queue's in a read-only map, which evicts nothing."""
+        evicted = None if self.read_only else self._make_room()
         place = int(self.scorer.add(words))
         if place >= self._last_used.size:
             grow = max(64, self._last_used.size)
@@ -176,7 +184,7 @@ class PlaceMap:
             if keypoints is not None:
                 self.store.put(place, keypoints)
         self.listeners.place_inserted(place, frame, words, self.keypoints(place))
-        trimmed = self._trim(place)
+        trimmed = None if self.read_only else self._trim(place)
         return place, trimmed if trimmed is not None else evicted
 
     # -- caps --------------------------------------------------------------------------------

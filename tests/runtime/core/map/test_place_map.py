@@ -131,20 +131,23 @@ def test_a_tool_can_build_a_map_without_queries():
     assert list(m.place_words(1)) == list(np.unique(_words(1)))
 
 
-def test_a_read_only_map_numbers_frames_but_never_changes():
-    m = _map(exclude=1, max_places=3)
-    _feed(m, 5)  # frames 0-3 stored within the cap, frame 4 queued
-    before = m.state()
+def test_a_read_only_map_takes_its_queued_frames_on_schedule_and_nothing_else():
+    m = _map(exclude=2, max_places=3)
+    _feed(m, 6)  # frames 0-3 stored within the cap (two evicted), frames 4 and 5 queued
+    before = {p: (f, list(m.place_words(p))) for p, f in m.places()}
+    used = m.state().arrays["last_used"]
     heard = _Heard()
     m.listeners.add(heard)
     m.read_only = True
-    done = _feed(m, 50)
+    done = _feed(m, 50)  # frames 6-55: ranked against the map, never queued
     m.mark_used(0, 60)
-    assert all(d == Insertion() for d in done) and heard.events == []
-    assert m.next_sequence == 55 and m.n_places == 3 and [f for f, _, _ in m.queued()] == [4]
-    after = m.state()
-    assert {k: v for k, v in after.scalars.items() if k != "sequence"} == {
-        k: v for k, v in before.scalars.items() if k != "sequence"}
-    assert all(np.array_equal(after.arrays[k], before.arrays[k]) for k in before.arrays)
+    # The building run's frames 4 and 5 enter when its insertion delay has passed (frames 6 and
+    # 7), over the cap rather than evicting what was stored; frames of this run never enter.
+    assert [d.frame for d in done[:3]] == [4, 5, None] and all(d == Insertion() for d in done[2:])
+    assert all(d.evicted is None for d in done) and [e[0] for e in heard.events] == ["inserted", "inserted"]
+    assert m.next_sequence == 56 and m.n_places == 5 and m.queued() == []
+    assert sorted(f for _, f in m.places()) == sorted([f for f, _ in before.values()] + [4, 5])
+    assert all((f, list(m.place_words(p))) == before[p] for p, f in m.places() if p in before)
+    assert all(m.state().arrays["last_used"][p] == used[p] for p in before)  # no use recorded
     with pytest.raises(StateError, match="read-only"):
         m.add_place(_words(70), 54)
