@@ -155,7 +155,7 @@ def add_state_options(p: argparse.ArgumentParser, *, snapshots: bool = False) ->
                    + (" and every --snapshot-every" if snapshots else ""))
     p.add_argument("--localize", action="store_true",
                    help="with --state DIR: localize against DIR's map, read-only: frames are ranked and verified "
-                   "against it as usual, but nothing is inserted, evicted or written (DIR stays byte for byte as it "
+                   "against it as usual, but none is inserted, nothing is evicted or written (DIR stays byte for byte as it "
                    "was); memory stays flat (docs/localization.md)")
     if snapshots:
         p.add_argument("--snapshot-every", default="60s", metavar="N{s,m,p}",

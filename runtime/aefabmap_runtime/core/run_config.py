@@ -43,7 +43,7 @@ class RunConfig:
     workers: threads that work on frames, the next frames prepared while one is decided
         (runtime/aefabmap_runtime/adapters/frame_pipeline.py); the results do not depend on it.
     localize: the map of the run's state directory is only read (core/map/place_map.py read_only):
-        frames are ranked and verified against it, nothing is inserted, evicted or written.
+        frames are ranked and verified against it, none is inserted, nothing is evicted or written.
     """
 
     model: str = ""

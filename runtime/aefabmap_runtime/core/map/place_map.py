@@ -71,7 +71,7 @@ class PlaceMap:
         # Names this map's frame numbering (a fleet tells other robots by it that a restarted
         # node's frame numbers mean other places): drawn for an empty map, kept in its state.
         self.map_epoch = secrets.randbits(64)
-        #: Localization: nothing enters or leaves the map (see the module doc).
+        #: Localization: no frame of this run enters the map, no place leaves it (see the module doc).
         self.read_only = False
 
     # -- what the map holds ------------------------------------------------------------------
