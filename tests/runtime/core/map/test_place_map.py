@@ -133,7 +133,7 @@ def test_a_tool_can_build_a_map_without_queries():
 
 def test_a_read_only_map_takes_its_queued_frames_on_schedule_and_nothing_else():
     m = _map(exclude=2, max_places=3)
-    _feed(m, 6)  # frames 0-3 stored within the cap (two evicted), frames 4 and 5 queued
+    _feed(m, 6)  # frames 0-3 stored within the cap (one evicted), frames 4 and 5 queued
     before = {p: (f, list(m.place_words(p))) for p, f in m.places()}
     used = m.state().arrays["last_used"]
     heard = _Heard()
