@@ -52,6 +52,11 @@ def answer_of(frame: int | None, query: int, gt: np.ndarray, tolerance: int) -> 
     return "right" if correct_predictions(pred, gt, tolerance)[query] else "wrong"
 
 
+def tally(rows: list[dict]) -> dict:
+    """{"right": n, "wrong": n, "none": n} of answer rows."""
+    return {kind: sum(r["answer"] == kind for r in rows) for kind in ("right", "wrong", "none")}
+
+
 def streamed(args, det, config, gt: np.ndarray) -> dict:
     """right / wrong / none of the later frames run as a localizing node takes them against the
     map of `det`, saved and loaded read-only (tools/localize_eval.py), and the answers."""
@@ -67,8 +72,7 @@ def streamed(args, det, config, gt: np.ndarray) -> dict:
                                    show_progress=False)
     frames = [(r.sequence, r.verified_frame if r.verified else None) for r in run.run.results]
     answers = [{"query": q, "frame": f, "answer": answer_of(f, q, gt, args.tolerance)} for q, f in frames]
-    return {kind: sum(a["answer"] == kind for a in answers) for kind in ("right", "wrong", "none")} | {
-        "answers": answers}
+    return tally(answers) | {"answers": answers}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,9 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"query": query, "answer": answer_of(where.frame, query, gt, args.tolerance), "frame": where.frame,
                      "has_truth": bool(truth.size), "truth_in_map": any(int(f) in places for f in truth)})
     sums = {"queries": len(rows), "with_a_true_frame": sum(r["has_truth"] for r in rows),
-            "true_frame_a_place": sum(r["truth_in_map"] for r in rows)}
-    for kind in ("right", "wrong", "none"):
-        sums[kind] = sum(r["answer"] == kind for r in rows)
+            "true_frame_a_place": sum(r["truth_in_map"] for r in rows)} | tally(rows)
     sums["wrong_true_frame_a_place"] = sum(r["answer"] == "wrong" and r["truth_in_map"] for r in rows)
     doc = {"model": args.model, "images": str(args.images), "split": split, "map_places": len(places),
            "sums": sums, "answers": rows}
