@@ -33,7 +33,6 @@ from aefabmap_runtime.errors import AefabmapError
 from aefabmap_runtime.adapters.bundle_reader import load_detector
 from aefabmap_runtime.adapters.frames import load_image
 from aefabmap_runtime.adapters.image_folder import list_images
-from aefabmap_runtime.core.verify.verification import independence_radius, verify_pair_bruteforce
 from aefabmap_runtime.tools.pr_metrics import correct_predictions
 from aefabmap_runtime.tools.sequence_eval import load_ground_truth
 
@@ -43,27 +42,28 @@ DEFAULT_GATES = (0.0, -1.0, -2.0, math.inf)
 
 
 class SecondDescriptor:
-    """Verifies (query, stored frame) pairs of a sequence with a bundle's descriptors, as the
-    brute-force retry does; each frame is extracted once."""
+    """Verifies (query, stored frame) pairs of a sequence with a bundle's descriptors by the
+    detector's own pair check (`LoopClosureDetector.place_check`) against the stored frame in
+    store form, as the brute-force retry does; each frame is extracted once."""
 
     def __init__(self, model: str | Path, images: list[Path]) -> None:
         self.detector = load_detector(model)
         self.images = images
-        self._features: dict[int, object] = {}
+        self._frames: dict[int, tuple] = {}
 
-    def _of(self, frame: int):
-        if frame not in self._features:
-            self._features[frame] = self.detector.extractor.extract(load_image(self.images[frame]))
-        return self._features[frame]
+    def _of(self, frame: int) -> tuple:
+        """(features, words, store form) of one frame."""
+        if frame not in self._frames:
+            f = self.detector.extractor.extract(load_image(self.images[frame]))
+            words = self.detector.words_of(f)
+            place = self.detector.map.store.pack(f.keypoints, words, f.descriptors, f.image_shape, f.upright)
+            self._frames[frame] = (f, words, place)
+        return self._frames[frame]
 
     def log10_nfa(self, query: int, stored: int) -> tuple[float, int]:
-        """(log10 NFA, inliers) of the pair; inf when no model was found."""
-        q, p = self._of(query), self._of(stored)
-        v = self.detector.config.verification
-        radius = independence_radius(self.detector.kind.window_radius(q.sizes), v)
-        g = verify_pair_bruteforce(q.keypoints, q.descriptors, q.image_shape, p.keypoints, p.descriptors,
-                                   p.image_shape, v, distance=self.detector.kind.distance, radius=radius,
-                                   q_upright=q.upright, p_upright=p.upright)
+        """(log10 NFA, inliers) of the pair: all-pairs matching, then upright; inf without a model."""
+        q, q_words, _ = self._of(query)
+        g = self.detector.place_check(q, q_words)(self._of(stored)[2], bruteforce=True, retry_only=True, upright=True)
         return float(g.nfa), int(g.inliers)
 
 
