@@ -104,6 +104,31 @@ def make_synthetic_bundle(out: Path, vocabulary_size: int = 64, kind: str = "orb
     )
 
 
+def make_learned_bundle(out: Path, features=None, vocabulary_size: int = 64, seed: int = 0):
+    """A small valid k-means bundle whose ORB descriptor is a random learned projection: (path,
+    its LearnedDescription). features: a FeatureConfig with descriptor "learned" (default: 200
+    keypoints)."""
+    import numpy as np
+
+    from aefabmap_export.bundle_writer import write_bundle
+    from aefabmap_runtime.core.features.features import FeatureConfig
+    from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES, LearnedDescription
+    from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
+
+    rng = np.random.default_rng(seed)
+    learned = LearnedDescription(rng.integers(-127, 128, (BITS, SAMPLES)).astype(np.int8))
+    return write_bundle(
+        out,
+        features=features or FeatureConfig(max_features=200, descriptor="learned"),
+        tree=random_tree(vocabulary_size, seed),
+        training_observations=synthetic_observations(20, vocabulary_size, 10, seed),
+        quantizer={"type": "kmeans", "files": {"centroids": "vocabulary.npy"}},
+        quantizer_files={"vocabulary.npy": rng.random((vocabulary_size, 256)).astype(np.float32)},
+        training_summary={"synthetic": True},
+        learned=learned,
+    ), learned
+
+
 @pytest.fixture
 def synthetic_bundle(tmp_path) -> Path:
     return make_synthetic_bundle(tmp_path / "bundle")

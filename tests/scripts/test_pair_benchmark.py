@@ -10,6 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.conftest import make_learned_bundle
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import pair_benchmark as pb  # noqa: E402
 
@@ -121,18 +123,9 @@ def test_night_pairs_keep_the_first_view_by_day(tmp_path):
 
 
 def test_orb_learned_describes_with_the_bundles_projection(tmp_path):
-    from aefabmap_export.bundle_writer import write_bundle
     from aefabmap_runtime.core.features.features import FeatureConfig
-    from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES, LearnedDescription
-    from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
 
-    rng = np.random.default_rng(0)
-    learned = LearnedDescription(rng.integers(-127, 128, (BITS, SAMPLES)).astype(np.int8))
-    bundle = write_bundle(tmp_path / "b", features=FeatureConfig(descriptor="learned"), tree=random_tree(32, 0),
-                          training_observations=synthetic_observations(10, 32, 5, 0),
-                          quantizer={"type": "kmeans", "files": {"centroids": "vocabulary.npy"}},
-                          quantizer_files={"vocabulary.npy": rng.random((32, 256)).astype(np.float32)},
-                          training_summary={}, learned=learned)
+    bundle, learned = make_learned_bundle(tmp_path / "b", FeatureConfig(descriptor="learned"), vocabulary_size=32)
     with pytest.raises(pb.Unavailable, match="--learned"):
         pb.make_front_end("orb-learned")
     front = pb.make_front_end("orb-learned", bundle)

@@ -11,26 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from aefabmap.cli.main import main as aefabmap_main
-from aefabmap_export.bundle_writer import write_bundle
 from aefabmap_runtime.core.features.features import FeatureConfig
-from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES, LearnedDescription
-from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
 from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence, write_sequence
+from tests.conftest import make_learned_bundle
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import second_descriptor_rescue as sdr  # noqa: E402
-
-
-def _learned_bundle(out: Path) -> Path:
-    """A bundle whose descriptor is a random learned projection (only its extractor is used)."""
-    rng = np.random.default_rng(0)
-    return write_bundle(
-        out, features=FeatureConfig(long_side=512, contrast_stretch=True, descriptor="learned"),
-        tree=random_tree(64, 0), training_observations=synthetic_observations(20, 64, 10, 0),
-        quantizer={"type": "kmeans", "files": {"centroids": "vocabulary.npy"}},
-        quantizer_files={"vocabulary.npy": rng.random((64, 256)).astype(np.float32)},
-        training_summary={"synthetic": True},
-        learned=LearnedDescription(rng.integers(-127, 128, (BITS, SAMPLES)).astype(np.int8)))
 
 
 def test_a_rescue_needs_the_gate_and_the_bar_with_two_descriptors_counted():
@@ -67,7 +53,8 @@ def test_a_real_run_retries_only_weak_candidates_of_unpublished_frames(tmp_path,
                           str(folder / "gt.npy"), "--exclude", "2", "--tolerance", "1", "--no-progress",
                           "--frames", str(frames)]) == 0
     out = tmp_path / "rescue.json"
-    second = _learned_bundle(tmp_path / "learned")
+    second, _ = make_learned_bundle(tmp_path / "learned",
+                                    FeatureConfig(long_side=512, contrast_stretch=True, descriptor="learned"))
     assert sdr.main(["--second", str(second), "--images", str(folder), "--gt", str(folder / "gt.npy"),
                      "--frames", str(frames), "--tolerance", "1", "--gates", "0", "inf", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())

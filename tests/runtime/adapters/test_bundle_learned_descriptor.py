@@ -8,29 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from aefabmap_export.bundle_writer import write_bundle
 from aefabmap_runtime.adapters.bundle_reader import DESCRIPTOR_WEIGHTS, load_bundle, load_detector, sha256_file
-from aefabmap_runtime.core.features.features import FeatureConfig
-from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES, LearnedDescription
+from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES
 from aefabmap_runtime.errors import BundleError
-from aefabmap_runtime.tools.synthetic_observations import random_tree, synthetic_observations
 from aefabmap_runtime.tools.synthetic_route import SyntheticConfig, make_demo_sequence
-
-
-def learned_bundle(out, seed: int = 0):
-    rng = np.random.default_rng(seed)
-    features = FeatureConfig(max_features=200, descriptor="learned")
-    learned = LearnedDescription(rng.integers(-127, 128, (BITS, SAMPLES)).astype(np.int8))
-    return write_bundle(
-        out,
-        features=features,
-        tree=random_tree(64, seed),
-        training_observations=synthetic_observations(20, 64, 10, seed),
-        quantizer={"type": "kmeans", "files": {"centroids": "vocabulary.npy"}},
-        quantizer_files={"vocabulary.npy": rng.random((64, 256)).astype(np.float32)},
-        training_summary={"synthetic": True},
-        learned=learned,
-    ), learned
+from tests.conftest import make_learned_bundle
 
 
 def _manifest(bundle) -> dict:
@@ -42,7 +24,7 @@ def _write_manifest(bundle, manifest: dict) -> None:
 
 
 def test_the_projection_is_written_checksummed_and_read_back(tmp_path):
-    path, learned = learned_bundle(tmp_path / "b")
+    path, learned = make_learned_bundle(tmp_path / "b")
     m = _manifest(path)
     assert m["features"]["descriptor"] == "learned" and m["descriptor_weights"] == DESCRIPTOR_WEIGHTS
     assert m["files"][DESCRIPTOR_WEIGHTS] == sha256_file(path / DESCRIPTOR_WEIGHTS)
@@ -51,7 +33,7 @@ def test_the_projection_is_written_checksummed_and_read_back(tmp_path):
 
 
 def test_the_detector_describes_frames_with_the_bundles_projection(tmp_path):
-    path, learned = learned_bundle(tmp_path / "b")
+    path, learned = make_learned_bundle(tmp_path / "b")
     frames = tmp_path / "frames"
     make_demo_sequence(frames, n_frames=3, seed=1, size=(320, 240), config=SyntheticConfig(laps=1))
     import cv2
@@ -72,7 +54,7 @@ def test_a_brief_bundle_has_no_projection(synthetic_bundle):
 
 @pytest.mark.parametrize("case", ["missing_key", "unlisted", "outside", "float", "int16", "shape", "zeros", "on_brief"])
 def test_a_hostile_projection_is_refused(tmp_path, case):
-    path, _ = learned_bundle(tmp_path / "b")
+    path, _ = make_learned_bundle(tmp_path / "b")
     m = _manifest(path)
     if case == "missing_key":
         del m["descriptor_weights"]
