@@ -43,6 +43,10 @@ def register(sub) -> None:
                     help="--descriptor learned: training images that give keypoint pairs (default 2400)")
     fe.add_argument("--descriptor-epochs", type=int, default=6,
                     help="--descriptor learned: passes over the pairs (default 6)")
+    fe.add_argument("--descriptor-warp", choices=("residual", "wide"), default="residual",
+                    help="--descriptor learned: the viewpoint changes its pairs are seen under: residual (default: "
+                    "what the pyramid and the orientation leave, the bits learn the light) or wide (rotations of 20 "
+                    "degrees, scales of 0.75-1.25; docs/results.md \"A learned descriptor\")")
     vo = p.add_argument_group("vocabulary (quantiser)")
     vo.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",
                     help="kmeans: flat vocabulary (default); kmeans-tree: vocabulary tree, a word in "
@@ -135,7 +139,7 @@ def run(args) -> int:
         max_descriptors=args.max_descriptors,
         cache_dir=args.cache,
         descriptor_training=DescriptorTraining(images=args.descriptor_images, epochs=args.descriptor_epochs,
-                                               seed=args.seed),
+                                               seed=args.seed, warp=args.descriptor_warp),
         ae_epochs=args.ae_epochs,
         ae_descriptors=args.ae_descriptors,
         ae_arch=args.ae_arch,

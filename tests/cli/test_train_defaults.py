@@ -38,4 +38,4 @@ def test_the_descriptor_training_options_default_to_its_config():
 
     args = vars(build_parser().parse_args(["train", "--images", "imgs", "--out", "b"]))
     d = DescriptorTraining()
-    assert (args["descriptor_images"], args["descriptor_epochs"]) == (d.images, d.epochs)
+    assert (args["descriptor_images"], args["descriptor_epochs"], args["descriptor_warp"]) == (d.images, d.epochs, d.warp)

@@ -3,6 +3,7 @@ objective, and a bundle that carries it."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -11,7 +12,9 @@ from aefabmap_runtime.core.features.features import FeatureConfig
 from aefabmap_runtime.core.features.learned_description import BITS, SAMPLES
 from aefabmap_runtime.errors import ConfigError
 from aefabmap_trainer import train as train_mod
-from aefabmap_trainer.learned_descriptor import DescriptorTraining, _pairs, to_int8, train_projection
+from aefabmap_trainer import learned_descriptor
+from aefabmap_trainer.learned_descriptor import WARPS, DescriptorTraining, _pairs, to_int8, train_projection
+from aefabmap_trainer.match_pairs import random_homography
 from aefabmap_trainer.train import TrainConfig, train_bundle
 
 
@@ -52,10 +55,35 @@ def test_int8_scaling_keeps_every_sign_and_row_peak():
     assert (np.abs(q).max(axis=1) == 127).all() and (np.sign(q)[np.abs(q) > 0] == np.sign(w)[np.abs(q) > 0]).all()
 
 
-@pytest.mark.parametrize("bad", [dict(images=0), dict(epochs=0), dict(epochs=101), dict(batch=8)])
+@pytest.mark.parametrize("bad", [dict(images=0), dict(epochs=0), dict(epochs=101), dict(batch=8), dict(warp="sideways")])
 def test_bad_training_settings_are_refused(bad):
     with pytest.raises(ConfigError):
         DescriptorTraining(**bad)
+
+
+@pytest.mark.parametrize("warp", sorted(WARPS))
+def test_the_pairs_are_seen_through_the_chosen_warps_range(warp, image_dir, monkeypatch):
+    seen = []
+
+    def recorded(shape_hw, rng, **ranges):
+        seen.append(ranges)
+        return random_homography(shape_hw, rng, **ranges)
+
+    monkeypatch.setattr(learned_descriptor, "random_homography", recorded)
+    a, b = learned_descriptor.corresponding_patches(train_mod.find_training_images((image_dir,)), FeatureConfig("orb", 200),
+                                                    DescriptorTraining(images=3, warp=warp), show_progress=False)
+    assert seen and all(r == WARPS[warp] for r in seen) and len(a) == len(b) > 0
+
+
+def test_the_residual_warps_stay_within_half_a_pyramid_step():
+    rng = np.random.default_rng(0)
+    centre = np.array([[[160.0, 120.0]]])
+    for _ in range(200):
+        h = random_homography((240, 320), rng, **WARPS["residual"])
+        # the local scale at the centre: the root of the Jacobian's determinant, by finite differences
+        p = [cv2.perspectiveTransform(centre + d, h)[0, 0] for d in ([[[0, 0]]], [[[1, 0]]], [[[0, 1]]])]
+        scale = abs(np.linalg.det(np.column_stack([p[1] - p[0], p[2] - p[0]]))) ** 0.5
+        assert 1 / 1.2 < scale < 1.2
 
 
 def test_a_learned_bundle_is_trained_cached_and_runs(image_dir, tmp_path):
@@ -67,6 +95,7 @@ def test_a_learned_bundle_is_trained_cached_and_runs(image_dir, tmp_path):
     b = load_bundle(result.path)
     assert b.features.descriptor == "learned" and b.learned_description is not None
     assert result.summary["descriptor_pairs"] >= 64 and "descriptor_s" in result.timings_s
+    assert result.summary["descriptor_warp"] == "residual"
     # The vocabulary's words come from the learned bits: the cache entry is keyed by the projection.
     entries = list((tmp_path / "cache").glob("features-orb-*.npz"))
     assert len(entries) == 1

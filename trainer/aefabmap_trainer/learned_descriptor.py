@@ -1,7 +1,7 @@
 """Train the learned ORB descriptor (runtime/aefabmap_runtime/core/features/learned_description.py).
 
 Pairs: each training image (outside the test split, multiview.is_test_image) against a copy seen
-through a random homography (match_pairs.random_homography) once at a random synthetic night
+through a random homography (match_pairs.random_homography, its range one of WARPS) once at a random synthetic night
 (multiview.night) and once under a random photometric change (multiview.photometric). Keypoints
 are ORB's, detected on both as the runtime detects them for verification (its keypoint budget,
 VerificationConfig.keypoints, when above the vocabulary's); a pair is two keypoints that land within
@@ -45,19 +45,32 @@ BALANCE_WEIGHT = 0.1
 LEARNING_RATE = 2e-3
 #: The patch's contrast floor in training (grey levels): a flat patch's noise is not blown up.
 CONTRAST_FLOOR = 4.0
+#: The homographies' ranges (`random_homography`'s keywords). "residual": what the detector's own
+#: normalisation leaves of a viewpoint change: half a pyramid step of scale either way (ORB's levels
+#: are 1.2 apart), a few degrees of orientation error and a little perspective, so the bits learn
+#: the light and keep ORB's selectivity for geometry, which the pyramid, the orientation and the
+#: upright retry handle. "wide": rotations of 20 degrees, scales of 0.75-1.25 and 15 % corner
+#: jitter, invariance that also makes look-alike structures agree (docs/results.md, "A learned
+#: descriptor").
+WARPS = {
+    "residual": {"max_angle_deg": 5.0, "scale_range": (0.9, 1.1), "max_perspective": 0.03},
+    "wide": {"max_angle_deg": 20.0, "scale_range": (0.75, 1.25), "max_perspective": 0.15},
+}
 
 
 @dataclass(frozen=True)
 class DescriptorTraining:
     """images: training images drawn (each gives a night and a photometric pair);
     epochs: passes over the pairs; batch: pairs per step (each pair's negatives are the batch's
-    other patches); seed: of the images drawn, the warps and the training; threads: torch's threads."""
+    other patches); seed: of the images drawn, the warps and the training; threads: torch's threads;
+    warp: the homographies' range, a key of WARPS."""
 
     images: int = 2400
     epochs: int = 6
     batch: int = 1024
     seed: int = 0
     threads: int = 1
+    warp: str = "residual"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.images, int) and self.images >= 1):
@@ -66,6 +79,8 @@ class DescriptorTraining:
             raise ConfigError(f"--descriptor-epochs must be an integer in [1, 100], got {self.epochs!r}")
         if not (isinstance(self.batch, int) and self.batch >= 16):
             raise ConfigError(f"the learned descriptor's batch must be an integer >= 16, got {self.batch!r}")
+        if self.warp not in WARPS:
+            raise ConfigError(f"--descriptor-warp must be one of {sorted(WARPS)}, got {self.warp!r}")
 
 
 def corresponding_patches(files: list[Path], features: FeatureConfig, config: DescriptorTraining,
@@ -85,7 +100,7 @@ def corresponding_patches(files: list[Path], features: FeatureConfig, config: De
         if len(ka) == 0:
             continue
         for relight in (night, photometric):
-            h = random_homography(gray.shape[:2], rng)
+            h = random_homography(gray.shape[:2], rng, **WARPS[config.warp])
             seen = relight(cv2.warpPerspective(gray, h, (gray.shape[1], gray.shape[0]), flags=cv2.INTER_LINEAR), rng)
             kb, lb, pb = extractor.keypoint_patches(seen)
             if len(kb) == 0:

@@ -424,7 +424,8 @@ def train_bundle(config: TrainConfig) -> TrainResult:
             summary |= {"branching": config.branching, "tree_depth": quantizer.depth, "tree_nodes": quantizer.nodes}
         if learned is not None:
             d = config.descriptor_training
-            summary |= {"descriptor_images": d.images, "descriptor_epochs": d.epochs, "descriptor_pairs": descriptor_pairs}
+            summary |= {"descriptor_images": d.images, "descriptor_epochs": d.epochs, "descriptor_warp": d.warp,
+                        "descriptor_pairs": descriptor_pairs}
         out = write_bundle(
             config.out,
             features=config.features,
