@@ -45,7 +45,7 @@ def register(sub) -> None:
                     help="--descriptor learned: passes over the pairs (default 6)")
     fe.add_argument("--descriptor-warp", choices=("residual", "wide"), default="residual",
                     help="--descriptor learned: the viewpoint changes its pairs are seen under: residual (default: "
-                    "what the pyramid and the orientation leave, the bits learn the light) or wide (rotations of 20 "
+                    "only what the pyramid and the orientation leave of a viewpoint change) or wide (rotations of 20 "
                     "degrees, scales of 0.75-1.25; docs/results.md \"A learned descriptor\")")
     vo = p.add_argument_group("vocabulary (quantiser)")
     vo.add_argument("--quantizer", choices=("kmeans", "kmeans-tree", "ae"), default="kmeans",

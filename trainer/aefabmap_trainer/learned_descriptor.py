@@ -48,8 +48,8 @@ CONTRAST_FLOOR = 4.0
 #: The homographies' ranges (`random_homography`'s keywords). "residual": what the detector's own
 #: normalisation leaves of a viewpoint change: half a pyramid step of scale either way (ORB's levels
 #: are 1.2 apart), a few degrees of orientation error and a little perspective, so the bits learn
-#: the light and keep ORB's selectivity for geometry, which the pyramid, the orientation and the
-#: upright retry handle. "wide": rotations of 20 degrees, scales of 0.75-1.25 and 15 % corner
+#: the light across those small changes and keep ORB's selectivity for the rest of the geometry,
+#: which the pyramid, the orientation and the upright retry handle. "wide": rotations of 20 degrees, scales of 0.75-1.25 and 15 % corner
 #: jitter, invariance that also makes look-alike structures agree (docs/results.md, "A learned
 #: descriptor").
 WARPS = {
