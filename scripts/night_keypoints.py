@@ -79,9 +79,9 @@ def matched(partner: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return hit & (partner >= 0)
 
 
-def image_counts(detector, gray: np.ndarray, condition: dict, rng: np.random.Generator) -> dict:
-    """Counts of one image under one condition: day keypoints and each of SHARES."""
-    day = detector.extractor.extract(gray)
+def image_counts(detector, gray: np.ndarray, day: Features, condition: dict, rng: np.random.Generator) -> dict:
+    """Counts of one image `gray` (its day features `day`) under one condition: day keypoints and
+    each of SHARES."""
     night = detector.extractor.extract(darken(gray, rng, **condition))
     partner = repeated_partner(day, night)
     config, distance = detector.config.verification, detector.kind.distance
@@ -93,17 +93,19 @@ def image_counts(detector, gray: np.ndarray, condition: dict, rng: np.random.Gen
 
 
 def measure(detector, images: list[Path], conditions: dict, seed: int = 0, show_progress: bool = True) -> dict:
-    """{condition: counts summed over `images` and the SHARES of the day keypoints}; each image's
-    noise is drawn from a generator seeded by `seed` and its index, the same for every condition."""
-    out = {}
-    for name, condition in conditions.items():
-        total = {"keypoints": 0, **{k: 0 for k in SHARES}}
-        for i, path in enumerate(tqdm(images, desc=name, disable=not show_progress, mininterval=1.0)):
-            counts = image_counts(detector, to_gray(load_image(path)), condition, np.random.default_rng([seed, i]))
-            for k in total:
-                total[k] += counts[k]
+    """{condition: counts summed over `images` and the SHARES of the day keypoints}; each image is
+    read and extracted by day once, and its noise drawn from a generator seeded by `seed` and its
+    index, the same for every condition."""
+    out = {name: {"keypoints": 0, **{k: 0 for k in SHARES}} for name in conditions}
+    for i, path in enumerate(tqdm(images, desc="images", disable=not show_progress, mininterval=1.0)):
+        gray = to_gray(load_image(path))
+        day = detector.extractor.extract(gray)
+        for name, condition in conditions.items():
+            counts = image_counts(detector, gray, day, condition, np.random.default_rng([seed, i]))
+            for k, total in counts.items():
+                out[name][k] += total
+    for total in out.values():
         total["shares"] = {k: total[k] / max(total["keypoints"], 1) for k in SHARES}
-        out[name] = total
     return out
 
 
