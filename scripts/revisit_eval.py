@@ -2,12 +2,13 @@
 """One bundle on the training revisit sequences, by day and at night, summed over the drives.
 
 Each CamVid drive's revisit sequence (scripts/revisit_sequences.py, written under `--sequences`
-when missing) is evaluated with `aefabmap eval --exclude 15 --tolerance 1 --fabmap-score llr`
-plus any eval options given after `--`; the revisit split each run reports (verified, wrong place,
-misses by reason) is summed over the drives. Prints one row for the day and one for the night;
-`--json` writes the sums and every drive's split. TRAINING data only: settings may be chosen here.
+when missing; with `--reverse` the second pass is driven back) is evaluated with `aefabmap eval
+--exclude 15 --tolerance 1 --fabmap-score llr` plus any eval options given after `--`; the revisit
+split each run reports (verified, wrong place, misses by reason) is summed over the drives. Prints
+one row for the day and one for the night; `--json` writes the sums and every drive's split.
+TRAINING data only: settings may be chosen here.
 
-    python scripts/revisit_eval.py --model BUNDLE --data DATA --sequences revisits [--json r.json] \\
+    python scripts/revisit_eval.py --model BUNDLE --data DATA --sequences revisits [--reverse] [--json r.json] \\
         [-- --verify-bruteforce 1]
 """
 
@@ -23,7 +24,7 @@ import tempfile
 from pathlib import Path
 
 from calibrate_sequence import drives  # the training drives, one list of frames each
-from revisit_sequences import write_sequence  # the sequences' one definition
+from revisit_sequences import filler, write_sequence  # the sequences' one definition
 
 from aefabmap.cli.main import main as aefabmap_main
 from aefabmap_runtime.tools.frame_evidence import revisit_split
@@ -33,8 +34,8 @@ EVAL_OPTIONS = ("--exclude", "15", "--tolerance", "1", "--fabmap-score", "llr", 
 LIGHTS = ("day", "night")
 
 
-def ensure_sequences(data: Path, root: Path, step: int) -> dict[str, dict[str, Path]]:
-    """{light: {drive: sequence folder}}, written under root/<light>-step<step> when missing."""
+def ensure_sequences(data: Path, root: Path, step: int, reverse: bool = False) -> dict[str, dict[str, Path]]:
+    """{light: {drive: sequence folder}}, written under root/<light>-step<step>[-reverse] when missing."""
     camvid = data / "train" / "camvid"
     if not camvid.is_dir():
         raise SystemExit(f"no CamVid training drives under {camvid}")
@@ -43,9 +44,10 @@ def ensure_sequences(data: Path, root: Path, step: int) -> dict[str, dict[str, P
     for light in LIGHTS:
         out[light] = {}
         for drive, frames in by_drive.items():
-            folder = root / f"{light}-step{step}" / drive
+            folder = root / f"{light}-step{step}{'-reverse' if reverse else ''}" / drive
             if not (folder / "gt.npy").is_file():
-                write_sequence(frames, step, folder, night=light == "night")
+                between = filler(by_drive, drive, step) if reverse else None
+                write_sequence(frames, step, folder, night=light == "night", between=between)
             out[light][drive] = folder
     return out
 
@@ -98,17 +100,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=Path(os.environ.get("AEFABMAP_DATA", repo.parent / "shared" / "data")))
     ap.add_argument("--sequences", type=Path, required=True, help="folder of the revisit sequences (written when missing)")
     ap.add_argument("--step", type=int, default=6, help="first pass plays every STEP-th frame (revisit_sequences.py)")
+    ap.add_argument("--reverse", action="store_true", help="the second pass driven back (revisit_sequences.py)")
     ap.add_argument("--json", type=Path, help="also write the sums and every drive's split here")
     args = ap.parse_args(own)
-    sequences = ensure_sequences(args.data, args.sequences, args.step)
+    sequences = ensure_sequences(args.data, args.sequences, args.step, args.reverse)
     per_drive = {light: {drive: drive_split(args.model, folder, extra) for drive, folder in folders.items()}
                  for light, folders in sequences.items()}
     sums = {light: summed(splits) for light, splits in per_drive.items()}
     print(table(sums))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        doc = {"model": str(args.model), "step": args.step, "eval_options": [*EVAL_OPTIONS, *extra],
-               "sums": sums, "drives": per_drive}
+        doc = {"model": str(args.model), "step": args.step, "reverse": args.reverse,
+               "eval_options": [*EVAL_OPTIONS, *extra], "sums": sums, "drives": per_drive}
         args.json.write_text(json.dumps(doc, indent=2) + "\n")
     return 0
 

@@ -235,6 +235,10 @@ def add_verification_options(g, *flags: str, bench: bool = False) -> None:
                                       help="frames after a verified match during which its successors are checked "
                                       f"first (default {c.track_memory}; a map journal written with another value "
                                       "replays with it)"),
+        "--verify-track-forwards": dict(dest="verify_track_direction", action="store_false", default=None,
+                                        help="the track expects every revisit to run forwards through the "
+                                        "stored frames, as maps journalled before it ran (default: it learns the "
+                                        "direction, so a route driven back is followed too)"),
         "--verify-keypoints": dict(type=int, default=None, metavar="N", help=(
             "keypoints per frame extracted and matched for verification "
             + (runtime if bench else f"(default {v.keypoints}; FAB-MAP observes the bundle's budget)"))),
@@ -273,7 +277,8 @@ def build_run_config(args: argparse.Namespace, *, keep_inlier_points: bool = Fal
     candidates = CandidateConfig(top_k=pick("verify_top_k", c.top_k),
                                  bruteforce_fallback=pick("verify_bruteforce", c.bruteforce_fallback),
                                  track_memory=pick("verify_track_memory", c.track_memory),
-                                 margin_log10_nfa=pick("pair_margin", c.margin_log10_nfa))
+                                 margin_log10_nfa=pick("pair_margin", c.margin_log10_nfa),
+                                 track_direction=bool(pick("verify_track_direction", c.track_direction)))
     scorer = pick("scorer", d.scorer)
     detector = DetectorConfig(
         scorer=scorer if scorer in SCORERS else d.scorer,  # eval's "both" picks per run

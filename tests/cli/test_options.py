@@ -52,6 +52,22 @@ def test_verify_bruteforce_option_sets_the_retried_candidates_and_is_logged_whol
         _run("--verify-bruteforce", "-1")
 
 
+def test_track_direction_option_lets_a_map_journalled_before_it_replay():
+    import json
+
+    from aefabmap_runtime.core.run_config import recorded_settings_differences
+
+    assert _run().detector.candidates.track_direction
+    before = _run("--verify-track-forwards").detector
+    assert not before.candidates.track_direction
+    recorded = before.to_dict()
+    del recorded["candidates"]["track_direction"]  # a map or log recorded before the track learnt a direction
+    assert recorded_settings_differences(json.dumps(recorded), before) == []
+    assert recorded_settings_differences(json.dumps(recorded), _run().detector) == ["candidates.track_direction"]
+    logged = logged_run_config({RUN_CONFIG_KEY: {**_run().to_dict(), "detector": recorded}})
+    assert not logged.detector.candidates.track_direction
+
+
 def test_track_memory_option():
     assert _run().detector.candidates.track_memory == 6
     assert _run("--verify-track-memory", "3").detector.candidates.track_memory == 3

@@ -84,3 +84,24 @@ def test_summed_adds_each_key_and_reason():
     assert (total["revisits"], total["verified"], total["wrong_place"], total["true_place_checked"]) == (7, 3, 1, 5)
     assert total["misses"]["no_model"] == 1 and total["misses"]["nfa_below_0"] == 2
     assert set(total["misses"]) >= set(MISS_REASONS)
+
+
+def test_reverse_evaluates_the_sequences_driven_back(tmp_path, synthetic_bundle):
+    camvid = tmp_path / "data" / "train" / "camvid"
+    camvid.mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    drives = {"0001TP": 33, "0006R0": 35}  # first passes of 17 and 18 frames: room for the frames between
+    for drive, n in drives.items():
+        for f in range(n):
+            img = cv2.resize(rng.integers(0, 256, (12, 16), dtype=np.uint8), (80, 60), interpolation=cv2.INTER_NEAREST)
+            cv2.imwrite(str(camvid / f"{drive}_{f:05d}.png"), img)
+    out = tmp_path / "r.json"
+    assert re_.main(["--model", str(synthetic_bundle), "--data", str(tmp_path / "data"), "--sequences",
+                     str(tmp_path / "seq"), "--step", "2", "--reverse", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["reverse"] is True
+    for light in re_.LIGHTS:
+        for drive, n in drives.items():
+            folder = tmp_path / "seq" / f"{light}-step2-reverse" / drive
+            assert np.array_equal(np.load(folder / "gt.npy"), rs.revisit_order(n, 2, reverse=True, gap=rs.GAP)[1])
+            assert doc["drives"][light][drive]["revisits"] == len(range(1, n, 2))

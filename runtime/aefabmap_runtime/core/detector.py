@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from aefabmap_runtime.errors import ConfigError, InputError
+from aefabmap_runtime.errors import ConfigError, InputError, StateError
 from aefabmap_runtime.core.kernels import compiled
 from aefabmap_runtime.core.verify.acontrario import SAMPLE_SIZE
 from aefabmap_runtime.core.kernels.bits import nearest_two_kernel
@@ -507,7 +507,8 @@ class LoopClosureDetector:
             verdict.verified = verdict.geometry_ok and verdict.temporal_ok
         verdict.place = verdict.search.best_place if verdict.verified else None
         if verdict.geometry_ok:
-            self.policy.track.confirm(seq, int(frames[verdict.search.best_place]))
+            c = self.policy.config
+            self.policy.track.confirm(seq, int(frames[verdict.search.best_place]), c.track_memory, c.track_reach)
         verdict.timing_ms = (time.perf_counter() - t0) * 1e3
         return verdict
 
@@ -648,6 +649,7 @@ class LoopClosureDetector:
         results."""
         st = self.map.state()
         st.scalars.update(track_seq=self.policy.track.seq, track_frame=self.policy.track.frame,
+                          track_anchor=self.policy.track.anchor, track_direction=self.policy.track.direction,
                           # The settings the map was built with, whole (JSON; RunConfig's detector part).
                           config=json.dumps(self.config.to_dict(), sort_keys=True))
         if self.temporal is not None:
@@ -663,7 +665,15 @@ class LoopClosureDetector:
         def track(seq: int) -> tuple[int, int]:
             return st.scalar("track_seq", int, lo=-2, hi=seq), st.scalar("track_frame", int, lo=-1, hi=max(seq, 1))
 
+        learn = self.policy.track.learn
+        # A map saved before the track had a direction ran forwards and learnt none: its track
+        # goes on as one that starts at its last match.
+        directed = "track_direction" in st.scalars
+        direction = st.scalar("track_direction", int, lo=-1, hi=2) if directed else (0 if learn else 1)
+        if not learn and direction != 1:
+            raise StateError("map state: the track's direction does not fit this detector's settings (forwards only)")
         track_seq, track_frame = self.map.load_state(st, track)
+        anchor = st.scalar("track_anchor", int, lo=-1, hi=max(track_seq, 1)) if directed else track_frame
         if self.temporal is not None:
             self.temporal.load_state(st.part("temporal"))
         if self.chain is not None:
@@ -673,6 +683,7 @@ class LoopClosureDetector:
             else:  # a map saved without chains (another setting, an older version) starts with none
                 self.chain.reset()
         self.policy.track.seq, self.policy.track.frame = track_seq, track_frame
+        self.policy.track.anchor, self.policy.track.direction = anchor, direction
         self._last_scores = None
 
 

@@ -174,9 +174,10 @@ def settings_differences(stored: object, current: object, prefix: str = "") -> l
 #: without the key ran with). Verification without `upright`: before upright descriptors; candidates
 #: without `retry_alone`: FAB-MAP's retried candidates were checked by same-word matching first;
 #: chains or candidates without `margin_log10_nfa`: a chain or a passing pair was taken without a
-#: margin over rival stored frames.
+#: margin over rival stored frames; candidates without `track_direction`: the track ran forwards only.
 _ADDED_LATER = (("verification", "upright", False), ("candidates", "retry_alone", False),
-                ("candidates", "margin_log10_nfa", 0.0), ("sequence", "margin_log10_nfa", 0.0))
+                ("candidates", "margin_log10_nfa", 0.0), ("sequence", "margin_log10_nfa", 0.0),
+                ("candidates", "track_direction", False))
 
 
 def settings_as_they_ran(detector: object) -> object:

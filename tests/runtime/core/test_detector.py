@@ -152,6 +152,34 @@ def test_a_chain_of_weak_pairs_verifies_the_last_frame_and_survives_a_restart(mo
     assert not [off.process(im) for im in images[:5]][-1].verified
 
 
+def test_a_route_driven_back_is_followed():
+    """The second lap of a generated route driven the other way: the track learns that the revisit
+    runs backwards through the stored frames and follows it; a track that expects every revisit to
+    run forwards (as before the direction was learnt) verifies stored frames ahead of the truth."""
+    from aefabmap.cli.demo import default_bundle
+    from aefabmap_runtime.core.decide.candidates import CandidateConfig
+    from aefabmap_runtime.tools.synthetic_route import generate_loop_sequence
+
+    n = 60
+    images, _ = generate_loop_sequence(n, seed=0, size=(320, 240))
+    lap = n // 2
+    back = list(range(lap - 1, -1, -1))  # frame lap + j of the route passes where frame j did
+
+    def offsets(learn):
+        det = load_detector(default_bundle(), DetectorConfig(exclude=lap // 2,
+                                                             candidates=CandidateConfig(track_direction=learn)))
+        for img in images[:lap]:
+            det.process(img)
+        off = [abs(r.verified_frame - j) for j in back if (r := det.process(images[lap + j])).verified]
+        return np.array(off), det.policy.track.direction
+
+    learnt, direction = offsets(True)
+    forwards, _ = offsets(False)
+    assert direction == -1
+    assert (learnt <= 1).sum() >= 2 * (forwards <= 1).sum() > 0
+    assert (learnt > 1).sum() < (forwards > 1).sum()
+
+
 def test_a_pair_that_ties_with_another_stored_frame_is_withheld(monkeypatch):
     """Query 6 passes stored frame 4 (log10 NFA -5.99) after stored frame 2 fell short at -6.0:
     the evidence does not say which of the two it is, so nothing is published and the track is not

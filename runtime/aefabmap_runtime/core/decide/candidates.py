@@ -48,7 +48,8 @@ class CandidateConfig:
         that goes on mostly passes it, the cheaper check.
     bruteforce_track: the same retry for every tracked place (see `track`).
     track: temporal prior: when the previous query was verified to stored frame f, the stored
-        frames f+1, ..., f+`track`, then f, are tried before FAB-MAP's candidates. 0 disables.
+        frames f+1, ..., f+`track`, then f, are tried before FAB-MAP's candidates (f-1, ...,
+        f-`track`, then f, when the revisit runs backwards: `track_direction`). 0 disables.
     track_memory: the prior lasts this many query frames after the last verified match (frame
         i - lag verified to f: frames f+lag, ..., f+lag+track-1, f+lag-1 are tried). The default,
         twice `track_reach`, keeps the true frame within the reach of the expected one for the
@@ -56,6 +57,12 @@ class CandidateConfig:
     track_reach: when the track window and every FAB-MAP candidate failed, the other stored
         frames within track_reach of the expected frame are tried, nearest first (ahead before
         behind), each with the brute-force retry (`bruteforce_track`). 0 disables.
+    track_direction: the track learns which way the revisit runs through the stored frames (a
+        route driven back runs backwards): the side of the track's first match on which its
+        latest lies (`Track`). Until a match lies off the first one, the frames a revisit would
+        reach either way, f+lag and f-lag, are both checked and the more significant is taken.
+        False: the track expects every revisit to run forwards, as logs and maps recorded
+        before it ran (docs/results.md, "A revisit driven the other way").
     island: each of the best `island_candidates` FAB-MAP candidates that fails is followed by its
         stored temporal neighbours within +-`island` frames, nearest first. 0 disables.
     island_candidates: how many FAB-MAP candidates (best first) get island neighbours.
@@ -84,6 +91,7 @@ class CandidateConfig:
     max_trials: int | None = None
     max_bruteforce: int | None = None
     margin_log10_nfa: float = math.log10(2.0)  # a factor of two, as for chains
+    track_direction: bool = True
 
     def __post_init__(self) -> None:
         if self.top_k < 1:
@@ -143,18 +151,41 @@ class Search:
 
 
 class Track:
-    """The last geometrically verified match: (query sequence, stored frame). Part of the map state."""
+    """The last geometrically verified match, (query sequence, stored frame); the stored frame
+    of the track's first match (`anchor`); and which way the revisit runs through the stored
+    frames: +1 the way they were recorded, -1 the other way, 0 not known yet. Part of the map
+    state.
 
-    def __init__(self) -> None:
+    learn: the direction is learnt (CandidateConfig.track_direction); otherwise it stays +1.
+    """
+
+    def __init__(self, learn: bool = True) -> None:
+        self.learn = learn
         self.seq = -2
         self.frame = -1
+        self.anchor = -1
+        self.direction = 0 if learn else 1
 
     def expected(self, seq: int, memory: int) -> int | None:
-        """The stored frame the track expects query `seq` to match, or None when it has lapsed."""
+        """The stored frame the track expects query `seq` to match (forwards while the direction
+        is not known), or None when it has lapsed."""
         lag = seq - self.seq
-        return self.frame + lag if 1 <= lag <= memory else None
+        return self.frame + (self.direction or 1) * lag if 1 <= lag <= memory else None
 
-    def confirm(self, seq: int, frame: int) -> None:
+    def confirm(self, seq: int, frame: int, memory: int, reach: int) -> None:
+        """Query `seq` verified to stored `frame`. A match within `memory` queries of the last one
+        and within `reach` of where the track would reach either way continues the track: the
+        direction is the side of the track's first match on which it lies (where the revisit has
+        gone since it began, so that a true match a frame or two behind the last one, as where
+        stored frames look alike, does not turn it round). Any other match starts a new track,
+        whose direction is not known."""
+        if self.learn:
+            lag = seq - self.seq
+            if 1 <= lag <= memory and min(abs(frame - self.frame - lag), abs(frame - self.frame + lag)) <= reach:
+                if frame != self.anchor:
+                    self.direction = 1 if frame > self.anchor else -1
+            else:
+                self.anchor, self.direction = frame, 0
         self.seq, self.frame = seq, frame
 
 
@@ -221,7 +252,7 @@ class CandidatePolicy:
 
     def __init__(self, config: CandidateConfig | None = None) -> None:
         self.config = config or CandidateConfig()
-        self.track = Track()
+        self.track = Track(self.config.track_direction)
 
     def search(self, seq: int, top: np.ndarray, ranking: np.ndarray, place_frames: np.ndarray,
                stored: Callable[[int], bool], check: PairCheck) -> Search:
@@ -240,7 +271,18 @@ class CandidatePolicy:
             return any(q.attempt_all(_places_of_frame(place_frames, f, stored), "track", c.bruteforce_track)
                        for f in frames)
 
-        if not (tracking and tracked([*range(expect, expect + c.track), expect - 1])):
+        d, passed = self.track.direction, False
+        if tracking and d:
+            passed = tracked([*(expect + d * k for k in range(c.track)), expect - d])
+        elif tracking:
+            # A new track: the revisit may run either way. The frames it would reach forwards and
+            # backwards are both checked; the more significant is taken (Search.best), and a tie
+            # between them leaves the query unpublished (`tied_rival`).
+            mirror = 2 * self.track.frame - expect
+            passed = tracked([expect]) | tracked([mirror])  # both checked, not short-circuited
+            passed = passed or tracked([*(x for k in range(1, c.track) for x in (expect + k, mirror - k)),
+                                        *dict.fromkeys((expect - 1, mirror + 1))])
+        if not passed:
             for rank, pid in enumerate(top):
                 if not np.isfinite(ranking[pid]) or q.exhausted:
                     break  # removed places (-inf) sort last
@@ -252,8 +294,9 @@ class CandidatePolicy:
         if tracking and c.track_reach and not q.search.verified:
             # The window and FAB-MAP's candidates failed: the last verified match places the robot
             # only roughly, so the revisit's true frame may lie a little outside the window.
+            ahead = d or 1
             tracked(sorted(range(expect - c.track_reach, expect + c.track_reach + 1),
-                           key=lambda f: (abs(f - expect), f < expect)))
+                           key=lambda f: (abs(f - expect), ahead * (f - expect) < 0)))
         return q.search
 
 

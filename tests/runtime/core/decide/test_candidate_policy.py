@@ -27,6 +27,13 @@ class Script:
                               reason="" if ok else "chance")
 
 
+def _moving_forwards(policy, seq, frame):
+    """Queries seq - 1 and seq verified to stored frames frame - 1 and frame: a track running forwards."""
+    c = policy.config
+    policy.track.confirm(seq - 1, frame - 1, c.track_memory, c.track_reach)
+    policy.track.confirm(seq, frame, c.track_memory, c.track_reach)
+
+
 def _search(policy, seq, ranking, script, frames=None):
     frames = np.arange(ranking.size) if frames is None else frames
     top = top_places(ranking, policy.config.top_k)
@@ -51,7 +58,7 @@ def test_removed_places_are_never_checked_and_caps_hold():
 
 def test_track_window_comes_first_then_the_reach():
     policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=3, track_reach=3))
-    policy.track.confirm(seq=10, frame=4)  # query 10 matched stored frame 4
+    _moving_forwards(policy, seq=10, frame=4)  # query 10 matched stored frame 4, 9 matched 3
     ranking = np.linspace(0, 1, 20)[::-1].copy()  # place 0 ranks best
     script = Script(passes={9})
     s = _search(policy, 11, ranking, script)
@@ -67,7 +74,7 @@ def test_track_window_comes_first_then_the_reach():
 
 def test_a_same_word_check_gets_only_the_retry_when_the_reach_comes_to_it():
     policy = CandidatePolicy(CandidateConfig(top_k=3, bruteforce_fallback=0, track=1, track_reach=2))
-    policy.track.confirm(seq=10, frame=5)
+    _moving_forwards(policy, seq=10, frame=5)
     ranking = np.zeros(12)
     ranking[7] = 1.0  # FAB-MAP's best is place 7: same-word matching only (no fallback)
     script = Script()
@@ -78,7 +85,7 @@ def test_a_same_word_check_gets_only_the_retry_when_the_reach_comes_to_it():
 
 def test_track_lapses_after_its_memory_and_places_without_keypoints_are_skipped():
     policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=1, track_reach=0))
-    policy.track.confirm(seq=10, frame=4)
+    _moving_forwards(policy, seq=10, frame=4)
     script = Script(empty={0})
     s = _search(policy, 12, np.linspace(1, 0, 8), script)  # lag 2 > memory 1: no track
     assert [c[0] for c in script.calls] == [0] and s.tried == 0 and s.best is None
@@ -91,10 +98,99 @@ def test_the_track_lasts_twice_its_reach_by_default():
     assert config.track_memory == 2 * config.track_reach
     for lag, tracked in ((config.track_memory, True), (config.track_memory + 1, False)):
         policy = CandidatePolicy(CandidateConfig(top_k=1))
-        policy.track.confirm(seq=10, frame=4)
+        _moving_forwards(policy, seq=10, frame=4)
         script = Script()
         _search(policy, 10 + lag, np.linspace(1, 0, 40), script)  # FAB-MAP's best: place 0
         assert (4 + lag in {c[0] for c in script.calls}) is tracked
+
+
+class Graded(Script):
+    """A Script whose passing places have their own log10 NFA (`nfa`: place -> value)."""
+
+    def __init__(self, nfa):
+        super().__init__(passes=set(nfa))
+        self.nfa = nfa
+
+    def __call__(self, pid, bruteforce, retry_only, upright=False):
+        g = super().__call__(pid, bruteforce, retry_only, upright)
+        if g is not None and pid in self.nfa:
+            g.nfa = self.nfa[pid]
+        return g
+
+
+def test_a_track_learns_that_the_revisit_runs_backwards():
+    """Queries 10 and 11 verified to stored frames 8 and 7: a route driven back. Query 12 checks
+    6, 5 and then 7, and the reach around 6 goes on backwards first."""
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=6, track_reach=3))
+    policy.track.confirm(10, 8, 6, 3)
+    assert policy.track.direction == 0  # one match: not known yet
+    policy.track.confirm(11, 7, 6, 3)
+    assert policy.track.direction == -1
+    ranking = np.zeros(20)
+    ranking[15] = 1.0  # FAB-MAP's best: place 15, which fails
+    script = Script()
+    _search(policy, 12, ranking, script)
+    assert [c[0] for c in script.calls] == [6, 5, 7, 15, 4, 8, 3, 9]
+    policy.track.confirm(12, 7, 6, 3)  # the same stored frame again (a robot standing): still backwards
+    assert policy.track.direction == -1 and policy.track.expected(14, 6) == 5
+
+
+def test_a_new_track_checks_both_ways_and_takes_the_more_significant():
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=6, track_reach=0))
+    policy.track.confirm(10, 20, 6, 3)
+    script = Graded({21: -6.0, 19: -40.0})  # ahead passes, but behind is far more significant
+    s = _search(policy, 11, np.zeros(40), script)
+    assert [c[0] for c in script.calls] == [21, 19] and s.verified and s.best_place == 19
+    assert tied_rival(s, np.arange(40), policy.config.margin_log10_nfa) is None
+    policy.track.confirm(11, 19, 6, 3)
+    assert policy.track.direction == -1
+    # Both ways alike: which stored frame it is, is a coin toss, and the query is withheld.
+    fresh = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=6, track_reach=0))
+    fresh.track.confirm(10, 20, 6, 3)
+    s = _search(fresh, 11, np.zeros(40), Graded({21: -10.0, 19: -10.1}))
+    assert s.best_place == 19 and tied_rival(s, np.arange(40), fresh.config.margin_log10_nfa).place == 21
+    # Neither passes: the rest of the window, both ways, then the stored frame itself.
+    script = Script()
+    fresh = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=6, track_reach=0))
+    fresh.track.confirm(10, 20, 6, 3)
+    _search(fresh, 11, np.zeros(40), script)
+    assert [c[0] for c in script.calls][:5] == [21, 19, 22, 18, 20]
+
+
+def test_a_long_gap_or_a_jump_starts_a_track_of_unknown_direction():
+    policy = CandidatePolicy(CandidateConfig(track_memory=6))
+    policy.track.confirm(10, 8, 6, 3)
+    policy.track.confirm(11, 7, 6, 3)
+    policy.track.confirm(20, 40, 6, 3)  # lag 9 > memory: a new track
+    assert policy.track.direction == 0 and policy.track.expected(21, 6) == 41
+    policy.track.confirm(24, 44, 6, 3)  # after a gap within memory, within reach: it goes on forwards
+    assert policy.track.direction == 1
+    policy.track.confirm(25, 20, 6, 3)  # 24 frames from where either way would reach: another place
+    assert policy.track.direction == 0 and policy.track.anchor == 20
+
+
+def test_a_step_back_does_not_turn_the_track_round():
+    """Stored frames that look alike give true matches a frame or two behind the last one: the
+    direction is the side of the track's first match on which a match lies, not the last step."""
+    track = CandidatePolicy(CandidateConfig()).track
+    for seq, frame in ((10, 20), (11, 22), (12, 24), (13, 23), (14, 22)):
+        track.confirm(seq, frame, 6, 3)
+    assert track.direction == 1 and track.anchor == 20
+    for seq, frame in ((15, 20), (16, 19)):  # back past where it began: the revisit runs backwards
+        track.confirm(seq, frame, 6, 3)
+    assert track.direction == -1
+
+
+def test_forwards_only_as_before_the_direction():
+    """track_direction=False: every revisit is expected to run forwards, as logs and maps
+    recorded before the direction was learnt."""
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=6, track_reach=0, track_direction=False))
+    policy.track.confirm(10, 8, 6, 3)
+    policy.track.confirm(11, 7, 6, 3)
+    assert policy.track.direction == 1
+    script = Script()
+    _search(policy, 12, np.linspace(1, 0, 20), script)
+    assert [c[0] for c in script.calls] == [8, 9, 7, 0]
 
 
 def test_islands_follow_a_failed_candidate():

@@ -104,6 +104,43 @@ def test_hostile_states_are_refused(bundle, route):
     del s.arrays["last_used"]
     assert "last_used" in _refused(bundle, s)
     assert "scorer" in _refused(bundle, _copy(good), CONFIGS["bow"])
+    for name, value in (("track_direction", 2), ("track_direction", -2), ("track_direction", True),
+                        ("track_direction", 0.5), ("track_anchor", -2), ("track_anchor", 10**9)):
+        s = _copy(good)
+        s.scalars[name] = value
+        assert name in _refused(bundle, s)
+
+
+def test_the_tracks_direction_survives_a_split_and_an_old_map_learns_it_anew(bundle, route):
+    """A route whose second lap is driven back: split inside it, the run goes on as the whole run,
+    the track running backwards. A map saved before the track had a direction loads (not known yet);
+    a forwards-only detector refuses a state whose track runs backwards."""
+    import dataclasses
+
+    from aefabmap_runtime.core.decide.candidates import CandidateConfig
+
+    back = route[:30] + route[30:][::-1]
+    config = CONFIGS["fabmap-verified-capped"]
+    whole = load_detector(bundle, config)
+    expected = [_public(whole.process(img, i)) for i, img in enumerate(back)]
+    first = load_detector(bundle, config)
+    half = 47  # two verified matches back along the route: the track runs backwards
+    got = [_public(first.process(img, i)) for i, img in enumerate(back[:half])]
+    assert first.policy.track.direction == -1
+    state = _copy(first.state())
+    second = load_detector(bundle, config)
+    second.load_state(_copy(state))
+    got += [_public(second.process(img, i + half)) for i, img in enumerate(back[half:])]
+    assert got == expected
+    old = _copy(state)
+    del old.scalars["track_direction"], old.scalars["track_anchor"]
+    again = load_detector(bundle, config)
+    again.load_state(old)
+    track = again.policy.track
+    assert track.direction == 0 and track.frame == track.anchor == first.policy.track.frame
+    forwards = dataclasses.replace(config, candidates=CandidateConfig(track_direction=False))
+    assert "direction" in _refused(bundle, _copy(state), forwards)
+    load_detector(bundle, forwards).load_state(old)  # an old map ran forwards: it loads
 
 
 def test_a_map_saved_with_a_smaller_verification_budget_loads_and_keeps_working(bundle, route):
