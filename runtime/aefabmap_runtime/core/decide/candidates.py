@@ -269,7 +269,7 @@ class CandidatePolicy:
 
         def tracked(frames: Iterable[int]) -> bool:
             return any(q.attempt_all(_places_of_frame(place_frames, f, stored), "track", c.bruteforce_track)
-                       for f in frames)
+                       for f in frames if f >= 0)  # a track near the map's first frame reaches before it
 
         d, passed = self.track.direction, False
         if tracking and d:
