@@ -157,6 +157,19 @@ def test_a_new_track_checks_both_ways_and_takes_the_more_significant():
     assert [c[0] for c in script.calls][:5] == [21, 19, 22, 18, 20]
 
 
+def test_a_new_track_at_the_maps_first_frame_checks_nothing_before_it():
+    """Place ids 0-9 hold frames -1 ("none") to 8: a track at frame 0 reaches back to frame -1,
+    which names no stored frame, and so no place."""
+    policy = CandidatePolicy(CandidateConfig(top_k=1, track=2, track_memory=6, track_reach=2))
+    policy.track.confirm(10, 0, 6, 2)
+    ranking = np.zeros(10)
+    ranking[9] = 1.0  # FAB-MAP's best: place 9 (frame 8)
+    script = Script()
+    _search(policy, 11, ranking, script, frames=np.arange(-1, 9))
+    # Frames 1, (-1), 2, (-2), 0 of the window; FAB-MAP's place 9; frame 3 of the reach, (-1).
+    assert [c[0] for c in script.calls] == [2, 3, 1, 9, 4]
+
+
 def test_a_long_gap_or_a_jump_starts_a_track_of_unknown_direction():
     policy = CandidatePolicy(CandidateConfig(track_memory=6))
     policy.track.confirm(10, 8, 6, 3)
