@@ -19,12 +19,13 @@ import revisit_sequences as rs  # noqa: E402
 DRIVES = {"0001TP": 9, "Seq05VD": 7}
 
 
-def _camvid(root: Path) -> Path:
-    """Textured frames (ORB finds corners on them) in CamVid's drive_frame naming."""
+def _camvid(root: Path, drives: dict[str, int] = DRIVES) -> Path:
+    """Textured frames (ORB finds corners on them) in CamVid's drive_frame naming, `drives`:
+    {drive: frames}."""
     camvid = root / "train" / "camvid"
     camvid.mkdir(parents=True)
     rng = np.random.default_rng(0)
-    for drive, n in DRIVES.items():
+    for drive, n in drives.items():
         for f in range(n):
             img = cv2.resize(rng.integers(0, 256, (24, 32), dtype=np.uint8), (160, 120), interpolation=cv2.INTER_NEAREST)
             cv2.imwrite(str(camvid / f"{drive}_{f:05d}.png"), img)
@@ -87,16 +88,10 @@ def test_summed_adds_each_key_and_reason():
 
 
 def test_reverse_evaluates_the_sequences_driven_back(tmp_path, synthetic_bundle):
-    camvid = tmp_path / "data" / "train" / "camvid"
-    camvid.mkdir(parents=True)
-    rng = np.random.default_rng(1)
     drives = {"0001TP": 33, "0006R0": 35}  # first passes of 17 and 18 frames: room for the frames between
-    for drive, n in drives.items():
-        for f in range(n):
-            img = cv2.resize(rng.integers(0, 256, (12, 16), dtype=np.uint8), (80, 60), interpolation=cv2.INTER_NEAREST)
-            cv2.imwrite(str(camvid / f"{drive}_{f:05d}.png"), img)
+    data = _camvid(tmp_path / "data", drives)
     out = tmp_path / "r.json"
-    assert re_.main(["--model", str(synthetic_bundle), "--data", str(tmp_path / "data"), "--sequences",
+    assert re_.main(["--model", str(synthetic_bundle), "--data", str(data), "--sequences",
                      str(tmp_path / "seq"), "--step", "2", "--reverse", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["reverse"] is True

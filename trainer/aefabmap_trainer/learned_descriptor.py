@@ -1,12 +1,12 @@
 """Train the learned ORB descriptor (runtime/aefabmap_runtime/core/features/learned_description.py).
 
 Pairs: each training image (outside the test split, multiview.is_test_image) against a copy seen
-through a random homography (match_pairs.random_homography, its range one of WARPS) once at a random synthetic night
-(multiview.night) and once under a random photometric change (multiview.photometric). Keypoints
-are ORB's, detected on both as the runtime detects them for verification (its keypoint budget,
-VerificationConfig.keypoints, when above the vocabulary's); a pair is two keypoints that land within
-MATCH_RADIUS detection pixels of each other through the homography, each the other's nearest, on
-pyramid levels at most one apart. Both patches are read as the runtime reads them, orientation
+through a random homography (match_pairs.random_homography, its range one of WARPS) once at a
+random synthetic night (multiview.night) and once under a random photometric change
+(multiview.photometric). Keypoints are ORB's, detected on both as the runtime detects them for
+verification (its keypoint budget, VerificationConfig.keypoints, when above the vocabulary's); a
+pair is two keypoints that land within MATCH_RADIUS detection pixels of each other through the
+homography, each the other's nearest, on pyramid levels at most one apart. Both patches are read as the runtime reads them, orientation
 and level as detected, so the pairs carry the detector's own errors.
 
 Objective: for a batch of pairs, the bits relaxed to tanh of the projection of the normalised
@@ -49,9 +49,9 @@ CONTRAST_FLOOR = 4.0
 #: normalisation leaves of a viewpoint change: half a pyramid step of scale either way (ORB's levels
 #: are 1.2 apart), a few degrees of orientation error and a little perspective, so the bits learn
 #: the light across those small changes and keep ORB's selectivity for the rest of the geometry,
-#: which the pyramid, the orientation and the upright retry handle. "wide": rotations of 20 degrees, scales of 0.75-1.25 and 15 % corner
-#: jitter, invariance that also makes look-alike structures agree (docs/results.md, "A learned
-#: descriptor").
+#: which the pyramid, the orientation and the upright retry handle. "wide": rotations of 20
+#: degrees, scales of 0.75-1.25 and 15 % corner jitter, invariance that also makes look-alike
+#: structures agree (docs/results.md, "A learned descriptor").
 WARPS = {
     "residual": {"max_angle_deg": 5.0, "scale_range": (0.9, 1.1), "max_perspective": 0.03},
     "wide": {"max_angle_deg": 20.0, "scale_range": (0.75, 1.25), "max_perspective": 0.15},
