@@ -106,6 +106,7 @@ class FleetNode(MapListener):
         self._epochs: deque[tuple[str, int]] = deque()  # (robot, epoch) its own session answered
         self._epoch_asked: set[str] = set()  # robots whose epoch is being asked
         self._returned: deque[str] = deque()  # robots whose token appeared, to catch up with
+        self._ask_all: set[str] = set()  # restarted robots: their catch-up asks for every place
         self._replied: dict[str, list[int]] = {}  # asker -> [keypoint replies, bytes] (Zenoh threads write)
         self.out = FleetStats(fleet=config.name, robot=config.robot)
         self._drops = 0  # summaries too large or beyond the inbox, not yet counted by the frame thread
@@ -273,14 +274,16 @@ class FleetNode(MapListener):
 
     def catch_up(self) -> list[str]:
         """Ask each robot whose token appeared since the last call for its summaries after the
-        latest frame it offered; the replies reach the inbox later (nothing waits). Returns the
-        robots asked."""
+        latest frame it offered (a robot that restarted with a new map: all of them); the replies
+        reach the inbox later (nothing waits). Returns the robots asked."""
         asked: list[str] = []
         while self._returned:
             robot = self._returned.popleft()
             if robot in asked or not TOKEN_PATTERN.fullmatch(robot):  # a key a peer chose
                 continue
-            after = self.map.last_frame(robot)
+            # A restarted robot's places from before its new epoch was confirmed were refused, and
+            # those taken since may be later ones: ask for all, what is held already is skipped.
+            after = -1 if robot in self._ask_all else self.map.last_frame(robot)
             try:
                 self.session.get(f"{fleet_key(self.config.name, robot, 'summaries')}?after={after}",
                                  lambda reply, robot=robot: self._on_catch_up_reply(reply, robot),
@@ -289,6 +292,7 @@ class FleetNode(MapListener):
                 log.debug("catch-up with %s not asked: %s", robot, str(exc)[:200])
                 continue
             asked.append(robot)
+            self._ask_all.discard(robot)
             log.info("fleet %s: robot %s is reachable; asking for its places after frame %d",
                      self.config.name, robot, after)
         return asked
@@ -454,6 +458,7 @@ class FleetNode(MapListener):
             robot = self.map.restarted.pop()
             log.info("fleet %s: robot %s restarted with a new map; its earlier places are forgotten",
                      self.config.name, robot)
+            self._ask_all.add(robot)
             self._returned.append(robot)
 
     def _serve_stored(self) -> None:

@@ -288,6 +288,38 @@ def test_replay_fleet_option_errors_are_one_line(tmp_path, route, extra, words, 
     assert len(errors) == 1 and words in errors[0]
 
 
+def test_a_restarted_robots_place_refused_before_its_epoch_was_confirmed_is_asked_for_again(hub, route):
+    """The restarted robot's first place arrives before its new epoch is confirmed (refused, not
+    believed by itself), its second after: the catch-up that follows the restart asks for all its
+    places, not for those after the second, so the first is not lost."""
+    from aefabmap.cli.demo import default_bundle
+
+    sa, a = _robot(hub, "a")
+    sb, b = _robot(hub, "b")
+    blank = np.zeros((480, 640), np.uint8)
+    try:
+        assert _until(lambda: b.robots_alive() == ["a"])
+        _feed(a, route[:4])  # frames 0-2 stored
+        assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 3)
+        a.close(), sa.close()
+        sa = _peer(hub)
+        fresh = load_detector(default_bundle(), DetectorConfig(exclude=1))  # no --state: a new epoch
+        a = FleetNode(sa, fresh, FleetConfig(name="test", robot="a"))
+        assert _until(lambda: b.robots_alive() == ["a"])
+        _feed(a, route[4:6])  # its frame 0 stored and published
+        def refused() -> int:
+            return b.map.robots["a"].stats.refused.get("unconfirmed_epoch", 0)
+
+        assert _until(lambda: (b.detector.process(blank, 0), refused())[1] >= 1)  # and a's epoch asked
+        _feed(a, route[6:7])  # its frame 1 stored and published
+        assert _until(lambda: len(b._inbox) >= 1 and len(b._epochs) >= 1)  # both wait for b's next frame
+        b.detector.process(blank, 0)  # the epoch confirmed, frame 1 taken, then the catch-up asked
+        assert b.map.epoch("a") == fresh.map_epoch
+        assert _until(lambda: (b.detector.process(blank, 0), sorted(b.map.robots["a"].place_of))[1] == [0, 1])
+    finally:
+        a.close(), sa.close(), b.close(), sb.close()
+
+
 def test_askers_named_by_keypoint_queries_are_checked_and_bounded(hub, route):
     sa, a = _robot(hub, "a", max_robots=3)
     peer = _peer(hub)
