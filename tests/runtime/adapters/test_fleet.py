@@ -307,6 +307,7 @@ def test_a_restarted_robots_place_refused_before_its_epoch_was_confirmed_is_aske
         a = FleetNode(sa, fresh, FleetConfig(name="test", robot="a"))
         assert _until(lambda: b.robots_alive() == ["a"])
         _feed(a, route[4:6])  # its frame 0 stored and published
+
         def refused() -> int:
             return b.map.robots["a"].stats.refused.get("unconfirmed_epoch", 0)
 
