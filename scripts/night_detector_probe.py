@@ -157,8 +157,10 @@ def train(images: list[Path], widths: tuple[int, int, int], stable: int, steps: 
     """CornerNet trained on `images` (module docstring), seeded by `seed`."""
     rng = np.random.default_rng(seed)
     torch.manual_seed(seed)
-    grays = [load_level(p) for p in tqdm(images, desc="labels", disable=not show_progress, mininterval=1.0)]
-    labels = [label_map(g, stable, rng) for g in grays]
+    grays, labels = [], []
+    for path in tqdm(images, desc="labels", disable=not show_progress, mininterval=1.0):
+        grays.append(load_level(path))
+        labels.append(label_map(grays[-1], stable, rng))
     crop = min(CROP, *(min(g.shape) for g in grays)) // 4 * 4
     net = CornerNet(widths)
     optimiser = torch.optim.Adam(net.parameters(), LEARNING_RATE)
