@@ -79,6 +79,22 @@ def train_images(shared_data) -> list[Path]:
     return sorted((shared_data / "train" / "camvid").glob("*.jpg"))
 
 
+def rectangles_image(seed: int, shape_hw: tuple[int, int] = (240, 320), count: int = 60):
+    """(H, W) uint8: `count` filled rectangles (sides 8-39 px, random grey levels) on mid-grey,
+    seeded by `seed`: corners for a detector to find."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    h, w = shape_hw
+    image = np.full((h, w), 128, np.uint8)
+    for _ in range(count):
+        x, y = rng.integers(0, w - 20), rng.integers(0, h - 20)
+        cv2.rectangle(image, (int(x), int(y)), (int(x + rng.integers(8, 40)), int(y + rng.integers(8, 40))),
+                      int(rng.integers(0, 256)), -1)
+    return image
+
+
 def make_synthetic_bundle(out: Path, vocabulary_size: int = 64, kind: str = "orb", seed: int = 0) -> Path:
     """A small valid k-means bundle from generated arrays (no training data needed)."""
     import numpy as np

@@ -11,20 +11,11 @@ import numpy as np
 import pytest
 
 from aefabmap_trainer.multiview import is_test_image
+from tests.conftest import rectangles_image
 
 pytest.importorskip("torch")
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import night_detector_probe as probe  # noqa: E402
-
-
-def _textured(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    image = np.full((192, 256), 128, np.uint8)
-    for _ in range(60):
-        x, y = rng.integers(0, 236), rng.integers(0, 172)
-        cv2.rectangle(image, (int(x), int(y)), (int(x + rng.integers(8, 40)), int(y + rng.integers(8, 40))),
-                      int(rng.integers(0, 256)), -1)
-    return image
 
 
 def _data(root: Path) -> Path:
@@ -34,7 +25,7 @@ def _data(root: Path) -> Path:
     test = [n for n in names if is_test_image(Path(n))][:2]
     training = [n for n in names if not is_test_image(Path(n))][:4]
     for k, name in enumerate(test + training):
-        cv2.imwrite(str(camvid / name), _textured(k))
+        cv2.imwrite(str(camvid / name), rectangles_image(k, (192, 256)))
     return root / "data"
 
 
@@ -46,7 +37,7 @@ def test_a_corner_repeats_within_two_pixels():
 
 
 def test_stable_labels_keep_only_corners_the_nights_leave(tmp_path):
-    cv2.imwrite(str(tmp_path / "frame.jpg"), _textured(7))
+    cv2.imwrite(str(tmp_path / "frame.jpg"), rectangles_image(7, (192, 256)))
     gray = probe.load_level(tmp_path / "frame.jpg")
     every = probe.label_map(gray, 0, np.random.default_rng(0))
     stable = probe.label_map(gray, probe.LABEL_NIGHTS, np.random.default_rng(0))

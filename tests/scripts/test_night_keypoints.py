@@ -12,7 +12,7 @@ import numpy as np
 from aefabmap_runtime.adapters.bundle_reader import load_detector
 from aefabmap_runtime.core.features.features import Features
 from aefabmap_trainer.multiview import is_test_image
-from tests.conftest import make_synthetic_bundle
+from tests.conftest import make_synthetic_bundle, rectangles_image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 import night_keypoints as nk  # noqa: E402
@@ -36,16 +36,6 @@ def test_a_match_counts_only_when_the_matcher_pairs_the_repeated_partner():
     assert nk.matched(partner, pairs).tolist() == [True, False, False, True]
 
 
-def _textured(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    image = np.full((240, 320), 128, np.uint8)
-    for _ in range(60):
-        x, y = rng.integers(0, 300), rng.integers(0, 220)
-        cv2.rectangle(image, (int(x), int(y)), (int(x + rng.integers(8, 40)), int(y + rng.integers(8, 40))),
-                      int(rng.integers(0, 256)), -1)
-    return image
-
-
 def test_the_night_takes_more_keypoints_than_day_noise(tmp_path):
     camvid = tmp_path / "data" / "train" / "camvid"
     camvid.mkdir(parents=True)
@@ -53,7 +43,7 @@ def test_the_night_takes_more_keypoints_than_day_noise(tmp_path):
     names = [n for n in candidates if is_test_image(Path(n))][:3]
     outside = next(n for n in candidates if not is_test_image(Path(n)))  # left out: a training image
     for k, name in enumerate([*names, outside]):
-        cv2.imwrite(str(camvid / name), _textured(k))
+        cv2.imwrite(str(camvid / name), rectangles_image(k))
     assert nk.test_split(tmp_path / "data", 10) == sorted(camvid / n for n in names)
 
     bundle = make_synthetic_bundle(tmp_path / "bundle")

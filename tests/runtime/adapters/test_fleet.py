@@ -292,8 +292,6 @@ def test_a_restarted_robots_place_refused_before_its_epoch_was_confirmed_is_aske
     """The restarted robot's first place arrives before its new epoch is confirmed (refused, not
     believed by itself), its second after: the catch-up that follows the restart asks for all its
     places, not for those after the second, so the first is not lost."""
-    from aefabmap.cli.demo import default_bundle
-
     sa, a = _robot(hub, "a")
     sb, b = _robot(hub, "b")
     blank = np.zeros((480, 640), np.uint8)
@@ -302,9 +300,8 @@ def test_a_restarted_robots_place_refused_before_its_epoch_was_confirmed_is_aske
         _feed(a, route[:4])  # frames 0-2 stored
         assert _until(lambda: (b.detector.process(blank, 0), b.map.n_places)[1] == 3)
         a.close(), sa.close()
-        sa = _peer(hub)
-        fresh = load_detector(default_bundle(), DetectorConfig(exclude=1))  # no --state: a new epoch
-        a = FleetNode(sa, fresh, FleetConfig(name="test", robot="a"))
+        sa, a = _robot(hub, "a")  # no --state: a new epoch
+        fresh = a.detector
         assert _until(lambda: b.robots_alive() == ["a"])
         _feed(a, route[4:6])  # its frame 0 stored and published
 
@@ -340,8 +337,6 @@ def test_askers_named_by_keypoint_queries_are_checked_and_bounded(hub, route):
 def test_a_robot_restarted_without_its_map_is_forgotten_and_read_again(hub, route):
     """Frame numbers of a robot restarted without its state mean other places: the others drop
     what they held of it (keypoints cached included) and take its new places."""
-    from aefabmap.cli.demo import default_bundle
-
     sa, a = _robot(hub, "a")
     sb, b = _robot(hub, "b")
     blank = np.zeros((480, 640), np.uint8)
@@ -352,9 +347,8 @@ def test_a_robot_restarted_without_its_map_is_forgotten_and_read_again(hub, rout
         assert b.detector.process(route[3], 0).verified_frame in (2, 3, 4)  # fetched and cached
         old_epoch = b.map.epoch("a")
         a.close(), sa.close()
-        sa = _peer(hub)
-        fresh = load_detector(default_bundle(), DetectorConfig(exclude=1))  # no --state
-        a = FleetNode(sa, fresh, FleetConfig(name="test", robot="a"))
+        sa, a = _robot(hub, "a")  # no --state
+        fresh = a.detector
         _feed(a, route[6:9])  # its frames 0-1 are route 6-7 now
         assert _until(lambda: (b.detector.process(blank, 0), b.map.epoch("a"))[1] == fresh.map_epoch)
         assert _until(lambda: (b.detector.process(blank, 0), sorted(b.map.robots["a"].place_of))[1] == [0, 1])
