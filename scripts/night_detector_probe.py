@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from torch import nn
 from tqdm import tqdm
 
-from aefabmap_runtime.core.features.features import stretch_contrast
+from aefabmap_runtime.core.features.features import detection_scale, stretch_contrast
 from aefabmap_runtime.errors import AefabmapError
 from aefabmap_trainer.multiview import NIGHT, darken, is_test_image
 
@@ -76,13 +76,12 @@ CONDITIONS = {
 
 
 def load_level(path: Path) -> np.ndarray:
-    """A training image as grey levels (H, W) uint8, its long side at LONG_SIDE."""
+    """A training image as grey levels (H, W) uint8, resized as the runtime resizes a frame to a
+    LONG_SIDE detection scale."""
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if gray is None:
         raise AefabmapError(f"cannot read image {path}")
-    scale = LONG_SIDE / max(gray.shape)
-    size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
-    return cv2.resize(gray, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+    return detection_scale(gray, LONG_SIDE)[0]
 
 
 def orb_corners(level: np.ndarray, count: int = KEYPOINTS) -> np.ndarray:

@@ -286,18 +286,7 @@ class FeatureExtractor:
         if problem is not None:
             raise InputError(problem)
         gray = to_gray(image)
-        scale = 1.0
-        work = gray
-        if self.config.long_side is not None:
-            scale = self.config.long_side / max(gray.shape)
-            if abs(scale - 1.0) > 1e-6:
-                # Upsampling by OpenCV's bit-exact bilinear: its plain INTER_LINEAR rounds
-                # differently on x86 and ARM, so a board would detect other keypoints than the
-                # machine its settings were measured on (docs/results.md, "The board's arithmetic").
-                interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR_EXACT
-                size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
-                work = cv2.resize(gray, size, interpolation=interp)
-                scale = size[0] / gray.shape[1]
+        work, scale = detection_scale(gray, self.config.long_side)
         if self.config.contrast_stretch:
             work = stretch_contrast(work)
         if self._clahe is not None:
@@ -377,6 +366,22 @@ class FeatureExtractor:
 #: nearly uniform frame, a lens cap or fog, is not blown up into noise).
 STRETCH_PERCENTILE = 1.0
 MAX_STRETCH_GAIN = 8.0
+
+
+def detection_scale(gray: np.ndarray, long_side: int | None) -> tuple[np.ndarray, float]:
+    """(work, scale): gray (H, W) uint8 resized so that its long side is `long_side` px (None:
+    as it is), and the factor applied to x (1.0 when unchanged)."""
+    if long_side is None:
+        return gray, 1.0
+    scale = long_side / max(gray.shape)
+    if abs(scale - 1.0) <= 1e-6:
+        return gray, 1.0
+    # Upsampling by OpenCV's bit-exact bilinear: its plain INTER_LINEAR rounds differently on x86
+    # and ARM, so a board would detect other keypoints than the machine its settings were
+    # measured on (docs/results.md, "The board's arithmetic").
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR_EXACT
+    size = (max(1, round(gray.shape[1] * scale)), max(1, round(gray.shape[0] * scale)))
+    return cv2.resize(gray, size, interpolation=interp), size[0] / gray.shape[1]
 
 
 def stretch_contrast(gray: np.ndarray) -> np.ndarray:
